@@ -1,0 +1,8 @@
+"""`python -m liver_p2p_reg` runs the `liver-p2p` command line."""
+
+import sys
+
+from .cli import main
+
+if __name__ == "__main__":
+    sys.exit(main())

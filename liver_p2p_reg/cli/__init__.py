@@ -1,0 +1,70 @@
+"""The `liver-p2p` command line: dispatches to one module per subcommand."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from .. import __version__
+from ..errors import LiverP2PError
+
+# Each module defines `add_parser(subparsers)` and sets `func(args) -> int` on its parser.
+_SUBCOMMAND_MODULES = (
+    "register_cmd",
+    "dataset_cmd",
+    "train_cmd",
+    "benchmark_cmd",
+    "bag_cmd",
+    "replay_cmd",
+    "config_cmd",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser (also used to generate documentation)."""
+    parser = argparse.ArgumentParser(
+        prog="liver-p2p",
+        description="Automatic complete-to-partial rigid registration of liver surfaces (P2P).",
+    )
+    parser.add_argument("--version", action="version", version=f"liver-p2p {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks for unexpected errors")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only print errors")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _SUBCOMMAND_MODULES:
+        try:
+            module = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+            continue  # subcommand not part of this build
+        module.add_parser(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the process exit status (0 ok, 1 internal error, 2 bad input)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.ERROR if args.quiet else logging.INFO,
+        format="liver-p2p: %(levelname)s: %(message)s",
+        stream=sys.stderr,
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except LiverP2PError as exc:
+        print(f"liver-p2p: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("liver-p2p: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # never a raw traceback for users; --debug shows it
+        if args.debug:
+            raise
+        print(f"liver-p2p: internal error: {type(exc).__name__}: {exc} (rerun with --debug)", file=sys.stderr)
+        return 1

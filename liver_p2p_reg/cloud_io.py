@@ -1,0 +1,147 @@
+"""Read and write point clouds and meshes (PLY/PCD/XYZ/STL/OBJ/NPY/NPZ) in millimetres."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+LOG = logging.getLogger("liver_p2p_reg")
+
+POINT_FORMATS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".stl", ".obj", ".off", ".npy", ".npz", ".vtk")
+MESH_FORMATS = (".stl", ".obj", ".off", ".ply", ".vtk")
+# NPZ keys tried in order when the caller names none (public P2P dataset names first).
+NPZ_POINT_KEYS = ("points", "src_pcd", "tgt_pcd", "xyz", "vertices")
+MESH_SAMPLES_PER_MM2 = 0.5  # surface sampling density for meshes (about 1.4 mm spacing)
+MAX_MESH_SAMPLES = 200_000
+
+
+def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> np.ndarray:
+    """Load an (N, 3) float64 array in mm from a cloud or mesh file.
+
+    Meshes (files with triangles) are sampled uniformly over their surface, together with
+    their vertices, so coarse meshes still give a dense surface. Raises InputError.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"file not found: {path}")
+    if path.is_dir():
+        raise InputError(f"expected a file, got a directory: {path}")
+    suffix = path.suffix.lower()
+    if suffix not in POINT_FORMATS:
+        raise InputError(f"unsupported format {suffix or '(none)'!r} for {path}; use one of {', '.join(POINT_FORMATS)}")
+    try:
+        if suffix in (".npy", ".npz"):
+            points = _load_numpy(path, key)
+        elif suffix in (".xyz", ".xyzn", ".pts"):
+            points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments=("#", "//"))[:, :3]
+        else:
+            vertices, triangles = load_mesh(path)
+            points = vertices if len(triangles) == 0 else sample_mesh_surface(vertices, triangles, seed=seed)
+    except InputError:
+        raise
+    except Exception as exc:  # any parser failure becomes one readable line
+        raise InputError(
+            f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+        ) from None
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise InputError(f"{path}: expected an (N, 3) array of points, got shape {points.shape}")
+    return points[:, :3]
+
+
+def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Load vertices (V, 3) and triangles (F, 3) with Open3D; a point-cloud file gives F = 0."""
+    import open3d as o3d  # heavy import, only when reading such files
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if not path.exists():
+        raise InputError(f"file not found: {path}")
+    if suffix in MESH_FORMATS:
+        mesh = o3d.io.read_triangle_mesh(str(path))
+        if len(mesh.triangles) > 0:
+            return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.triangles, dtype=np.int64)
+        if len(mesh.vertices) > 0:
+            return np.asarray(mesh.vertices, dtype=np.float64), np.zeros((0, 3), np.int64)
+    if suffix in (".ply", ".pcd", ".xyz", ".pts"):
+        cloud = o3d.io.read_point_cloud(str(path))
+        if len(cloud.points) > 0:
+            return np.asarray(cloud.points, dtype=np.float64), np.zeros((0, 3), np.int64)
+    raise InputError(f"cannot read {path}: no points found (empty or unreadable {suffix} file)")
+
+
+def sample_mesh_surface(vertices: np.ndarray, triangles: np.ndarray, *, seed: int = 0) -> np.ndarray:
+    """Area-uniform, deterministic surface samples plus the vertices (mm)."""
+    tri = vertices[triangles]  # (F, 3, 3)
+    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    total = float(areas.sum())
+    if not np.isfinite(total) or total <= 0:
+        return vertices
+    n = int(min(MAX_MESH_SAMPLES, max(1000, total * MESH_SAMPLES_PER_MM2)))
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(tri), size=n, p=areas / total)
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1  # fold the unit square onto the triangle
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    t = tri[face]
+    samples = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+    return np.concatenate([vertices, samples], axis=0)
+
+
+def clean_points(points: np.ndarray, name: str, *, min_points: int = 3) -> np.ndarray:
+    """Drop NaN/inf rows (with a warning); raise InputError if too few points remain."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"{name}: expected an (N, 3) array of points, got shape {points.shape}")
+    if len(points) == 0:
+        raise InputError(f"{name}: the point cloud is empty")
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        dropped = int((~finite).sum())
+        if dropped == len(points):
+            raise InputError(f"{name}: all {dropped} points are NaN or infinite")
+        LOG.warning("%s: dropped %d of %d points with NaN/inf coordinates", name, dropped, len(points))
+        points = points[finite]
+    if len(points) < min_points:
+        raise InputError(f"{name}: only {len(points)} valid points, at least {min_points} are needed")
+    return points
+
+
+def save_points(path: str | Path, points: np.ndarray) -> None:
+    """Write (N, 3) points to PLY/PCD/XYZ/NPY by extension."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    points = np.asarray(points, dtype=np.float64)
+    if suffix == ".npy":
+        np.save(path, points)
+    elif suffix in (".xyz", ".pts"):
+        np.savetxt(path, points, fmt="%.6f")
+    elif suffix in (".ply", ".pcd"):
+        import open3d as o3d
+
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        if not o3d.io.write_point_cloud(str(path), cloud):
+            raise InputError(f"cannot write {path}")
+    else:
+        raise InputError(f"cannot write format {suffix!r}; use .ply, .pcd, .xyz or .npy")
+
+
+def _load_numpy(path: Path, key: str | None) -> np.ndarray:
+    if path.suffix.lower() == ".npy":
+        return np.load(path, allow_pickle=False)
+    with np.load(path, allow_pickle=False) as data:
+        if key is not None:
+            if key not in data:
+                raise InputError(f"{path}: no array named {key!r} (has: {', '.join(data.files)})")
+            return data[key]
+        for candidate in NPZ_POINT_KEYS:
+            if candidate in data:
+                return data[candidate]
+        for name in data.files:
+            if data[name].ndim == 2 and data[name].shape[1] == 3:
+                return data[name]
+    raise InputError(f"{path}: no (N, 3) array found")

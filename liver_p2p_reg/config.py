@@ -1,0 +1,166 @@
+"""The one typed configuration object shared by the CLI, bag replay and ROS nodes.
+
+Defaults live here and only here. `config/registration.yaml` (the ROS parameter file) is
+generated from these defaults with `liver-p2p config --ros` and a test checks that it matches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import InputError
+
+# Choices validated in `Config.validate`; kept here so the CLI can list them in --help.
+SELECTION_RULES = ("closest-point", "inlier-count")
+NODE_MODES = ("continuous", "once", "on_demand")
+DEVICES = ("cpu", "cuda")
+
+
+@dataclass
+class Config:
+    """Every tunable of the registration pipeline and of the node logic, with defaults."""
+
+    # --- registration pipeline -------------------------------------------------------
+    method: str = "fpfh-p2p"
+    k: int = 5  # number of P2P patch candidates
+    voxel_size_norm: float = 0.04  # voxel edge in normalized (unit-sphere) units
+    temperature: float = 0.1  # dual-softmax temperature applied to the score matrix
+    confidence_threshold: float = 0.0  # minimum dual-softmax confidence of a kept match
+    selection: str = "closest-point"  # P2P candidate selection rule
+    inlier_radius_norm: float = 0.05  # tau of the inlier-count rule (normalized units)
+    candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
+    fpfh_radius_norm: float = 0.25  # FPFH feature radius (normalized units)
+    normal_radius_norm: float = 0.1  # normal estimation radius (normalized units)
+    ransac_max_corr_norm: float = 0.05  # FPFH+RANSAC max correspondence distance (paper)
+    ransac_max_iterations: int = 100000
+    ransac_confidence: float = 0.999
+    icp_max_iterations: int = 50
+    icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
+    icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
+    weights_path: str = ""  # empty: the weights bundled with the package
+    device: str = "cpu"
+    num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    seed: int = 0
+
+    # --- node logic (register_node, bag replay) ------------------------------------
+    mode: str = "continuous"
+    max_rate_hz: float = 2.0  # continuous mode: at most this many registrations per s
+    min_points: int = 100  # fewer valid intraop points than this is an error
+    max_input_points: int = 2_000_000  # larger clouds are voxelized before anything else
+    residual_warn_mm: float = 4.0  # mean closest-point residual above this -> WARN
+    ambiguity_residual_ratio: float = 1.15  # runner-up residual within this factor ...
+    ambiguity_pose_mm: float = 15.0  # ... and pose differing by this much -> ambiguous
+    expected_extent_min_mm: float = 20.0  # clouds smaller than this look like wrong units
+    expected_extent_max_mm: float = 600.0  # clouds larger than this look like wrong units
+
+    def validate(self) -> Config:
+        """Check ranges and choices; raise InputError with a one-line message if bad."""
+        if self.k < 1:
+            raise InputError(f"k must be >= 1, got {self.k}")
+        if not self.voxel_size_norm > 0:
+            raise InputError(f"voxel_size_norm must be > 0, got {self.voxel_size_norm}")
+        if not self.temperature > 0:
+            raise InputError(f"temperature must be > 0, got {self.temperature}")
+        if self.selection not in SELECTION_RULES:
+            raise InputError(f"selection must be one of {SELECTION_RULES}, got {self.selection!r}")
+        if self.mode not in NODE_MODES:
+            raise InputError(f"mode must be one of {NODE_MODES}, got {self.mode!r}")
+        if self.device not in DEVICES:
+            raise InputError(f"device must be one of {DEVICES}, got {self.device!r}")
+        if self.min_points < 3:
+            raise InputError(f"min_points must be >= 3, got {self.min_points}")
+        if not 0 < self.icp_trim_ratio <= 1:
+            raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
+        if not self.max_rate_hz > 0:
+            raise InputError(f"max_rate_hz must be > 0, got {self.max_rate_hz}")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of all fields (YAML/JSON/ROS-parameter friendly)."""
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes: Any) -> Config:
+        """Copy with some fields changed (unknown names and bad types are errors)."""
+        return Config.from_dict({**self.to_dict(), **changes})
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> Config:
+        """Build from a mapping, coercing ints to floats where needed; validate."""
+        known = {f.name: f for f in fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for name, value in values.items():
+            if name not in known:
+                raise InputError(f"unknown configuration key {name!r}")
+            default = getattr(cls(), name)
+            kwargs[name] = _coerce(name, value, type(default))
+        return cls(**kwargs).validate()
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> Config:
+        """Load a plain mapping or a ROS 2 parameter file (`<node>: ros__parameters: ...`)."""
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except OSError as exc:
+            raise InputError(f"cannot read config {path}: {exc.strerror or exc}") from None
+        except yaml.YAMLError as exc:
+            raise InputError(f"config {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        if not isinstance(data, dict):
+            raise InputError(f"config {path} must be a mapping")
+        return cls.from_dict(_flatten_ros_params(data))
+
+    def to_ros_yaml(self) -> str:
+        """The ROS 2 parameter file text for both nodes (wildcard node name)."""
+        header = (
+            "# Generated by `liver-p2p config --ros` from liver_p2p_reg/config.py; do not edit by hand.\n"
+            "# Parameters of register_node (ROS 2 parameter-file format). Units: *_mm millimetres,\n"
+            "# *_norm normalized units (source scaled into the unit sphere), *_hz hertz.\n"
+        )
+        body = yaml.safe_dump({"/**": {"ros__parameters": self.to_dict()}}, sort_keys=False)
+        return header + body
+
+
+def _flatten_ros_params(data: dict[str, Any]) -> dict[str, Any]:
+    """Accept `{node: {ros__parameters: {...}}}` as well as a plain mapping."""
+    for value in data.values():
+        if isinstance(value, dict) and "ros__parameters" in value:
+            merged: dict[str, Any] = {}
+            for node_block in data.values():
+                if isinstance(node_block, dict):
+                    merged.update(node_block.get("ros__parameters", {}))
+            return merged
+    return data
+
+
+def _coerce(name: str, value: Any, kind: type) -> Any:
+    """Coerce a YAML/CLI/ROS value to the field's type with a clear error."""
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false"):
+            return value.lower() == "true"
+        raise InputError(f"{name} must be true or false, got {value!r}")
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, (int, str)):
+            raise InputError(f"{name} must be an integer, got {value!r}")
+        try:
+            return int(value)
+        except ValueError:
+            raise InputError(f"{name} must be an integer, got {value!r}") from None
+    if kind is float:
+        if isinstance(value, bool):
+            raise InputError(f"{name} must be a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{name} must be a number, got {value!r}") from None
+    if kind is str:
+        if value is None:
+            return ""
+        return str(value)
+    return value

@@ -1,0 +1,145 @@
+"""The public registration API: `Registrar(config).register(source_mm, target_mm)`.
+
+The CLI, the benchmark, bag replay and the ROS node all call this and nothing else.
+Methods register themselves by name with `@method("name")` in their own modules.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .cloud_io import clean_points
+from .config import Config
+from .errors import InputError
+from .metrics import rms_tre_mm, transform_points, tre_mm
+from .result import RegistrationResult
+
+
+@dataclass
+class MethodContext:
+    """What a method may use besides the two clouds: ground truth (oracle) and a cache."""
+
+    source_fiducials_mm: np.ndarray | None = None
+    target_fiducials_mm: np.ndarray | None = None
+    # Lives as long as the Registrar: methods keep loaded models / source features here.
+    cache: dict[str, Any] = field(default_factory=dict)
+
+
+MethodFn = Callable[[np.ndarray, np.ndarray, Config, MethodContext], RegistrationResult]
+_REGISTRY: dict[str, MethodFn] = {}
+# Modules that define methods; imported on first use so `import liver_p2p_reg` stays light.
+_METHOD_MODULES = ("liver_p2p_reg.pipelines", "liver_p2p_reg.learned.pipeline")
+_loaded = False
+
+
+def method(name: str) -> Callable[[MethodFn], MethodFn]:
+    """Decorator registering a registration method under `name`."""
+
+    def wrap(fn: MethodFn) -> MethodFn:
+        _REGISTRY[name] = fn
+        return fn
+
+    return wrap
+
+
+def _load_methods() -> None:
+    global _loaded
+    if _loaded:
+        return
+    for module in _METHOD_MODULES:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            if exc.name != module:  # a real missing dependency, not an absent module
+                raise
+    _loaded = True
+
+
+def available_methods() -> list[str]:
+    """Names of all registered methods."""
+    _load_methods()
+    return sorted(_REGISTRY)
+
+
+def get_method(name: str) -> MethodFn:
+    """Look a method up by name; unknown names raise InputError listing the choices."""
+    _load_methods()
+    if name not in _REGISTRY:
+        raise InputError(f"unknown method {name!r}; choose one of: {', '.join(sorted(_REGISTRY))}")
+    return _REGISTRY[name]
+
+
+class Registrar:
+    """Registers complete preoperative surfaces to partial intraoperative ones (mm in, mm out)."""
+
+    def __init__(self, config: Config | None = None, **overrides: Any) -> None:
+        config = config or Config()
+        self.config = config.replace(**overrides) if overrides else config.validate()
+        self.cache: dict[str, Any] = {}
+
+    def register(
+        self,
+        source_mm: np.ndarray,
+        target_mm: np.ndarray,
+        *,
+        method: str | None = None,
+        source_fiducials_mm: np.ndarray | None = None,
+        target_fiducials_mm: np.ndarray | None = None,
+    ) -> RegistrationResult:
+        """Estimate T_target_source (4x4, mm). Raises InputError / RegistrationError."""
+        start = time.perf_counter()
+        name = method or self.config.method
+        fn = get_method(name)
+        source = clean_points(source_mm, "source", min_points=self.config.min_points)
+        target = clean_points(target_mm, "target", min_points=self.config.min_points)
+        fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
+        ctx = MethodContext(fid_s, fid_t, self.cache)
+        result = fn(source, target, self.config, ctx)
+        result.method = name
+        result.ambiguous = result.ambiguous or is_ambiguous(result, source, self.config)
+        if fid_s is not None and fid_t is not None:
+            result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
+            result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
+        result.runtime_ms["total"] = (time.perf_counter() - start) * 1e3
+        return result
+
+
+def register(
+    source_mm: np.ndarray, target_mm: np.ndarray, method: str | None = None, **kwargs: Any
+) -> RegistrationResult:
+    """One-call convenience: `register(source_mm, target_mm, method="fpfh-p2p", k=5)`."""
+    fiducials = {k: kwargs.pop(k) for k in ("source_fiducials_mm", "target_fiducials_mm") if k in kwargs}
+    return Registrar(**kwargs).register(source_mm, target_mm, method=method, **fiducials)
+
+
+def is_ambiguous(result: RegistrationResult, source_mm: np.ndarray, config: Config) -> bool:
+    """True when the runner-up candidate fits almost as well with a clearly different pose."""
+    ok = sorted((c for c in result.candidates if c.ok and np.isfinite(c.residual_mm)), key=lambda c: c.residual_mm)
+    if len(ok) < 2:
+        return False
+    best, second = ok[0], ok[1]
+    if second.residual_mm > config.ambiguity_residual_ratio * max(best.residual_mm, 1e-6):
+        return False
+    sample = source_mm[:: max(1, len(source_mm) // 500)]
+    moved_a = transform_points(best.T_target_source, sample)
+    moved_b = transform_points(second.T_target_source, sample)
+    pose_gap_mm = float(np.sqrt(np.mean(np.sum((moved_a - moved_b) ** 2, axis=1))))
+    return pose_gap_mm > config.ambiguity_pose_mm
+
+
+def _check_fiducials(fid_s: np.ndarray | None, fid_t: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if fid_s is None or fid_t is None:
+        return (
+            None if fid_s is None else np.asarray(fid_s, float),
+            None if fid_t is None else np.asarray(fid_t, float),
+        )
+    fid_s, fid_t = np.asarray(fid_s, float), np.asarray(fid_t, float)
+    if fid_s.shape != fid_t.shape or fid_s.ndim != 2 or fid_s.shape[1] != 3:
+        raise InputError(f"fiducials must be two (F, 3) arrays of the same shape, got {fid_s.shape} and {fid_t.shape}")
+    return fid_s, fid_t

@@ -1,0 +1,98 @@
+"""Result objects returned by every registration method (same shape for all methods)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class Candidate:
+    """One rigid-transform hypothesis (P2P: the complete-to-partial one or a patch)."""
+
+    name: str  # "complete-to-partial", "patch-0", ...
+    T_target_source: np.ndarray  # (4, 4) maps source mm into target mm
+    residual_mm: float  # mean closest-point distance, target -> transformed source
+    n_matches: int
+    ok: bool = True  # False when Procrustes failed (too few / degenerate matches)
+    inliers: int = 0  # matches within the inlier radius (used by the inlier-count rule)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "transform": np.asarray(self.T_target_source).tolist(),
+            "residual_mm": _finite_or_none(self.residual_mm),
+            "n_matches": int(self.n_matches),
+            "inliers": int(self.inliers),
+            "ok": bool(self.ok),
+        }
+
+
+@dataclass
+class RegistrationResult:
+    """Outcome of one registration: the transform in mm, its quality, candidates, timings."""
+
+    T_target_source: np.ndarray  # (4, 4): p_target = R p_source + t, millimetres
+    method: str
+    residual_mm: float  # mean closest-point distance target -> transformed source (mm)
+    runtime_ms: dict[str, float] = field(default_factory=dict)  # per stage + "total"
+    candidates: list[Candidate] = field(default_factory=list)
+    chosen: int | None = None  # index into candidates (P2P methods)
+    n_matches: int = 0
+    visibility: float = float("nan")  # M/N after voxelization
+    n_source: int = 0  # points after preprocessing
+    n_target: int = 0
+    ambiguous: bool = False  # two candidates fit nearly equally well with different poses
+    ok: bool = True
+    message: str = ""
+    rms_tre_mm: float | None = None  # filled when ground-truth fiducials are given
+    max_tre_mm: float | None = None
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return np.asarray(self.T_target_source)[:3, :3]
+
+    @property
+    def translation_mm(self) -> np.ndarray:
+        return np.asarray(self.T_target_source)[:3, 3]
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """JSON-serializable dict (the CLI's output format)."""
+        out: dict[str, Any] = {
+            "transform": np.asarray(self.T_target_source).tolist(),
+            "method": self.method,
+            "ok": bool(self.ok),
+            "message": self.message,
+            "residual_mm": _finite_or_none(self.residual_mm),
+            "runtime_ms": {k: round(float(v), 3) for k, v in self.runtime_ms.items()},
+            "n_matches": int(self.n_matches),
+            "visibility": _finite_or_none(self.visibility),
+            "n_source": int(self.n_source),
+            "n_target": int(self.n_target),
+            "ambiguous": bool(self.ambiguous),
+            "chosen_candidate": self.chosen,
+            "candidates": [c.to_json_dict() for c in self.candidates],
+        }
+        if self.rms_tre_mm is not None:
+            out["rms_tre_mm"] = _finite_or_none(self.rms_tre_mm)
+            out["max_tre_mm"] = _finite_or_none(self.max_tre_mm)
+        return out
+
+    def __repr__(self) -> str:
+        t = self.translation_mm
+        tre = "" if self.rms_tre_mm is None else f", rms_tre={self.rms_tre_mm:.2f} mm"
+        return (
+            f"RegistrationResult(method={self.method!r}, ok={self.ok}, "
+            f"residual={self.residual_mm:.2f} mm{tre}, t=[{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}] mm, "
+            f"candidates={len(self.candidates)}, chosen={self.chosen}, "
+            f"total={self.runtime_ms.get('total', float('nan')):.1f} ms)"
+        )
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    if value is None:
+        return None
+    value = float(value)
+    return value if np.isfinite(value) else None

@@ -1,0 +1,94 @@
+"""Packaging for colcon (ament_python) and pip alike; see README "Installation"."""
+
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+from setuptools.command.install_scripts import install_scripts
+
+PACKAGE = "liver_p2p_reg"
+VERSION = "0.1.0"  # keep equal to package.xml (a test checks)
+NODE_EXECUTABLES = ("register_node", "preop_loader_node")
+
+
+class ros_aware_install_scripts(install_scripts):
+    """Put ROS node executables where `ros2 run` looks (<prefix>/lib/<pkg>/), keep the CLI on PATH.
+
+    ament_python packages usually set `install_scripts=$base/lib/<pkg>` in setup.cfg, which
+    would also hide `liver-p2p` from PATH. Instead the node executables are routed here and
+    `liver-p2p` goes to <prefix>/bin (and, for `ros2 run liver_p2p_reg liver-p2p`, also to
+    <prefix>/lib/<pkg>/). Wheel installs (pip) do not run this command: pip writes every
+    entry point to the environment's bin/ as usual.
+    """
+
+    def write_script(self, script_name, contents, mode="t", *ignored):
+        ros_dir = os.path.join(os.path.dirname(os.path.normpath(self.install_dir)), "lib", PACKAGE)
+        base_dir = self.install_dir
+        if script_name in NODE_EXECUTABLES or script_name == "liver-p2p":
+            self.install_dir = ros_dir
+            try:
+                super().write_script(script_name, contents, mode, *ignored)
+            finally:
+                self.install_dir = base_dir
+        if script_name not in NODE_EXECUTABLES:
+            super().write_script(script_name, contents, mode, *ignored)
+
+
+def tree(directory, patterns=("*",)):
+    """data_files entries mirroring `directory` under share/<pkg>/ (for bags/)."""
+    entries = {}
+    for pattern in patterns:
+        for path in glob(os.path.join(directory, "**", pattern), recursive=True):
+            if os.path.isfile(path):
+                entries.setdefault(os.path.join("share", PACKAGE, os.path.dirname(path)), []).append(path)
+    return sorted(entries.items())
+
+
+setup(
+    name=PACKAGE,
+    version=VERSION,
+    description="Automatic complete-to-partial rigid registration of liver surfaces (patches-to-partial, P2P)",
+    long_description=open("README.md", encoding="utf-8").read() if os.path.exists("README.md") else "",
+    long_description_content_type="text/markdown",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    packages=find_packages(exclude=["test", "test.*"]),
+    package_data={PACKAGE: ["weights/*.safetensors", "weights/*.json", "weights/*.md", "data/*"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.rviz")),
+        *tree("bags"),
+    ],
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "torch>=2.2",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "safetensors>=0.4",
+        "tqdm>=4.60",
+        "matplotlib>=3.6",
+        "pyyaml>=6.0",
+        "scikit-fem>=10.0",
+        "scikit-image>=0.21",
+    ],
+    # Open3D comes in two builds that provide the same module; pick one extra
+    # (cpu: headless, no libusb; full: needs the system's libusb-1.0-0).
+    extras_require={
+        "cpu": ["open3d-cpu>=0.18"],
+        "full": ["open3d>=0.18"],
+        "dev": ["pytest>=7", "ruff>=0.5"],
+    },
+    tests_require=["pytest"],
+    zip_safe=False,
+    cmdclass={"install_scripts": ros_aware_install_scripts},
+    entry_points={
+        "console_scripts": [
+            "liver-p2p = liver_p2p_reg.cli:main",
+            "register_node = liver_p2p_reg.ros.register_node:main",
+            "preop_loader_node = liver_p2p_reg.ros.preop_loader_node:main",
+        ],
+    },
+)
