@@ -77,7 +77,7 @@ setup(
     # Open3D comes in two builds that provide the same module; pick one extra
     # (cpu: headless, no libusb; full: needs the system's libusb-1.0-0).
     extras_require={
-        "cpu": ["open3d-cpu>=0.18"],
+        "cpu": ["open3d-cpu>=0.18,<0.20"],  # 0.20.0's CPU wheel links libusb again
         "full": ["open3d>=0.18"],
         "dev": ["pytest>=7", "ruff>=0.5"],
     },

@@ -1,0 +1,74 @@
+"""Config: one source of defaults, the generated ROS parameter file, validation errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from liver_p2p_reg.cli import main
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_ros_parameter_file_is_generated_from_defaults() -> None:
+    text = (ROOT / "config" / "registration.yaml").read_text()
+    assert text == Config().to_ros_yaml(), "regenerate: liver-p2p config --ros --write config/registration.yaml --force"
+    params = yaml.safe_load(text)["/**"]["ros__parameters"]
+    assert Config.from_dict(params) == Config()
+
+
+def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(
+        "k: 7\nvoxel_size_norm: 0.05\nrefine_dummy_absent: null\n".replace("refine_dummy_absent: null\n", "")
+    )
+    assert Config.from_yaml(plain).k == 7
+    ros = tmp_path / "ros.yaml"
+    ros.write_text("register_node:\n  ros__parameters:\n    k: 3\n    mode: once\n")
+    cfg = Config.from_yaml(ros)
+    assert (cfg.k, cfg.mode) == (3, "once")
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"k": 0}, "k must be >= 1"),
+        ({"k": "five"}, "k must be an integer"),
+        ({"mode": "sometimes"}, "mode must be one of"),
+        ({"selection": "best"}, "selection must be one of"),
+        ({"no_such_key": 1}, "unknown configuration key"),
+        ({"voxel_size_norm": -1}, "voxel_size_norm must be > 0"),
+        ({"candidate_proposal": "maybe"}, "must be true or false"),
+    ],
+)
+def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:
+    with pytest.raises(InputError, match=message) as info:
+        Config.from_dict(values)
+    assert "\n" not in str(info.value)
+
+
+def test_int_is_accepted_for_float_fields() -> None:
+    assert Config.from_dict({"max_rate_hz": 5}).max_rate_hz == 5.0
+
+
+def test_config_cli_does_not_overwrite_without_force(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    target = tmp_path / "params.yaml"
+    assert main(["config", "--ros", "--write", str(target)]) == 0
+    assert target.read_text() == Config().to_ros_yaml()
+    target.write_text("mine")
+    assert main(["config", "--write", str(target)]) == 2
+    assert target.read_text() == "mine"
+    assert "exists" in capsys.readouterr().err
+
+
+def test_bad_yaml_file_is_reported(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("k: [1, 2\n")
+    with pytest.raises(InputError, match="not valid YAML"):
+        Config.from_yaml(bad)
+    with pytest.raises(InputError, match="cannot read config"):
+        Config.from_yaml(tmp_path / "missing.yaml")
