@@ -19,6 +19,7 @@ _SUBCOMMAND_MODULES = (
     "bag_cmd",
     "replay_cmd",
     "config_cmd",
+    "demo_cmd",
 )
 
 
