@@ -56,7 +56,7 @@ def _load_methods() -> None:
         try:
             importlib.import_module(module)
         except ModuleNotFoundError as exc:
-            if exc.name != module:  # a real missing dependency, not an absent module
+            if exc.name is None or not module.startswith(exc.name):  # a real missing dependency
                 raise
     _loaded = True
 
@@ -94,11 +94,11 @@ class Registrar:
     ) -> RegistrationResult:
         """Estimate T_target_source (4x4, mm). Raises InputError / RegistrationError."""
         start = time.perf_counter()
-        name = method or self.config.method
-        fn = get_method(name)
         source = clean_points(source_mm, "source", min_points=self.config.min_points)
         target = clean_points(target_mm, "target", min_points=self.config.min_points)
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
+        name = method or self.config.method
+        fn = get_method(name)
         ctx = MethodContext(fid_s, fid_t, self.cache)
         result = fn(source, target, self.config, ctx)
         result.method = name

@@ -1,0 +1,86 @@
+"""Public API behaviour that does not depend on a particular method: registry, errors, ambiguity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from liver_p2p_reg import Config, InputError, Registrar, available_methods
+from liver_p2p_reg.metrics import rms_tre_mm, rotation_angle_deg, transform_points
+from liver_p2p_reg.registrar import is_ambiguous
+from liver_p2p_reg.result import Candidate, RegistrationResult
+
+
+def _rigid(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = q, rng.uniform(-100, 100, 3)
+    return T
+
+
+def test_unknown_method_lists_choices(rng: np.random.Generator) -> None:
+    pts = rng.normal(size=(200, 3)) * 50
+    with pytest.raises(InputError, match="unknown method 'nope'; choose one of"):
+        Registrar().register(pts, pts, method="nope")
+
+
+def test_bad_clouds_are_refused_before_any_method_runs(rng: np.random.Generator) -> None:
+    pts = rng.normal(size=(200, 3)) * 50
+    registrar = Registrar(Config(min_points=50))
+    with pytest.raises(InputError, match="target: the point cloud is empty"):
+        registrar.register(pts, np.zeros((0, 3)))
+    with pytest.raises(InputError, match="source: all 200 points are NaN"):
+        registrar.register(np.full((200, 3), np.nan), pts)
+    with pytest.raises(InputError, match="only 10 valid points"):
+        registrar.register(pts, pts[:10])
+    with pytest.raises(InputError, match="fiducials must be two"):
+        registrar.register(pts, pts, source_fiducials_mm=pts[:5], target_fiducials_mm=pts[:6])
+
+
+def test_metrics_on_a_known_transform(rng: np.random.Generator) -> None:
+    T = _rigid(rng)
+    fid = rng.normal(size=(30, 3)) * 40
+    moved = transform_points(T, fid)
+    assert rms_tre_mm(T, fid, moved) < 1e-9
+    shifted = moved + np.array([3.0, 4.0, 0.0])
+    assert rms_tre_mm(T, fid, shifted) == pytest.approx(5.0)
+    assert rotation_angle_deg(T[:3, :3], T[:3, :3]) == pytest.approx(0.0, abs=1e-5)
+
+
+def _result_with(candidates: list[Candidate]) -> RegistrationResult:
+    return RegistrationResult(np.eye(4), "x", candidates[0].residual_mm, candidates=candidates, chosen=0)
+
+
+def test_ambiguity_needs_close_residuals_and_different_poses(rng: np.random.Generator) -> None:
+    source = rng.normal(size=(1000, 3)) * 60
+    cfg = Config()
+    far = np.eye(4)
+    far[:3, 3] = [40.0, 0, 0]
+    near = np.eye(4)
+    near[:3, 3] = [1.0, 0, 0]
+    assert is_ambiguous(_result_with([Candidate("a", np.eye(4), 2.0, 50), Candidate("b", far, 2.1, 50)]), source, cfg)
+    # Same pose twice is not ambiguous, nor is a clearly worse runner-up, nor a failed one.
+    assert not is_ambiguous(
+        _result_with([Candidate("a", np.eye(4), 2.0, 50), Candidate("b", near, 2.1, 50)]), source, cfg
+    )
+    assert not is_ambiguous(
+        _result_with([Candidate("a", np.eye(4), 2.0, 50), Candidate("b", far, 4.0, 50)]), source, cfg
+    )
+    failed = Candidate("b", far, 2.0, 2, ok=False)
+    assert not is_ambiguous(_result_with([Candidate("a", np.eye(4), 2.0, 50), failed]), source, cfg)
+
+
+def test_result_json_is_serializable() -> None:
+    import json
+
+    cand = Candidate("complete-to-partial", np.eye(4), float("nan"), 0, ok=False)
+    res = RegistrationResult(np.eye(4), "m", 1.5, runtime_ms={"total": 3.0}, candidates=[cand], chosen=0)
+    text = json.dumps(res.to_json_dict())
+    assert '"residual_mm": null' in text and "complete-to-partial" in text
+    assert "residual=1.50 mm" in repr(res)
+
+
+def test_available_methods_is_a_sorted_list() -> None:
+    names = available_methods()
+    assert names == sorted(names)
