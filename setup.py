@@ -79,7 +79,7 @@ setup(
     extras_require={
         "cpu": ["open3d-cpu>=0.18,<0.20"],  # 0.20.0's CPU wheel links libusb again
         "full": ["open3d>=0.18"],
-        "dev": ["pytest>=7", "ruff>=0.5"],
+        "dev": ["pytest>=7", "ruff>=0.5", "setuptools>=61"],  # setuptools: the colcon-layout test
     },
     tests_require=["pytest"],
     zip_safe=False,
