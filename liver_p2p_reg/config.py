@@ -51,7 +51,7 @@ class Config:
     mode: str = "continuous"
     max_rate_hz: float = 2.0  # continuous mode: at most this many registrations per s
     min_points: int = 100  # fewer valid intraop points than this is an error
-    max_input_points: int = 2_000_000  # larger clouds are voxelized before anything else
+    max_input_points: int = 1_000_000  # clouds this large are voxelized before anything else (bounded memory)
     residual_warn_mm: float = 4.0  # mean closest-point residual above this -> WARN
     ambiguity_residual_ratio: float = 1.15  # runner-up residual within this factor ...
     ambiguity_pose_mm: float = 15.0  # ... and pose differing by this much -> ambiguous
