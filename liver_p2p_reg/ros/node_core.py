@@ -1,0 +1,419 @@
+"""ROS-free node logic: preop model, latest intraop cloud, modes, rate limit, outputs and diagnostics as plain data.
+
+The rclpy register_node and bag replay drive this same object. Inputs are millimetre arrays
+(or PointCloud2-like messages, decoded here with `pointcloud2`); outputs are `CoreOutput`s
+holding a pose (T_sensor_ct, mm), the moved preop cloud (mm) and `Diagnostic`s.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..config import Config
+from ..errors import InputError, LiverP2PError
+from ..metrics import transform_points
+from ..registrar import Registrar
+from ..result import RegistrationResult
+from .pointcloud2 import cloud_to_points_mm, stamp_to_ns
+
+LOG = logging.getLogger("liver_p2p_reg.node")
+
+# diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
+DIAG_NAME = "liver_p2p_reg: registration"
+PREOP_DIAG_NAME = "liver_p2p_reg: preop model"
+HARDWARE_ID = "liver_p2p_reg"
+MAX_FIDUCIAL_FRAMES = 16  # ground-truth fiducials kept per stamp, to pair them with their cloud
+
+
+@dataclass
+class Diagnostic:
+    """diagnostic_msgs/DiagnosticStatus as plain data (values are strings, as on the wire)."""
+
+    level: int
+    name: str
+    message: str
+    values: dict[str, str] = field(default_factory=dict)
+    hardware_id: str = HARDWARE_ID
+
+    @property
+    def level_name(self) -> str:
+        return LEVEL_NAMES.get(self.level, str(self.level))
+
+
+@dataclass
+class PoseOutput:
+    """Pose of the preop (`ct`) frame in the sensor frame: p_sensor = T_sensor_ct p_ct (mm)."""
+
+    stamp_ns: int
+    frame_id: str  # the sensor frame (parent)
+    child_frame_id: str  # the preop frame, `ct`
+    T_sensor_ct_mm: np.ndarray  # (4, 4)
+
+    @property
+    def translation_m(self) -> np.ndarray:
+        return np.asarray(self.T_sensor_ct_mm)[:3, 3] * 1e-3
+
+    @property
+    def quaternion_xyzw(self) -> np.ndarray:
+        return Rotation.from_matrix(np.asarray(self.T_sensor_ct_mm)[:3, :3]).as_quat()
+
+
+@dataclass
+class CoreOutput:
+    """What one registration attempt produced; `pose is None` whenever the attempt failed."""
+
+    diagnostics: list[Diagnostic]
+    pose: PoseOutput | None = None
+    registered_preop_mm: np.ndarray | None = None  # preop cloud moved into the sensor frame
+    result: RegistrationResult | None = None
+    reason: str = ""  # continuous | once | reregister
+
+    @property
+    def level(self) -> int:
+        return max((d.level for d in self.diagnostics), default=OK)
+
+    @property
+    def summary(self) -> str:
+        return "; ".join(d.message for d in self.diagnostics)
+
+
+@dataclass
+class _Cloud:
+    """An intraop cloud as received (raw message or decoded mm points)."""
+
+    frame_id: str
+    stamp_ns: int
+    msg: Any = None
+    points_mm: np.ndarray | None = None
+    n_raw: int = 0
+
+
+class NodeCore:
+    """State machine of register_node; thread-safe (callbacks vs. one registration worker)."""
+
+    def __init__(self, config: Config | None = None, registrar: Registrar | None = None) -> None:
+        self.config = (config or Config()).validate()
+        self.registrar = registrar or Registrar(self.config)
+        self._lock = threading.Lock()  # guards the state below (cheap, callbacks)
+        self._register_lock = threading.Lock()  # one registration at a time
+        self.preop_mm: np.ndarray | None = None
+        self.preop_frame = "ct"
+        self.preop_fiducials_mm: np.ndarray | None = None
+        self._preop_scale_mm: float | None = None
+        self._intraop_fiducials: dict[int, np.ndarray] = {}  # header stamp -> (F, 3) mm
+        self._pending: _Cloud | None = None
+        self._latest: _Cloud | None = None
+        self._last_start_s: float | None = None
+        self._once_done = False
+        self.last_output: CoreOutput | None = None
+        self.received = 0
+        self.processed = 0
+        self.dropped = 0  # clouds superseded before they were registered (latest-only)
+
+    # ---------------------------------------------------------------- inputs
+    def set_preop(self, points_mm: np.ndarray, frame_id: str = "ct") -> Diagnostic:
+        """New preop model (mm, preop frame). Returns its diagnostic; bad models are rejected."""
+        points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        points = points[np.isfinite(points).all(axis=1)]
+        if len(points) < self.config.min_points:
+            return Diagnostic(
+                ERROR,
+                PREOP_DIAG_NAME,
+                f"preop model has {len(points)} valid points (< {self.config.min_points}); ignored",
+            )
+        extent = _extent_mm(points)
+        with self._lock:
+            self.preop_mm = points
+            self.preop_frame = frame_id or "ct"
+            centre = points.mean(axis=0)
+            self._preop_scale_mm = float(np.max(np.linalg.norm(points - centre, axis=1)))
+            self._once_done = False
+        values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": self.preop_frame}
+        unit_warning = self._units_warning(extent, "preop model")
+        if unit_warning:
+            return Diagnostic(WARN, PREOP_DIAG_NAME, unit_warning, values)
+        return Diagnostic(OK, PREOP_DIAG_NAME, f"preop model received ({len(points)} points)", values)
+
+    def set_preop_fiducials(self, points_mm: np.ndarray | None) -> None:
+        """Ordered fiducials inside the preop model (mm, preop frame)."""
+        with self._lock:
+            self.preop_fiducials_mm = None if points_mm is None else np.asarray(points_mm, float).reshape(-1, 3)
+
+    def set_intraop_fiducials(self, points_mm: np.ndarray, stamp_ns: int) -> None:
+        """Ground-truth fiducials in the sensor frame for the cloud with the same header stamp."""
+        with self._lock:
+            self._intraop_fiducials[int(stamp_ns)] = np.asarray(points_mm, float).reshape(-1, 3)
+            while len(self._intraop_fiducials) > MAX_FIDUCIAL_FRAMES:
+                self._intraop_fiducials.pop(min(self._intraop_fiducials))
+
+    def on_preop_msg(self, msg: Any) -> Diagnostic:
+        """A /preop/points PointCloud2 (metres)."""
+        try:
+            points = cloud_to_points_mm(msg)
+        except InputError as exc:
+            return Diagnostic(ERROR, PREOP_DIAG_NAME, f"bad /preop/points: {exc}")
+        return self.set_preop(points, msg.header.frame_id)
+
+    def on_preop_fiducials_msg(self, msg: Any) -> None:
+        try:
+            self.set_preop_fiducials(cloud_to_points_mm(msg))
+        except InputError as exc:
+            LOG.warning("ignoring bad /preop/fiducials: %s", exc)
+
+    def on_intraop_fiducials_msg(self, msg: Any) -> None:
+        try:
+            self.set_intraop_fiducials(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
+        except InputError as exc:
+            LOG.warning("ignoring bad /intraop/fiducials: %s", exc)
+
+    def on_intraop_msg(self, msg: Any, now_s: float | None = None) -> list[Diagnostic]:
+        """A /intraop/points PointCloud2; O(1): decoding waits until the cloud is registered."""
+        cloud = _Cloud(msg.header.frame_id, stamp_to_ns(msg.header.stamp), msg=msg)
+        return self._receive(cloud)
+
+    def on_intraop_points(self, points_mm: np.ndarray, frame_id: str, stamp_ns: int = 0) -> list[Diagnostic]:
+        """Plain-data variant of `on_intraop_msg` (mm, sensor frame)."""
+        points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        return self._receive(_Cloud(frame_id, int(stamp_ns), points_mm=points, n_raw=len(points)))
+
+    def _receive(self, cloud: _Cloud) -> list[Diagnostic]:
+        with self._lock:
+            self.received += 1
+            if self._pending is not None:
+                self.dropped += 1  # latest-only: the older cloud is never registered
+            self._pending = cloud
+            have_preop = self.preop_mm is not None
+        if not have_preop:
+            diag = Diagnostic(
+                ERROR, DIAG_NAME, "intraop cloud received before any preop model (/preop/points); waiting"
+            )
+            self.last_output = CoreOutput([diag])
+            return [diag]
+        return []
+
+    # ---------------------------------------------------------------- scheduling
+    def due(self, now_s: float | None = None) -> bool:
+        """Whether `process_pending` would register now (mode, rate limit, inputs present)."""
+        now_s = time.monotonic() if now_s is None else now_s
+        with self._lock:
+            if self._pending is None or self.preop_mm is None:
+                return False
+            if self.config.mode == "on_demand":
+                return False
+            if self.config.mode == "once":
+                return not self._once_done
+            if self._last_start_s is None:
+                return True
+            return now_s - self._last_start_s >= 1.0 / self.config.max_rate_hz - 1e-9
+
+    def process_pending(self, now_s: float | None = None) -> CoreOutput | None:
+        """Register the latest pending cloud if due (continuous/once modes); else None."""
+        now_s = time.monotonic() if now_s is None else now_s
+        if not self.due(now_s):
+            return None
+        with self._lock:
+            cloud, self._pending = self._pending, None
+            self._last_start_s = now_s
+        if cloud is None:
+            return None
+        output = self._register(cloud, self.config.mode)
+        if self.config.mode == "once" and output.pose is not None:
+            self._once_done = True
+        return output
+
+    def reregister(self, now_s: float | None = None) -> CoreOutput:
+        """Register the latest intraop cloud now, whatever the mode (the ~/reregister service)."""
+        with self._lock:
+            cloud = self._pending or self._latest
+            self._pending = None
+            self._last_start_s = time.monotonic() if now_s is None else now_s
+        if cloud is None:
+            diag = Diagnostic(ERROR, DIAG_NAME, "no intraop cloud received yet (/intraop/points)")
+            self.last_output = CoreOutput([diag], reason="reregister")
+            return self.last_output
+        return self._register(cloud, "reregister")
+
+    def flush(self) -> CoreOutput | None:
+        """Register a still-pending cloud ignoring the rate limit (end of a replayed bag)."""
+        with self._lock:
+            self._last_start_s = None
+        return self.process_pending(0.0)
+
+    def status(self) -> Diagnostic:
+        """The current diagnostic for periodic publishing (STALE before any attempt)."""
+        last = self.last_output
+        if last is None or not last.diagnostics:
+            return Diagnostic(STALE, DIAG_NAME, "no registration yet", self._counters())
+        diag = last.diagnostics[0]
+        return Diagnostic(diag.level, diag.name, diag.message, {**diag.values, **self._counters()})
+
+    # ---------------------------------------------------------------- registration
+    def _register(self, cloud: _Cloud, reason: str) -> CoreOutput:
+        with self._register_lock:
+            output = self._register_locked(cloud, reason)
+        self.last_output = output
+        with self._lock:
+            self.processed += 1
+        return output
+
+    def _register_locked(self, cloud: _Cloud, reason: str) -> CoreOutput:
+        start = time.perf_counter()
+        values: dict[str, str] = {"frame_id": cloud.frame_id, "stamp_ns": str(cloud.stamp_ns), "mode": self.config.mode}
+
+        def fail(level: int, message: str) -> CoreOutput:
+            return CoreOutput([Diagnostic(level, DIAG_NAME, message, values)], reason=reason)
+
+        with self._lock:
+            preop, preop_frame, fid_s = self.preop_mm, self.preop_frame, self.preop_fiducials_mm
+            scale_mm = self._preop_scale_mm
+            fid_t = self._intraop_fiducials.get(cloud.stamp_ns)
+            if fid_t is None and self._intraop_fiducials:
+                fid_t = self._intraop_fiducials[max(self._intraop_fiducials)]
+        if preop is None:
+            return fail(ERROR, "no preop model received yet (/preop/points)")
+        try:
+            points, n_raw = self._decode(cloud)
+        except InputError as exc:
+            return fail(ERROR, f"bad intraop cloud: {exc}")
+        values["input_points"] = str(n_raw)
+        if n_raw == 0:
+            return fail(ERROR, "empty intraop cloud (0 points)")
+        if len(points) == 0:
+            return fail(ERROR, f"intraop cloud has no valid points (all {n_raw} are NaN/inf)")
+        warnings: list[str] = []
+        if len(points) >= self.config.max_input_points:
+            voxel_mm = (scale_mm or _extent_mm(points)) * self.config.voxel_size_norm / 2
+            points = voxel_downsample_bounded(points, voxel_mm)
+            warnings.append(f"{n_raw} input points voxelized to {len(points)} ({voxel_mm:.2f} mm voxels)")
+        values["valid_points"] = str(len(points))
+        if len(points) < self.config.min_points:
+            return fail(ERROR, f"too few valid intraop points: {len(points)} < min_points {self.config.min_points}")
+        extent = _extent_mm(points)
+        values["extent_mm"] = f"{extent:.1f}"
+        unit_warning = self._units_warning(extent, "intraop cloud")
+        if unit_warning:
+            return fail(WARN, unit_warning + "; not registered")
+        with self._lock:
+            self._latest = _Cloud(cloud.frame_id, cloud.stamp_ns, points_mm=points, n_raw=n_raw)
+        if fid_s is not None and (fid_t is None or fid_t.shape != fid_s.shape):
+            fid_s = fid_t = None  # ground truth absent or not matching: no TRE
+        prep_ms = (time.perf_counter() - start) * 1e3
+        try:
+            result = self.registrar.register(preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t)
+        except LiverP2PError as exc:
+            return fail(ERROR, f"registration failed: {exc}")
+        except Exception as exc:  # the node must survive anything a method raises
+            LOG.exception("registration raised")
+            return fail(ERROR, f"registration crashed: {type(exc).__name__}: {exc}")
+        result.runtime_ms.setdefault("node_prepare", prep_ms)
+        values.update(result_values(result))
+        if not result.ok or not np.all(np.isfinite(result.T_target_source)):
+            return CoreOutput(
+                [
+                    Diagnostic(
+                        ERROR, DIAG_NAME, f"registration failed: {result.message or 'no valid transform'}", values
+                    )
+                ],
+                result=result,
+                reason=reason,
+            )
+        level = OK
+        message = f"registered: residual {result.residual_mm:.2f} mm"
+        if result.rms_tre_mm is not None:
+            message += f", RMS-TRE {result.rms_tre_mm:.2f} mm"
+        if result.residual_mm > self.config.residual_warn_mm:
+            level = WARN
+            warnings.append(f"residual {result.residual_mm:.2f} mm above {self.config.residual_warn_mm} mm")
+        if result.ambiguous:
+            level = WARN
+            warnings.append("ambiguous: two candidates fit nearly equally well with different poses")
+        if warnings:
+            level = max(level, WARN)
+            message += " (" + "; ".join(warnings) + ")"
+        T = np.asarray(result.T_target_source, dtype=np.float64)
+        pose = PoseOutput(cloud.stamp_ns, cloud.frame_id, preop_frame, T)
+        moved = transform_points(T, preop)
+        return CoreOutput([Diagnostic(level, DIAG_NAME, message, values)], pose, moved, result, reason)
+
+    def _decode(self, cloud: _Cloud) -> tuple[np.ndarray, int]:
+        if cloud.points_mm is not None:
+            points = cloud.points_mm
+            return points[np.isfinite(points).all(axis=1)], cloud.n_raw
+        msg = cloud.msg
+        n_raw = int(msg.width) * int(msg.height)
+        return cloud_to_points_mm(msg), n_raw
+
+    def _units_warning(self, extent_mm: float, what: str) -> str:
+        lo, hi = self.config.expected_extent_min_mm, self.config.expected_extent_max_mm
+        if extent_mm > hi:
+            return (
+                f"{what} extent {extent_mm:.0f} mm exceeds {hi:.0f} mm: wrong units? "
+                "(ROS messages must be in metres; millimetre values published as metres look 1000x too large)"
+            )
+        if extent_mm < lo:
+            return (
+                f"{what} extent {extent_mm:.3g} mm is below {lo:.0f} mm: wrong units? "
+                "(ROS messages must be in metres; a liver is 0.05-0.3 m across)"
+            )
+        return ""
+
+    def _counters(self) -> dict[str, str]:
+        return {
+            "received_clouds": str(self.received),
+            "registered_clouds": str(self.processed),
+            "dropped_clouds": str(self.dropped),
+        }
+
+
+def result_values(result: RegistrationResult) -> dict[str, str]:
+    """The diagnostic key/values of a registration result."""
+    values = {
+        "method": result.method,
+        "residual_mm": f"{result.residual_mm:.3f}",
+        "visibility": f"{result.visibility:.3f}",
+        "matches": str(result.n_matches),
+        "n_source": str(result.n_source),
+        "n_target": str(result.n_target),
+        "ambiguous": str(bool(result.ambiguous)).lower(),
+    }
+    if result.chosen is not None and 0 <= result.chosen < len(result.candidates):
+        values["chosen_candidate"] = result.candidates[result.chosen].name
+    if result.candidates:
+        values["candidate_residuals_mm"] = ",".join(
+            f"{c.name}={c.residual_mm:.2f}" if c.ok else f"{c.name}=failed" for c in result.candidates
+        )
+    if result.rms_tre_mm is not None:
+        values["rms_tre_mm"] = f"{result.rms_tre_mm:.3f}"
+        values["max_tre_mm"] = f"{result.max_tre_mm:.3f}"
+    for stage, ms in result.runtime_ms.items():
+        values[f"runtime_ms.{stage}"] = f"{ms:.1f}"
+    return values
+
+
+def _extent_mm(points_mm: np.ndarray) -> float:
+    """Bounding-box diagonal of a cloud."""
+    return float(np.linalg.norm(points_mm.max(axis=0) - points_mm.min(axis=0)))
+
+
+def voxel_downsample_bounded(points_mm: np.ndarray, voxel_mm: float) -> np.ndarray:
+    """Voxel-mean downsampling with 1-D keys (O(N) memory; fast on millions of points)."""
+    if not voxel_mm > 0:
+        raise InputError(f"voxel size must be > 0, got {voxel_mm}")
+    lo = points_mm.min(axis=0)
+    cells = np.floor((points_mm - lo) / voxel_mm).astype(np.int64)
+    dims = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    out = np.empty((len(counts), 3))
+    for axis in range(3):
+        out[:, axis] = np.bincount(inverse, weights=points_mm[:, axis], minlength=len(counts)) / counts
+    return out

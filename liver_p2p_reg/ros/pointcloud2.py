@@ -1,0 +1,163 @@
+"""sensor_msgs/PointCloud2 <-> numpy, written once for rclpy and rosbags message objects (metres)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+# sensor_msgs/PointField datatype constants (identical in every ROS 2 distribution).
+INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
+_NUMPY_OF = {
+    INT8: "i1",
+    UINT8: "u1",
+    INT16: "i2",
+    UINT16: "u2",
+    INT32: "i4",
+    UINT32: "u4",
+    FLOAT32: "f4",
+    FLOAT64: "f8",
+}
+_DATATYPE_OF = {np.dtype(v).newbyteorder("<").str[1:]: k for k, v in _NUMPY_OF.items()}
+M_PER_MM = 1e-3
+MM_PER_M = 1e3
+
+
+@dataclass(frozen=True)
+class MessageTypes:
+    """The message classes of one ROS binding (rclpy or rosbags) and how it stores uint8[] data."""
+
+    PointCloud2: type
+    PointField: type
+    Header: type
+    Time: type
+    wrap_bytes: Callable[[bytes], Any]  # rosbags wants np.uint8 arrays, rclpy array.array('B')
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def make_header(types: MessageTypes, frame_id: str, stamp_ns: int) -> Any:
+    """A std_msgs/Header for either binding."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return types.Header(stamp=types.Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def field_names(msg: Any) -> list[str]:
+    """Names of the fields of a PointCloud2 (for messages)."""
+    return [f.name for f in msg.fields]
+
+
+def cloud_to_points_m(msg: Any) -> np.ndarray:
+    """Decode x/y/z of any PointCloud2 layout into finite (N, 3) float64 metres.
+
+    Handles any field order, float32/float64 (and integer) coordinates, padding and extra
+    fields, big-endian data, organized clouds (height > 1, row padding); drops NaN/inf points.
+    Raises InputError for missing x/y/z fields or a truncated buffer.
+    """
+    by_name = {f.name: f for f in msg.fields}
+    missing = [name for name in "xyz" if name not in by_name]
+    if missing:
+        have = ", ".join(by_name) or "none"
+        raise InputError(f"PointCloud2 lacks field(s) {', '.join(missing)} (fields: {have})")
+    height, width = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    n = height * width
+    if n == 0:
+        return np.zeros((0, 3))
+    order = ">" if msg.is_bigendian else "<"
+    formats, offsets = [], []
+    for name in "xyz":
+        f = by_name[name]
+        if int(f.datatype) not in _NUMPY_OF:
+            raise InputError(f"PointCloud2 field {name} has unknown datatype {f.datatype}")
+        formats.append(order + _NUMPY_OF[int(f.datatype)])
+        offsets.append(int(f.offset))
+        if int(f.offset) + np.dtype(formats[-1]).itemsize > point_step:
+            raise InputError(f"PointCloud2 field {name} lies outside point_step {point_step}")
+    row_step = max(row_step, width * point_step)  # some writers leave row_step at 0
+    raw = np.frombuffer(memoryview(msg.data).cast("B"), dtype=np.uint8)
+    needed = (height - 1) * row_step + width * point_step
+    if raw.size < needed:
+        raise InputError(
+            f"PointCloud2 data is truncated: {raw.size} bytes for {height}x{width} points ({needed} needed)"
+        )
+    if row_step != width * point_step:  # organized cloud with row padding: cut each row
+        rows = np.lib.stride_tricks.as_strided(raw, shape=(height, width * point_step), strides=(row_step, 1))
+        raw = np.ascontiguousarray(rows).reshape(-1)
+    else:
+        raw = raw[: n * point_step]
+    dtype = np.dtype({"names": ["x", "y", "z"], "formats": formats, "offsets": offsets, "itemsize": point_step})
+    rec = np.frombuffer(raw, dtype=dtype, count=n)
+    points = np.empty((n, 3), dtype=np.float64)
+    points[:, 0], points[:, 1], points[:, 2] = rec["x"], rec["y"], rec["z"]
+    return points[np.isfinite(points).all(axis=1)]
+
+
+def cloud_to_points_mm(msg: Any) -> np.ndarray:
+    """`cloud_to_points_m` converted to millimetres (the core's unit)."""
+    return cloud_to_points_m(msg) * MM_PER_M
+
+
+def points_to_cloud(
+    points_m: np.ndarray,
+    types: MessageTypes,
+    *,
+    frame_id: str,
+    stamp_ns: int = 0,
+    dtype: str | np.dtype = np.float32,
+    big_endian: bool = False,
+    field_order: Sequence[str] = ("x", "y", "z"),
+    extra_fields: dict[str, np.ndarray] | None = None,
+    pad_bytes: int = 0,
+    height: int = 1,
+) -> Any:
+    """Build a PointCloud2 (metres) from (N, 3) points; the layout options exist for interop tests.
+
+    extra_fields: name -> (N,) array packed after the named coordinates in `field_order`
+    position order; pad_bytes: unused bytes at the end of each point; height > 1 gives an
+    organized cloud (N must be divisible by height).
+    """
+    points_m = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    n = len(points_m)
+    if height < 1 or n % height:
+        raise InputError(f"cannot arrange {n} points into {height} rows")
+    columns: dict[str, np.ndarray] = {"x": points_m[:, 0], "y": points_m[:, 1], "z": points_m[:, 2]}
+    for name, values in (extra_fields or {}).items():
+        columns[name] = np.asarray(values).reshape(-1)
+    order = list(field_order) + [name for name in columns if name not in field_order]
+    endian = ">" if big_endian else "<"
+    names, formats, offsets, fields = [], [], [], []
+    offset = 0
+    for name in order:
+        base = np.dtype(dtype) if name in "xyz" else columns[name].dtype
+        code = np.dtype(base).newbyteorder("<").str[1:]
+        if code not in _DATATYPE_OF:
+            raise InputError(f"cannot store field {name} of dtype {base} in a PointCloud2")
+        names.append(name)
+        formats.append(endian + code)
+        offsets.append(offset)
+        fields.append(types.PointField(name=name, offset=offset, datatype=_DATATYPE_OF[code], count=1))
+        offset += np.dtype(code).itemsize
+    point_step = offset + pad_bytes
+    rec = np.zeros(n, dtype=np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step}))
+    for name in names:
+        rec[name] = columns[name]
+    width = n // height
+    return types.PointCloud2(
+        header=make_header(types, frame_id, stamp_ns),
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=big_endian,
+        point_step=point_step,
+        row_step=point_step * width,
+        data=types.wrap_bytes(rec.tobytes()),
+        is_dense=bool(np.isfinite(points_m).all()),
+    )
