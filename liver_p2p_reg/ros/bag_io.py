@@ -107,18 +107,16 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
 def _qos(*, latched: bool, best_effort: bool = False, depth: int = 1) -> Any:
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-    zero = QosTime(0, 0)
-    # rosbag2 records "infinite" durations as the maximum int32 seconds / nanoseconds
-    infinite = QosTime(2147483647, 4294967295)
+    zero = QosTime(0, 0)  # 0 = the RMW default (infinite) deadline/lifespan/lease
     return Qos(
         history=QosHistory.KEEP_LAST,
         depth=depth,
         reliability=QosReliability.BEST_EFFORT if best_effort else QosReliability.RELIABLE,
         durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
-        deadline=infinite if latched else zero,
-        lifespan=infinite if latched else zero,
+        deadline=zero,
+        lifespan=zero,
         liveliness=QosLiveliness.AUTOMATIC,
-        liveliness_lease_duration=infinite if latched else zero,
+        liveliness_lease_duration=zero,
         avoid_ros_namespace_conventions=False,
     )
 
@@ -130,7 +128,7 @@ LATCHED_TOPICS = ("/preop/points", "/preop/fiducials")
 class BagWriter:
     """Write a rosbag2 directory (metadata.yaml + MCAP) that `ros2 bag play` on Jazzy accepts."""
 
-    def __init__(self, path: str | Path, *, overwrite: bool = False) -> None:
+    def __init__(self, path: str | Path, *, overwrite: bool = False, custom_data: dict[str, str] | None = None) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         self.path = Path(path)
@@ -143,6 +141,8 @@ class BagWriter:
                 self.path.unlink()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        for key, value in (custom_data or {}).items():  # shown by `ros2 bag info`, read back by replay
+            self._writer.set_custom_data(key, value)
         self._writer.open()
         self._connections: dict[str, Any] = {}
 
@@ -163,6 +163,17 @@ class BagWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def bag_custom_data(path: str | Path) -> dict[str, str]:
+    """The custom_data mapping of a rosbag2 directory's metadata.yaml ({} for bare MCAP files)."""
+    import yaml
+
+    meta = Path(path) / "metadata.yaml"
+    if not meta.is_file():
+        return {}
+    info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information", {})
+    return {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
 
 
 def bag_size_bytes(path: str | Path) -> int:

@@ -1,0 +1,125 @@
+"""`liver-p2p bag make|import|info`: build rosbag2 (MCAP) bags from dataset cases or plain files."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from ..cloud_io import load_points
+from ..errors import InputError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("bag", help="make rosbag2 bags from cases or files; import P2P dataset cases")
+    sub = p.add_subparsers(dest="bag_command", metavar="ACTION", required=True)
+
+    make = sub.add_parser("make", help="bag from a dataset case NPZ or from a source mesh + target cloud")
+    make.add_argument("out", help="output rosbag2 directory")
+    make.add_argument("--case", help="dataset case NPZ (src_pcd, tgt_pcd, src_marker, tgt_marker)")
+    make.add_argument("--source", help="preop model: mesh or cloud file in mm (PLY/STL/OBJ/PCD/XYZ/NPY)")
+    make.add_argument("--target", help="intraop cloud file in mm, in the sensor frame")
+    make.add_argument("--fiducials", help="fiducial pairs: text/NPY file with F rows 'xs ys zs xt yt zt' (mm)")
+    _common(make)
+    make.set_defaults(func=run_make)
+
+    imp = sub.add_parser("import", help="convert a case in the public P2P dataset NPZ format into a bag")
+    imp.add_argument("npz", help="case NPZ (keys src_pcd, tgt_pcd, src_marker, tgt_marker)")
+    imp.add_argument("out", help="output rosbag2 directory")
+    _common(imp)
+    imp.set_defaults(func=run_import)
+
+    info = sub.add_parser("info", help="list the topics, message counts and size of a bag")
+    info.add_argument("bag", help="rosbag2 directory or .mcap file")
+    info.set_defaults(func=run_info)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--frames", type=int, default=5, help="intraop frames (default 5)")
+    p.add_argument("--frame-id", default="camera", help="sensor frame of the intraop clouds (default camera)")
+    p.add_argument("--motion-mm", type=float, default=1.5, help="sensor motion over the frames, mm (default 1.5)")
+    p.add_argument("--motion-deg", type=float, default=1.0, help="sensor rotation over the frames, deg (default 1)")
+    p.add_argument("--period-s", type=float, default=0.5, help="time between frames, s (default 0.5)")
+    p.add_argument("--max-preop-points", type=int, default=6000)
+    p.add_argument("--max-intraop-points", type=int, default=8000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--force", action="store_true", help="overwrite an existing output bag")
+
+
+def _make(args: argparse.Namespace, case: dict) -> int:
+    from ..ros.bag_io import bag_size_bytes
+    from ..ros.bag_make import make_case_bag
+
+    out = make_case_bag(
+        args.out,
+        case["source_mm"],
+        case["target_mm"],
+        source_fiducials_mm=case.get("source_fiducials_mm"),
+        target_fiducials_mm=case.get("target_fiducials_mm"),
+        n_frames=args.frames,
+        frame_id=args.frame_id,
+        motion_mm=args.motion_mm,
+        motion_deg=args.motion_deg,
+        frame_period_s=args.period_s,
+        max_preop_points=args.max_preop_points,
+        max_intraop_points=args.max_intraop_points,
+        seed=args.seed,
+        info=case.get("info"),
+        overwrite=args.force,
+    )
+    print(f"wrote {out} ({bag_size_bytes(out) / 1e6:.2f} MB, {args.frames} intraop frames)")
+    return 0
+
+
+def run_make(args: argparse.Namespace) -> int:
+    from ..ros.bag_make import load_case_npz
+
+    if args.case:
+        if args.source or args.target:
+            raise InputError("give either --case or --source/--target, not both")
+        return _make(args, load_case_npz(args.case))
+    if not (args.source and args.target):
+        raise InputError("bag make needs --case NPZ, or --source and --target files")
+    case: dict = {
+        "source_mm": load_points(args.source, seed=args.seed),
+        "target_mm": load_points(args.target, seed=args.seed),
+        "info": {"source": Path(args.source).name, "target": Path(args.target).name},
+    }
+    if args.fiducials:
+        pairs = _load_pairs(Path(args.fiducials))
+        case["source_fiducials_mm"], case["target_fiducials_mm"] = pairs[:, :3], pairs[:, 3:6]
+    return _make(args, case)
+
+
+def run_import(args: argparse.Namespace) -> int:
+    from ..ros.bag_make import load_case_npz
+
+    return _make(args, load_case_npz(args.npz))
+
+
+def run_info(args: argparse.Namespace) -> int:
+    from ..ros.bag_io import bag_custom_data, bag_size_bytes, bag_topics
+
+    path = Path(args.bag)
+    if not path.exists():
+        raise InputError(f"bag not found: {path}")
+    for topic, (msgtype, count) in sorted(bag_topics(path).items()):
+        print(f"{topic:36s} {msgtype:40s} {count}")
+    for key, value in bag_custom_data(path).items():
+        print(f"{key}: {value}")
+    print(f"size: {bag_size_bytes(path) / 1e6:.2f} MB")
+    return 0
+
+
+def _load_pairs(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(f"fiducials file not found: {path}")
+    try:
+        pairs = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2, delimiter=None, comments="#")
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read fiducials {path}: {exc}") from None
+    pairs = np.asarray(pairs, dtype=np.float64)
+    if pairs.ndim != 2 or pairs.shape[1] != 6 or len(pairs) < 3:
+        raise InputError(f"{path}: expected >= 3 rows of 6 numbers (source xyz, target xyz), got shape {pairs.shape}")
+    return pairs

@@ -1,0 +1,47 @@
+"""`liver-p2p replay BAG... [--out OUT] [--method ...]`: drive the node core with recorded bags."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..config import NODE_MODES, Config
+from ..errors import InputError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("replay", help="replay rosbag2/MCAP bags through the registration node core")
+    p.add_argument("bags", nargs="+", help="rosbag2 directories (with metadata.yaml) or .mcap files")
+    p.add_argument("--out", help="folder for output bags with /registration/* and /diagnostics added")
+    p.add_argument("--force", action="store_true", help="overwrite existing output bags")
+    p.add_argument("--method", help="registration method (default: the configured one)")
+    p.add_argument("--mode", choices=NODE_MODES, help="node mode (default: the configured one)")
+    p.add_argument("--config", help="YAML configuration file (plain or ROS parameter file)")
+    p.add_argument("--max-frames", type=int, default=0, help="register at most this many frames per bag (0: all)")
+    p.add_argument("--json", help="also write the per-bag rows as JSON here")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..ros.bag_io import is_bag_path
+    from ..ros.replay import format_table, replay_bags
+
+    config = Config.from_yaml(args.config) if args.config else Config()
+    changes = {k: v for k, v in (("method", args.method), ("mode", args.mode)) if v}
+    if changes:
+        config = config.replace(**changes)
+    paths = [Path(b) for b in args.bags]
+    for path in paths:
+        if not path.exists():
+            raise InputError(f"bag not found: {path}")
+        if not is_bag_path(path):
+            raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
+    rows = replay_bags(paths, config, out_dir=args.out, progress=True, overwrite=args.force, max_frames=args.max_frames)
+    print(format_table(rows))
+    for row in rows:
+        if row.status != "OK":
+            print(f"{row.bag}: {row.status}: {row.message}")
+    if args.json:
+        Path(args.json).write_text(json.dumps([row.__dict__ for row in rows], indent=2, default=str))
+    return 1 if any(row.status == "ERROR" for row in rows) else 0

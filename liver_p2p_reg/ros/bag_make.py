@@ -1,0 +1,152 @@
+"""Build rosbag2 (MCAP) bags of a registration case: preop model + fiducials, intraop frames with sensor motion."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..errors import InputError
+from ..metrics import transform_points
+from .bag_io import POINTCLOUD2, BagWriter, rosbags_types
+from .pointcloud2 import M_PER_MM, points_to_cloud
+
+TOPIC_PREOP = "/preop/points"
+TOPIC_PREOP_FIDUCIALS = "/preop/fiducials"
+TOPIC_INTRAOP = "/intraop/points"
+TOPIC_INTRAOP_FIDUCIALS = "/intraop/fiducials"
+CASE_KEY = "liver_p2p_reg.case"  # metadata.yaml custom_data key holding the case description (JSON)
+START_NS = 1_700_000_000 * 1_000_000_000  # fixed start time: identical bags for identical inputs
+
+
+def subsample(points: np.ndarray, max_points: int, rng: np.random.Generator) -> np.ndarray:
+    """At most max_points rows, chosen uniformly without replacement (order kept)."""
+    if len(points) <= max_points:
+        return points
+    return points[np.sort(rng.choice(len(points), size=max_points, replace=False))]
+
+
+def sensor_motion(n_frames: int, motion_mm: float, motion_deg: float, rng: np.random.Generator) -> list[np.ndarray]:
+    """Small rigid motions of the sensor, one 4x4 per frame (the first is the identity)."""
+    motions = [np.eye(4)]
+    for k in range(1, n_frames):
+        T = np.eye(4)
+        axis = rng.normal(size=3)
+        T[:3, :3] = Rotation.from_rotvec(
+            axis / np.linalg.norm(axis) * np.radians(motion_deg) * k / n_frames
+        ).as_matrix()
+        T[:3, 3] = rng.normal(size=3) / np.sqrt(3) * motion_mm * k / n_frames
+        motions.append(T)
+    return motions
+
+
+def make_case_bag(
+    out: str | Path,
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    *,
+    source_fiducials_mm: np.ndarray | None = None,
+    target_fiducials_mm: np.ndarray | None = None,
+    n_frames: int = 5,
+    frame_id: str = "camera",
+    preop_frame: str = "ct",
+    motion_mm: float = 1.5,
+    motion_deg: float = 1.0,
+    frame_period_s: float = 0.5,
+    max_preop_points: int = 6000,
+    max_intraop_points: int = 8000,
+    seed: int = 0,
+    info: dict[str, Any] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write one case as a rosbag2 directory; clouds in metres (float32), timestamps from START_NS.
+
+    The intraop cloud of frame k is the target moved by a small sensor motion T_k and freshly
+    subsampled; the ground-truth fiducials of that frame are moved by the same T_k and carry
+    the cloud's header stamp.
+    """
+    source_mm = _points(source_mm, "source")
+    target_mm = _points(target_mm, "target")
+    if (source_fiducials_mm is None) != (target_fiducials_mm is None):
+        raise InputError("give both source and target fiducials, or neither")
+    if source_fiducials_mm is not None:
+        source_fiducials_mm = _points(source_fiducials_mm, "source fiducials")
+        target_fiducials_mm = _points(target_fiducials_mm, "target fiducials")
+        if source_fiducials_mm.shape != target_fiducials_mm.shape:
+            raise InputError(
+                f"fiducial pairs differ in shape: {source_fiducials_mm.shape} vs {target_fiducials_mm.shape}"
+            )
+    if n_frames < 1:
+        raise InputError(f"n_frames must be >= 1, got {n_frames}")
+    rng = np.random.default_rng(seed)
+    types = rosbags_types()
+    description = {
+        "frames": n_frames,
+        "frame_id": frame_id,
+        "preop_points": min(len(source_mm), max_preop_points),
+        "motion_mm": motion_mm,
+        "motion_deg": motion_deg,
+        **(info or {}),
+    }
+    period_ns = int(frame_period_s * 1e9)
+    with BagWriter(out, overwrite=overwrite, custom_data={CASE_KEY: json.dumps(description, sort_keys=True)}) as bag:
+        preop = subsample(source_mm, max_preop_points, rng)
+        bag.write(
+            TOPIC_PREOP,
+            POINTCLOUD2,
+            START_NS,
+            points_to_cloud(preop * M_PER_MM, types, frame_id=preop_frame, stamp_ns=START_NS),
+        )
+        if source_fiducials_mm is not None:
+            msg = points_to_cloud(source_fiducials_mm * M_PER_MM, types, frame_id=preop_frame, stamp_ns=START_NS)
+            bag.write(TOPIC_PREOP_FIDUCIALS, POINTCLOUD2, START_NS, msg)
+        for k, T in enumerate(sensor_motion(n_frames, motion_mm, motion_deg, rng)):
+            stamp = START_NS + (k + 1) * period_ns
+            if target_fiducials_mm is not None:  # logged just before its cloud so replay pairs them
+                fid = transform_points(T, target_fiducials_mm) * M_PER_MM
+                bag.write(
+                    TOPIC_INTRAOP_FIDUCIALS,
+                    POINTCLOUD2,
+                    stamp - 1000,
+                    points_to_cloud(fid, types, frame_id=frame_id, stamp_ns=stamp),
+                )
+            frame = transform_points(T, subsample(target_mm, max_intraop_points, rng)) * M_PER_MM
+            bag.write(
+                TOPIC_INTRAOP, POINTCLOUD2, stamp, points_to_cloud(frame, types, frame_id=frame_id, stamp_ns=stamp)
+            )
+    return Path(out)
+
+
+def load_case_npz(path: str | Path) -> dict[str, Any]:
+    """A case in the public P2P dataset NPZ layout (src_pcd, tgt_pcd, src_marker, tgt_marker, ...), mm."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"case file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: np.asarray(data[key]) for key in data.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read case {path}: {exc}") from None
+    for key in ("src_pcd", "tgt_pcd"):
+        if key not in arrays:
+            raise InputError(f"{path} lacks key {key!r} (P2P case layout: src_pcd, tgt_pcd, src_marker, tgt_marker)")
+    case: dict[str, Any] = {"source_mm": arrays["src_pcd"], "target_mm": arrays["tgt_pcd"], "info": {"case": path.stem}}
+    if "src_marker" in arrays and "tgt_marker" in arrays:
+        case["source_fiducials_mm"] = arrays["src_marker"]
+        case["target_fiducials_mm"] = arrays["tgt_marker"]
+    for key in ("visibility", "noise_mm", "crop", "deformation_mean_mm", "deformation_max_mm"):
+        if key in arrays and arrays[key].size == 1:
+            value = arrays[key].item()
+            case["info"][key] = value.decode() if isinstance(value, bytes) else value
+    return case
+
+
+def _points(points: np.ndarray, what: str) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] < 3 or len(points) == 0:
+        raise InputError(f"{what}: expected a non-empty (N, 3) array, got shape {points.shape}")
+    points = points[:, :3]
+    return points[np.isfinite(points).all(axis=1)]

@@ -1,0 +1,226 @@
+"""Replay rosbag2/MCAP bags through the node core in timestamp order; write output bags; per-case table."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config
+from ..errors import InputError
+from ..registrar import Registrar, get_method
+from .bag_io import (
+    DIAGNOSTIC_ARRAY,
+    POINTCLOUD2,
+    POSE_STAMPED,
+    TRANSFORM_STAMPED,
+    BagWriter,
+    bag_custom_data,
+    read_messages,
+)
+from .bag_make import CASE_KEY, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
+from .messages import diagnostic_array, pose_stamped, rosbags_output_types, transform_stamped
+from .node_core import ERROR, LEVEL_NAMES, OK, CoreOutput, NodeCore
+from .pointcloud2 import M_PER_MM, points_to_cloud
+
+LOG = logging.getLogger("liver_p2p_reg.replay")
+TOPIC_POSE = "/registration/pose"
+TOPIC_TRANSFORM = "/registration/transform"
+TOPIC_REGISTERED = "/registration/registered_preop"
+TOPIC_DIAGNOSTICS = "/diagnostics"
+OUTPUT_TOPICS = {
+    TOPIC_POSE: POSE_STAMPED,
+    TOPIC_TRANSFORM: TRANSFORM_STAMPED,
+    TOPIC_REGISTERED: POINTCLOUD2,
+    TOPIC_DIAGNOSTICS: DIAGNOSTIC_ARRAY,
+}
+
+
+@dataclass
+class ReplayRow:
+    """One bag's replay summary (one row of the table)."""
+
+    bag: str
+    frames: int  # intraop clouds in the bag
+    registered: int  # registrations that produced a pose
+    visibility: float  # mean over registered frames (NaN if none)
+    rms_tre_mm: float  # mean over registered frames (NaN without ground truth)
+    max_rms_tre_mm: float  # worst frame
+    residual_mm: float  # mean over registered frames
+    runtime_ms_p50: float
+    runtime_ms: list[float] = field(default_factory=list)  # per registration, total
+    status: str = "OK"  # worst diagnostic level over the registrations
+    message: str = ""
+    output: str = ""  # output bag path ("" when not written)
+    info: dict = field(default_factory=dict)  # the bag's case description (custom_data)
+
+
+def replay_bag(
+    path: str | Path,
+    config: Config,
+    *,
+    out_path: str | Path | None = None,
+    overwrite: bool = False,
+    registrar: Registrar | None = None,
+    max_frames: int | None = None,
+) -> ReplayRow:
+    """Drive a NodeCore with a bag's messages in log-time order; optionally write inputs + outputs.
+
+    Bag time stands in for the clock, so the rate limit and latest-only policy behave as live.
+    max_frames: stop registering after this many registrations (quick tests); 0/None = all.
+    """
+    path = Path(path)
+    core = NodeCore(config, registrar)
+    types = rosbags_output_types()
+    writer = BagWriter(out_path, overwrite=overwrite) if out_path else None
+    outputs: list[CoreOutput] = []
+    frames = 0
+    last_ns = 0
+
+    def emit(output: CoreOutput | None, stamp_ns: int, log_ns: int) -> None:
+        if output is None:
+            return
+        outputs.append(output)
+        if writer is None:
+            return
+        if output.pose is not None:
+            writer.write(TOPIC_POSE, POSE_STAMPED, log_ns, pose_stamped(output.pose, types))
+            writer.write(TOPIC_TRANSFORM, TRANSFORM_STAMPED, log_ns, transform_stamped(output.pose, types))
+            cloud = points_to_cloud(
+                output.registered_preop_mm * M_PER_MM, types.cloud, frame_id=output.pose.frame_id, stamp_ns=stamp_ns
+            )
+            writer.write(TOPIC_REGISTERED, POINTCLOUD2, log_ns, cloud)
+        writer.write(TOPIC_DIAGNOSTICS, DIAGNOSTIC_ARRAY, log_ns, diagnostic_array(output.diagnostics, stamp_ns, types))
+
+    try:
+        for item in read_messages(path):
+            last_ns = item.timestamp_ns
+            if writer is not None and item.topic not in OUTPUT_TOPICS:
+                writer.write(item.topic, item.msgtype, item.timestamp_ns, item.msg)
+            if item.msgtype != POINTCLOUD2:
+                continue
+            if item.topic == TOPIC_PREOP:
+                diag = core.on_preop_msg(item.msg)
+                if writer is not None:
+                    writer.write(
+                        TOPIC_DIAGNOSTICS,
+                        DIAGNOSTIC_ARRAY,
+                        item.timestamp_ns,
+                        diagnostic_array([diag], item.timestamp_ns, types),
+                    )
+            elif item.topic == TOPIC_PREOP_FIDUCIALS:
+                core.on_preop_fiducials_msg(item.msg)
+            elif item.topic == TOPIC_INTRAOP_FIDUCIALS:
+                core.on_intraop_fiducials_msg(item.msg)
+            elif item.topic == TOPIC_INTRAOP:
+                frames += 1
+                if max_frames and len(outputs) >= max_frames:
+                    continue
+                for diag in core.on_intraop_msg(item.msg):
+                    emit(CoreOutput([diag]), item.timestamp_ns, item.timestamp_ns)
+                emit(core.process_pending(item.timestamp_ns * 1e-9), _stamp(item.msg), item.timestamp_ns)
+        if not (max_frames and len(outputs) >= max_frames):
+            emit(core.flush(), last_ns, last_ns + 1)
+    finally:
+        if writer is not None:
+            writer.close()
+    info = {}
+    if CASE_KEY in (custom := bag_custom_data(path)):
+        try:
+            info = json.loads(custom[CASE_KEY])
+        except ValueError:
+            info = {}
+    return _summarize(path, frames, outputs, str(out_path or ""), info)
+
+
+def _stamp(msg: object) -> int:
+    stamp = msg.header.stamp  # type: ignore[attr-defined]
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _summarize(path: Path, frames: int, outputs: list[CoreOutput], out: str, info: dict) -> ReplayRow:
+    results = [o.result for o in outputs if o.pose is not None and o.result is not None]
+    worst = max((o.level for o in outputs), default=ERROR)
+    if frames == 0:
+        worst = ERROR
+    runtimes = [float(r.runtime_ms.get("total", np.nan)) for r in results]
+    tres = [r.rms_tre_mm for r in results if r.rms_tre_mm is not None]
+
+    def mean(values: list[float]) -> float:
+        return float(np.mean(values)) if values else float("nan")
+
+    messages = [o.summary for o in outputs if o.level == worst]
+    return ReplayRow(
+        bag=path.name,
+        frames=frames,
+        registered=len(results),
+        visibility=mean([r.visibility for r in results]),
+        rms_tre_mm=mean(tres),
+        max_rms_tre_mm=float(np.max(tres)) if tres else float("nan"),
+        residual_mm=mean([r.residual_mm for r in results]),
+        runtime_ms_p50=float(np.median(runtimes)) if runtimes else float("nan"),
+        runtime_ms=runtimes,
+        status=LEVEL_NAMES[worst] if results or worst != OK else "ERROR",
+        message=messages[0] if messages else ("no intraop frames" if frames == 0 else ""),
+        output=out,
+        info=info,
+    )
+
+
+def replay_bags(
+    paths: Sequence[str | Path],
+    config: Config,
+    out_dir: str | Path | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+    max_frames: int | None = None,
+) -> list[ReplayRow]:
+    """Replay several bags with one Registrar (method caches shared); output bags go to out_dir/<name>."""
+    if not paths:
+        raise InputError("no bags given")
+    get_method(config.method)  # an unknown method is one InputError up front, not an ERROR per frame
+    registrar = Registrar(config)
+    rows = []
+    iterator = paths
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(paths, desc="replay", unit="bag")
+    for path in iterator:
+        path = Path(path)
+        out = None if out_dir is None else Path(out_dir) / path.name.removesuffix(".mcap")
+        rows.append(
+            replay_bag(path, config, out_path=out, overwrite=overwrite, registrar=registrar, max_frames=max_frames)
+        )
+    return rows
+
+
+def _fmt(value: float, digits: int = 2) -> str:
+    return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def format_table(rows: Sequence[ReplayRow]) -> str:
+    """Markdown-style table: bag, frames, visibility, RMS-TRE mm, residual mm, runtime ms (p50), status."""
+    header = ["bag", "frames", "visibility", "RMS-TRE mm", "residual mm", "runtime ms (p50)", "status"]
+    body = [
+        [
+            r.bag,
+            f"{r.registered}/{r.frames}",
+            _fmt(r.visibility),
+            _fmt(r.rms_tre_mm),
+            _fmt(r.residual_mm),
+            _fmt(r.runtime_ms_p50, 0),
+            r.status,
+        ]
+        for r in rows
+    ]
+    widths = [max(len(h), *(len(row[i]) for row in body)) if body else len(h) for i, h in enumerate(header)]
+    lines = ["| " + " | ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)) + " |"]
+    lines.append("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for row in body:
+        lines.append("| " + " | ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) + " |")
+    return "\n".join(lines)
