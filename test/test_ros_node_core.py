@@ -1,0 +1,172 @@
+"""Node core: bad inputs give the right diagnostic and no pose; modes, rate limit and latest-only."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.registrar import available_methods
+from liver_p2p_reg.ros.bag_io import rosbags_types
+from liver_p2p_reg.ros.node_core import ERROR, OK, STALE, WARN, NodeCore, voxel_downsample_bounded
+from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
+
+TYPES = rosbags_types()
+
+
+def liver_like(n=2000, seed=0):
+    """An ellipsoid shell about 160 x 110 x 80 mm (liver-sized), in mm."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True) * [80.0, 55.0, 40.0]
+
+
+def ground_truth():
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix()
+    T[:3, 3] = [30.0, -12.0, 250.0]
+    return T
+
+
+def moved(T, p):
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def core_with_preop(**cfg):
+    core = NodeCore(Config(method="procrustes", **cfg))
+    diag = core.set_preop(liver_like())
+    assert diag.level == OK
+    return core
+
+
+def only_diag(output):
+    assert output is not None and output.pose is None and output.registered_preop_mm is None
+    assert len(output.diagnostics) == 1
+    return output.diagnostics[0]
+
+
+def cloud_msg(points_mm, stamp_ns=1, **layout):
+    return points_to_cloud(np.asarray(points_mm) * 1e-3, TYPES, frame_id="camera", stamp_ns=stamp_ns, **layout)
+
+
+def test_cloud_before_preop_is_error_and_waits():
+    core = NodeCore(Config(method="procrustes"))
+    diags = core.on_intraop_points(liver_like(), "camera", 5)
+    assert [d.level for d in diags] == [ERROR] and "before any preop" in diags[0].message
+    assert not core.due(0.0) and core.process_pending(0.0) is None
+    assert core.status().level == ERROR
+
+
+def test_status_is_stale_before_anything():
+    assert NodeCore(Config()).status().level == STALE
+
+
+@pytest.mark.parametrize(
+    ("points", "level", "text"),
+    [
+        (np.zeros((0, 3)), ERROR, "empty intraop cloud"),
+        (np.full((500, 3), np.nan), ERROR, "no valid points"),
+        (liver_like(50), ERROR, "too few valid intraop points"),
+        (liver_like() * 1000.0, WARN, "wrong units"),  # mm values published as metres
+        (liver_like() / 1000.0, WARN, "wrong units"),  # metres published as mm-scaled metres
+    ],
+    ids=["empty", "all-nan", "too-few", "1000x-large", "1000x-small"],
+)
+def test_bad_intraop_clouds(points, level, text):
+    core = core_with_preop()
+    assert core.on_intraop_msg(cloud_msg(points)) == []
+    diag = only_diag(core.process_pending(0.0))
+    assert diag.level == level and text in diag.message
+    assert core.last_output.pose is None
+
+
+def test_missing_z_field_is_error():
+    msg = cloud_msg(liver_like(), extra_fields={"intensity": np.ones(2000, np.float32)})
+    msg.fields = [f for f in msg.fields if f.name != "z"]
+    core = core_with_preop()
+    core.on_intraop_msg(msg)
+    diag = only_diag(core.process_pending(0.0))
+    assert diag.level == ERROR and "lacks field" in diag.message
+
+
+def test_million_point_cloud_is_voxelized_first():
+    rng = np.random.default_rng(1)
+    tiny = rng.uniform(0, 3.0, size=(1_000_000, 3)) + 100.0  # a 3 mm cube: few voxels survive
+    core = core_with_preop()
+    core.on_intraop_msg(cloud_msg(tiny))
+    diag = only_diag(core.process_pending(0.0))
+    assert diag.level == ERROR and "too few" in diag.message
+    assert diag.values["input_points"] == "1000000"
+    assert int(diag.values["valid_points"]) < 100
+
+
+def test_voxel_downsample_bounded_means():
+    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [5.1, 0.0, 0.0], [5.3, 0.0, 0.0]])
+    out = voxel_downsample_bounded(pts, 1.0)
+    np.testing.assert_allclose(sorted(out.tolist()), [[0.2, 0.2, 0.2], [5.2, 0.0, 0.0]])
+
+
+def test_bad_preop_is_rejected():
+    core = NodeCore(Config())
+    assert core.set_preop(np.full((10, 3), np.nan)).level == ERROR
+    assert core.preop_mm is None
+    assert core.set_preop(liver_like() * 1000).level == WARN  # accepted, but flagged
+
+
+def test_continuous_rate_limit_keeps_latest_only():
+    core = core_with_preop(max_rate_hz=2.0)
+    core.on_intraop_points(liver_like(50), "camera", 1)
+    assert core.due(10.0)
+    first = core.process_pending(10.0)
+    assert first.diagnostics[0].values["stamp_ns"] == "1"
+    core.on_intraop_points(liver_like(50), "camera", 2)
+    core.on_intraop_points(liver_like(50), "camera", 3)
+    assert not core.due(10.2) and core.process_pending(10.2) is None  # rate limited
+    second = core.process_pending(10.5)
+    assert second.diagnostics[0].values["stamp_ns"] == "3"  # the stale cloud 2 was dropped
+    assert core.dropped == 1 and core.received == 3 and core.processed == 2
+    assert core.process_pending(20.0) is None  # nothing pending: no unbounded queue
+
+
+def test_on_demand_mode_only_registers_on_service():
+    core = core_with_preop(mode="on_demand")
+    core.on_intraop_points(liver_like(50), "camera", 7)
+    assert not core.due(100.0)
+    out = core.reregister(100.0)
+    assert out.reason == "reregister" and out.diagnostics[0].values["stamp_ns"] == "7"
+
+
+def test_reregister_without_cloud_is_error():
+    core = core_with_preop()
+    diag = only_diag(core.reregister(0.0))
+    assert diag.level == ERROR and "no intraop cloud" in diag.message
+
+
+needs_procrustes = pytest.mark.skipif(
+    "procrustes" not in available_methods(), reason="procrustes method not implemented yet"
+)
+
+
+@needs_procrustes
+def test_registration_outputs_pose_cloud_and_tre():
+    T = ground_truth()
+    preop = liver_like()
+    fid_ct = np.array([[10.0, 5, 0], [-20, 10, 5], [0, -15, -10], [30, 0, 8], [-5, 20, -12]])
+    core = NodeCore(Config(method="procrustes", mode="once"))
+    core.set_preop(preop)
+    core.set_preop_fiducials(fid_ct)
+    core.set_intraop_fiducials(moved(T, fid_ct), 42)
+    core.on_intraop_points(moved(T, preop[preop[:, 0] > 0]), "camera", 42)
+    out = core.process_pending(0.0)
+    assert out.pose is not None and out.level in (OK, WARN)
+    np.testing.assert_allclose(out.pose.T_sensor_ct_mm, T, atol=1e-6)
+    np.testing.assert_allclose(out.pose.translation_m, T[:3, 3] / 1000)
+    q = out.pose.quaternion_xyzw
+    np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), T[:3, :3], atol=1e-9)
+    assert out.pose.frame_id == "camera" and out.pose.child_frame_id == "ct"
+    np.testing.assert_allclose(out.registered_preop_mm, moved(T, preop), atol=1e-6)
+    values = out.diagnostics[0].values
+    assert float(values["rms_tre_mm"]) < 1e-3 and "runtime_ms.total" in values and "residual_mm" in values
+    # once mode: holds after the first pose until re-registered
+    core.on_intraop_points(moved(T, preop[preop[:, 1] > 0]), "camera", 43)
+    assert not core.due(100.0)
+    assert core.reregister(100.0).pose is not None
