@@ -1,0 +1,86 @@
+"""rclpy adapter: preop_loader_node publishes a preop model (and fiducials) latched on /preop/*, in metres."""
+
+from __future__ import annotations
+
+import array
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+
+from ..cloud_io import load_points
+from ..errors import InputError, LiverP2PError
+from .pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
+
+TYPES = MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw))
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+UNITS_TO_M = {"mm": M_PER_MM, "m": 1.0}
+
+
+def load_model_m(path: str, units: str) -> np.ndarray:
+    """Load a mesh/cloud file and return (N, 3) metres; InputError for missing/unreadable files."""
+    if units not in UNITS_TO_M:
+        raise InputError(f"units must be 'mm' or 'm', got {units!r}")
+    if not path:
+        raise InputError("parameter model_path is required (PLY/STL/OBJ/VTK mesh or point cloud)")
+    if not Path(path).is_file():
+        raise InputError(f"model_path not found: {path}")
+    points = load_points(path)
+    points = points[np.isfinite(points).all(axis=1)]
+    if len(points) == 0:
+        raise InputError(f"{path} holds no valid points")
+    return points * UNITS_TO_M[units]
+
+
+class PreopLoaderNode(Node):
+    """Loads the preop model once and publishes it latched (reliable + transient local)."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("preop_loader_node", **node_kwargs)  # node_kwargs: e.g. parameter_overrides (tests)
+        model_path = self.declare_parameter("model_path", "").value
+        fiducials_path = self.declare_parameter("fiducials_path", "").value
+        frame_id = self.declare_parameter("frame_id", "ct").value
+        units = self.declare_parameter("units", "mm").value
+        model_m = load_model_m(model_path, units)
+        stamp_ns = self.get_clock().now().nanoseconds
+        self.points_pub = self.create_publisher(PointCloud2, "/preop/points", LATCHED_QOS)
+        self.points_pub.publish(points_to_cloud(model_m, TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
+        self.get_logger().info(f"published {len(model_m)} preop points from {model_path} on /preop/points ({frame_id})")
+        if fiducials_path:
+            fiducials_m = load_model_m(fiducials_path, units)
+            self.fiducials_pub = self.create_publisher(PointCloud2, "/preop/fiducials", LATCHED_QOS)
+            self.fiducials_pub.publish(points_to_cloud(fiducials_m, TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
+            self.get_logger().info(f"published {len(fiducials_m)} fiducials on /preop/fiducials")
+
+
+def main(args: list[str] | None = None) -> int:
+    """`ros2 run liver_p2p_reg preop_loader_node --ros-args -p model_path:=liver.stl`."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PreopLoaderNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()  # keep the latched messages available for late joiners
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except LiverP2PError as exc:  # missing/unreadable file: one fatal line and exit status 1
+        get_logger("preop_loader_node").fatal(str(exc))
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

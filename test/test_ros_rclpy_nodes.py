@@ -1,0 +1,90 @@
+"""rclpy wiring of register_node and preop_loader_node (runs only where ROS 2 Jazzy is installed)."""
+
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from liver_p2p_reg.errors import InputError  # noqa: E402
+from liver_p2p_reg.registrar import available_methods  # noqa: E402
+from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud  # noqa: E402
+from liver_p2p_reg.ros.preop_loader_node import PreopLoaderNode  # noqa: E402
+from liver_p2p_reg.ros.register_node import LATCHED_QOS, RCLPY_TYPES, RegisterNode  # noqa: E402
+
+
+@pytest.fixture
+def ros_context():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+def spin_until(executor, condition, timeout_s=30.0):
+    end = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)
+    return condition()
+
+
+def test_rclpy_pointcloud2_round_trip():
+    pts = np.random.default_rng(0).uniform(-0.1, 0.1, size=(40, 3))
+    msg = points_to_cloud(pts, RCLPY_TYPES.cloud, frame_id="camera", stamp_ns=5, big_endian=True, height=4)
+    assert isinstance(msg, PointCloud2)
+    np.testing.assert_allclose(cloud_to_points_m(msg), pts, atol=1e-7)
+
+
+@pytest.mark.skipif("procrustes" not in available_methods(), reason="procrustes method not implemented yet")
+def test_register_node_publishes_pose_and_answers_service(ros_context):
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(1500, 3))
+    preop_m = d / np.linalg.norm(d, axis=1, keepdims=True) * [0.08, 0.055, 0.04]
+    fid_m = rng.uniform(-0.02, 0.02, size=(5, 3))
+    offset = np.array([0.01, -0.02, 0.3])
+    node = RegisterNode(parameter_overrides=[Parameter("method", value="procrustes")])
+    helper = rclpy.create_node("test_helper")
+    poses = []
+    helper.create_subscription(PoseStamped, "/registration/pose", poses.append, 10)
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    executor.add_node(helper)
+    try:
+        types = RCLPY_TYPES.cloud
+        helper.create_publisher(PointCloud2, "/preop/points", LATCHED_QOS).publish(
+            points_to_cloud(preop_m, types, frame_id="ct")
+        )
+        helper.create_publisher(PointCloud2, "/preop/fiducials", LATCHED_QOS).publish(
+            points_to_cloud(fid_m, types, frame_id="ct")
+        )
+        helper.create_publisher(PointCloud2, "/intraop/fiducials", 10).publish(
+            points_to_cloud(fid_m + offset, types, frame_id="camera", stamp_ns=7)
+        )
+        assert spin_until(executor, lambda: node.core.preop_mm is not None)
+        intraop = helper.create_publisher(PointCloud2, "/intraop/points", qos_profile_sensor_data)
+        intraop.publish(points_to_cloud(preop_m[preop_m[:, 0] > 0] + offset, types, frame_id="camera", stamp_ns=7))
+        assert spin_until(executor, lambda: len(poses) > 0)
+        p = poses[0].pose.position
+        np.testing.assert_allclose([p.x, p.y, p.z], offset, atol=1e-6)
+        assert poses[0].header.frame_id == "camera"
+        client = helper.create_client(Trigger, "/register_node/reregister")
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())
+        assert spin_until(executor, future.done)
+        assert future.result().success and "residual" in future.result().message
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        helper.destroy_node()
+
+
+def test_preop_loader_missing_file_is_fatal_input_error(ros_context, tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        PreopLoaderNode(parameter_overrides=[Parameter("model_path", value=str(tmp_path / "missing.stl"))])
