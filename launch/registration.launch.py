@@ -1,0 +1,64 @@
+"""Launch preop_loader_node + register_node with config/registration.yaml; optionally play a bag and open RViz."""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch.actions import DeclareLaunchArgument, ExecuteProcess
+from launch.conditions import IfCondition
+from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch_ros.actions import Node
+
+from launch import LaunchDescription
+
+
+def generate_launch_description():
+    share = get_package_share_directory("liver_p2p_reg")
+    params = os.path.join(share, "config", "registration.yaml")
+    rviz_config = os.path.join(share, "config", "registration.rviz")
+    model_path = LaunchConfiguration("model_path")
+    fiducials_path = LaunchConfiguration("fiducials_path")
+    bag = LaunchConfiguration("bag")
+    use_loader = PythonExpression(["'", model_path, "' != ''"])  # bags carry /preop/* themselves
+    play_bag = PythonExpression(["'", bag, "' != ''"])
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument(
+                "model_path", default_value="", description="preop mesh/cloud in mm (PLY/STL/OBJ/VTK)"
+            ),
+            DeclareLaunchArgument("fiducials_path", default_value="", description="optional preop fiducials file (mm)"),
+            DeclareLaunchArgument("units", default_value="mm", description="units of model_path: mm or m"),
+            DeclareLaunchArgument("bag", default_value="", description="optional rosbag2 directory to play"),
+            DeclareLaunchArgument("rviz", default_value="false", description="open RViz with config/registration.rviz"),
+            DeclareLaunchArgument("method", default_value="fpfh-p2p", description="registration method"),
+            Node(
+                package="liver_p2p_reg",
+                executable="preop_loader_node",
+                name="preop_loader_node",
+                parameters=[
+                    {
+                        "model_path": model_path,
+                        "fiducials_path": fiducials_path,
+                        "frame_id": "ct",
+                        "units": LaunchConfiguration("units"),
+                    }
+                ],
+                condition=IfCondition(use_loader),
+                output="screen",
+            ),
+            Node(
+                package="liver_p2p_reg",
+                executable="register_node",
+                name="register_node",
+                parameters=[params, {"method": LaunchConfiguration("method")}],
+                output="screen",
+            ),
+            ExecuteProcess(cmd=["ros2", "bag", "play", bag], condition=IfCondition(play_bag), output="screen"),
+            Node(
+                package="rviz2",
+                executable="rviz2",
+                arguments=["-d", rviz_config],
+                condition=IfCondition(LaunchConfiguration("rviz")),
+                output="screen",
+            ),
+        ]
+    )
