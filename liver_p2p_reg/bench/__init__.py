@@ -1,0 +1,1 @@
+"""Benchmark harness: runs registration methods on test cases and writes tables, curves and statistics."""

@@ -1,0 +1,191 @@
+"""Benchmark cases: resolving a dataset name or folder, reading case NPZs, visibility bins, presets."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+# Visibility bins of the paper's Table I: [0.2,0.3) ... [0.8,0.9), and the closed [0.9,1.0].
+BIN_EDGES = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+BIN_LABELS = tuple(
+    f"[{lo:.1f},{hi:.1f}{']' if i == len(BIN_EDGES) - 2 else ')'}"
+    for i, (lo, hi) in enumerate(zip(BIN_EDGES, BIN_EDGES[1:], strict=False))
+)
+# Keys every case NPZ must carry (the phantom generator's format, close to the public P2P dataset).
+REQUIRED_KEYS = ("src_pcd", "tgt_pcd", "src_marker", "tgt_marker")
+PRESETS = ("smoke", "full")
+SMOKE_CASES_PER_BIN = 3  # --preset smoke: this many cases per visibility bin
+
+
+@dataclass(frozen=True)
+class CaseInfo:
+    """Metadata of one case (the clouds are read again by whoever runs it)."""
+
+    case_id: str
+    path: Path
+    visibility: float
+    noise_mm: float
+    crop_mode: str
+    deformation_rms_mm: float
+    seed: int
+    added_noise_mm: float = 0.0  # sensor noise the benchmark adds to the target (Table II rows)
+
+
+def visibility_bin(visibility: float) -> int | None:
+    """Index of the visibility bin, or None outside [0.2, 1.0]."""
+    if not np.isfinite(visibility) or visibility < BIN_EDGES[0] or visibility > BIN_EDGES[-1]:
+        return None
+    return min(int(np.searchsorted(BIN_EDGES, visibility, side="right")) - 1, len(BIN_LABELS) - 1)
+
+
+def read_case(path: Path) -> dict[str, Any]:
+    """Read one case NPZ into a dict of arrays and Python scalars; InputError if unusable."""
+    try:
+        from ..phantom.dataset import read_case as phantom_read_case  # the generator's own reader
+    except ImportError:
+        phantom_read_case = None
+    try:
+        if phantom_read_case is not None:
+            data = dict(phantom_read_case(path))
+        else:
+            with np.load(path, allow_pickle=False) as npz:
+                data = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"cannot read case {path}: {exc}") from None
+    missing = [k for k in REQUIRED_KEYS if k not in data]
+    if missing:
+        raise InputError(f"case {path} lacks {', '.join(missing)}")
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        arr = np.asarray(value)
+        out[key] = arr.item() if arr.ndim == 0 else arr
+    return out
+
+
+def case_info(path: Path) -> CaseInfo:
+    """Metadata of the case at `path` (missing optional fields get neutral values)."""
+    data = read_case(path)
+    case_id = path.stem
+    seed = data.get("seed")
+    if seed is None:
+        # Cases without a stored seed still get a stable one, derived from their name.
+        seed = zlib.crc32(case_id.encode())
+    return CaseInfo(
+        case_id=case_id,
+        path=path,
+        visibility=float(data.get("visibility", np.nan)),
+        noise_mm=float(data.get("noise_mm", 0.0)),
+        crop_mode=str(data.get("crop_mode", "")),
+        deformation_rms_mm=float(data.get("deformation_rms_mm", np.nan)),
+        seed=int(seed),
+    )
+
+
+def with_noise(infos: list[CaseInfo], levels_mm: list[float]) -> list[CaseInfo]:
+    """Add noisy copies of the lowest-visibility-bin cases (the paper's Table II), one per level > 0."""
+    extra = []
+    for info in infos:
+        if visibility_bin(info.visibility) != 0:
+            continue
+        for level in levels_mm:
+            if level > 0:
+                extra.append(
+                    dataclasses.replace(
+                        info,
+                        case_id=f"{info.case_id}+noise{level:g}mm",
+                        noise_mm=info.noise_mm + level,
+                        added_noise_mm=level,
+                    )
+                )
+    return sorted(infos + extra, key=lambda c: c.case_id)
+
+
+def add_target_noise(target_mm: np.ndarray, info: CaseInfo) -> np.ndarray:
+    """Uniform noise in [-0.5, 0.5] x level mm per coordinate (the paper's model), seeded per case."""
+    if info.added_noise_mm <= 0:
+        return target_mm
+    rng = np.random.default_rng([info.seed, int(round(info.added_noise_mm * 1000))])
+    return target_mm + rng.uniform(-0.5, 0.5, size=target_mm.shape) * info.added_noise_mm
+
+
+def resolve_dataset(dataset: str, data_root: Path | None) -> tuple[Path, str]:
+    """A folder of case NPZs, or a named test set generated (once) under `data_root`.
+
+    Returns the folder and the dataset's identity recorded in the run settings.
+    """
+    path = Path(dataset)
+    if path.is_dir():
+        return path, str(path.resolve())
+    if path.suffix or "/" in dataset:
+        raise InputError(f"dataset folder {dataset} does not exist")
+    try:
+        from ..phantom import testset
+    except ImportError:
+        raise InputError(
+            f"named test set {dataset!r} needs the phantom generator (liver_p2p_reg.phantom.testset)"
+        ) from None
+    return Path(testset.ensure_testset(dataset, root=data_root)), dataset
+
+
+def list_case_paths(folder: Path) -> list[Path]:
+    """All case NPZs of a dataset folder, in a stable order."""
+    try:
+        from ..phantom.testset import testset_cases
+    except ImportError:
+        testset_cases = None
+    paths: list[Path] = []
+    if testset_cases is not None:
+        try:
+            paths = [Path(p) for p in testset_cases(folder)]
+        except Exception:  # not a generator-made folder (no manifest): fall back to the files
+            paths = []
+    if not paths:
+        paths = sorted(folder.rglob("*.npz"))
+    if not paths:
+        raise InputError(f"no case files (*.npz) in {folder}")
+    return sorted(paths, key=lambda p: p.stem)
+
+
+def select_cases(infos: list[CaseInfo], preset: str, limit: int | None) -> list[CaseInfo]:
+    """Apply the preset (smoke: first cases of each visibility bin) and --limit, in case-id order."""
+    if preset not in PRESETS:
+        raise InputError(f"preset must be one of {PRESETS}, got {preset!r}")
+    infos = sorted(infos, key=lambda c: c.case_id)
+    if preset == "smoke":
+        infos = first_per_bin(infos, SMOKE_CASES_PER_BIN)
+    if limit is not None:
+        if limit < 1:
+            raise InputError(f"--limit must be >= 1, got {limit}")
+        infos = infos[:limit]
+    return infos
+
+
+def first_per_bin(infos: list[CaseInfo], per_bin: int) -> list[CaseInfo]:
+    """The first `per_bin` cases (by case id) of every visibility bin, in case-id order."""
+    counts: dict[int | None, int] = {}
+    chosen = []
+    for info in sorted(infos, key=lambda c: c.case_id):
+        b = visibility_bin(info.visibility)
+        if counts.get(b, 0) < per_bin:
+            counts[b] = counts.get(b, 0) + 1
+            chosen.append(info)
+    return chosen
+
+
+def fingerprint(infos: list[CaseInfo]) -> str:
+    """Short hash of the selected case ids (detects a changed dataset behind the same name)."""
+    digest = hashlib.sha256("\n".join(c.case_id for c in infos).encode()).hexdigest()
+    return digest[:16]
+
+
+def case_seed(base_seed: int, info: CaseInfo) -> int:
+    """The seed a method gets on this case: fixed per case, independent of order and workers."""
+    return int((base_seed * 1_000_003 + info.seed) % (2**31 - 1))

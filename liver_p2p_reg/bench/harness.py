@@ -1,0 +1,387 @@
+"""Runs registration methods on benchmark cases through the public Registrar API; resumable CSV output."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import multiprocessing
+import os
+import time
+from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from ..config import Config
+from ..errors import InputError, LiverP2PError
+from ..metrics import rms_tre_mm, tre_mm
+from ..registrar import Registrar, available_methods
+from .cases import CaseInfo, add_target_noise, case_seed, first_per_bin, read_case
+
+log = logging.getLogger(__name__)
+
+CASES_CSV = "cases.csv"
+SETTINGS_JSON = "settings.json"
+ORACLE = "procrustes"
+# Columns before the per-stage runtimes / after them; per-stage columns are `runtime_<stage>_ms`.
+HEAD_COLUMNS = (
+    "case_id",
+    "method",
+    "base_method",
+    "variant",
+    "visibility",
+    "noise_mm",
+    "added_noise_mm",
+    "crop_mode",
+    "deformation_rms_mm",
+    "rms_tre_mm",
+    "max_tre_mm",
+    "initial_rms_tre_mm",
+    "residual_mm",
+    "runtime_ms",
+)
+TAIL_COLUMNS = (
+    "chosen_candidate",
+    "n_candidates",
+    "n_matches",
+    "method_visibility",
+    "failed",
+    "reason",
+    "ambiguous",
+    "seed",
+)
+FLOAT_COLUMNS = {
+    "visibility",
+    "noise_mm",
+    "added_noise_mm",
+    "deformation_rms_mm",
+    "rms_tre_mm",
+    "max_tre_mm",
+    "initial_rms_tre_mm",
+    "residual_mm",
+    "runtime_ms",
+    "method_visibility",
+}
+INT_COLUMNS = {"n_candidates", "n_matches", "seed"}
+BOOL_COLUMNS = {"failed", "ambiguous"}
+ABLATION_K = tuple(range(1, 9))  # the paper's Fig. 8: K = 1 ... 8
+ABLATION_CASES_PER_BIN = 10
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One way of running a method: its name plus Config overrides (empty for the main run)."""
+
+    method: str
+    overrides: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def label(self) -> str:
+        if not self.overrides:
+            return self.method
+        return f"{self.method}[{','.join(f'{k}={v}' for k, v in self.overrides)}]"
+
+    @property
+    def variant(self) -> str:
+        return self.label[len(self.method) :].strip("[]")
+
+
+@dataclass
+class BenchmarkSpec:
+    """Everything that defines a benchmark run (the parts that must not change within one OUT)."""
+
+    out: Path
+    dataset_id: str
+    cases: list[CaseInfo]
+    methods: list[str]
+    config: Config = field(default_factory=Config)
+    preset: str = "full"
+    limit: int | None = None
+    ablations: bool = False
+    ablation_cases_per_bin: int = ABLATION_CASES_PER_BIN
+    workers: int = 1
+    noise_levels_mm: tuple[float, ...] = ()
+
+    def settings(self) -> dict[str, Any]:
+        """The settings recorded in OUT/settings.json; a rerun must match them."""
+        from .cases import fingerprint
+
+        return {
+            "dataset": self.dataset_id,
+            "cases_fingerprint": fingerprint(self.cases),
+            "n_cases": len(self.cases),
+            "preset": self.preset,
+            "limit": self.limit,
+            "ablation_cases_per_bin": self.ablation_cases_per_bin,
+            "noise_levels_mm": list(self.noise_levels_mm),
+            "config": self.config.to_dict(),
+        }
+
+
+def is_p2p(method: str) -> bool:
+    """Methods whose P2P module the ablations vary (plain `X-p2p`, not the refined `X-p2p-icp`)."""
+    return method.endswith("-p2p")
+
+
+def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
+    """All (case, variant) pairs of the run, cases outermost so partial runs cover whole cases."""
+    main = [Variant(m) for m in spec.methods]
+    ablation: list[Variant] = []
+    if spec.ablations:
+        cfg = spec.config
+        for m in spec.methods:
+            if not is_p2p(m):
+                continue
+            ablation += [Variant(m, (("k", k),)) for k in ABLATION_K if k != cfg.k]
+            other_rule = "inlier-count" if cfg.selection == "closest-point" else "closest-point"
+            ablation.append(Variant(m, (("selection", other_rule),)))
+            ablation.append(Variant(m, (("candidate_proposal", not cfg.candidate_proposal),)))
+    clean = [c for c in spec.cases if c.added_noise_mm == 0]  # ablations run on the noise-free cases
+    ablation_ids = {c.case_id for c in first_per_bin(clean, spec.ablation_cases_per_bin)}
+    jobs = []
+    for case in spec.cases:
+        jobs += [(case, v) for v in main]
+        if case.case_id in ablation_ids:
+            jobs += [(case, v) for v in ablation]
+    return jobs
+
+
+# Registrar caches (loaded models, cached features) per variant label, for this process's lifetime.
+_CACHES: dict[str, dict[str, Any]] = {}
+
+
+def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> dict[str, Any]:
+    """Register one case with one method variant through `Registrar.register`; never raises for method failures."""
+    data = read_case(case.path)
+    src_marker = np.asarray(data["src_marker"], float)
+    tgt_marker = np.asarray(data["tgt_marker"], float)
+    seed = case_seed(int(config_dict.get("seed", 0)), case)
+    config = Config.from_dict({**config_dict, **dict(variant.overrides), "seed": seed})
+    registrar = Registrar(config)
+    # Share one cache per variant across cases, as the ROS node shares one Registrar across frames.
+    registrar.cache = _CACHES.setdefault(variant.label, {})
+    initial_rms = rms_tre_mm(np.eye(4), src_marker, tgt_marker)
+    initial_max = float(np.max(tre_mm(np.eye(4), src_marker, tgt_marker)))
+    row: dict[str, Any] = {
+        "case_id": case.case_id,
+        "method": variant.label,
+        "base_method": variant.method,
+        "variant": variant.variant,
+        "visibility": case.visibility,
+        "noise_mm": case.noise_mm,
+        "added_noise_mm": case.added_noise_mm,
+        "crop_mode": case.crop_mode,
+        "deformation_rms_mm": case.deformation_rms_mm,
+        "initial_rms_tre_mm": initial_rms,
+        "seed": seed,
+    }
+    start = time.perf_counter()
+    try:
+        result = registrar.register(
+            data["src_pcd"],
+            add_target_noise(np.asarray(data["tgt_pcd"], float), case),
+            method=variant.method,
+            source_fiducials_mm=src_marker,
+            target_fiducials_mm=tgt_marker,
+        )
+    except LiverP2PError as exc:
+        return {**row, **_failed(initial_rms, initial_max, f"{type(exc).__name__}: {exc}", start)}
+    except Exception as exc:  # a bug in one method must not end a 30-minute run; it is recorded
+        log.warning("%s on %s: %s: %s", variant.label, case.case_id, type(exc).__name__, exc)
+        return {**row, **_failed(initial_rms, initial_max, f"internal {type(exc).__name__}: {exc}", start)}
+    T = np.asarray(result.T_target_source, float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return {**row, **_failed(initial_rms, initial_max, "non-finite transform", start)}
+    chosen = ""
+    if result.chosen is not None and 0 <= result.chosen < len(result.candidates):
+        chosen = result.candidates[result.chosen].name
+    row.update(
+        rms_tre_mm=float(result.rms_tre_mm),
+        max_tre_mm=float(result.max_tre_mm),
+        residual_mm=float(result.residual_mm),
+        runtime_ms=float(result.runtime_ms.get("total", (time.perf_counter() - start) * 1e3)),
+        chosen_candidate=chosen,
+        n_candidates=len(result.candidates),
+        n_matches=int(result.n_matches),
+        method_visibility=float(result.visibility),
+        failed=not result.ok,
+        reason="" if result.ok else (result.message or "method reported failure"),
+        ambiguous=bool(result.ambiguous),
+    )
+    for stage, ms in result.runtime_ms.items():
+        if stage != "total":
+            row[f"runtime_{stage}_ms"] = float(ms)
+    return row
+
+
+def _failed(initial_rms: float, initial_max: float, reason: str, start: float) -> dict[str, Any]:
+    # Failure rule: a method that raises leaves the case where it started, so its error is the
+    # initial (identity) TRE; it also counts as a failure in every success rate.
+    return {
+        "rms_tre_mm": initial_rms,
+        "max_tre_mm": initial_max,
+        "residual_mm": math.nan,
+        "runtime_ms": (time.perf_counter() - start) * 1e3,
+        "chosen_candidate": "",
+        "n_candidates": 0,
+        "n_matches": 0,
+        "method_visibility": math.nan,
+        "failed": True,
+        "reason": reason.splitlines()[0] if reason else "failed",
+        "ambiguous": False,
+    }
+
+
+def _format(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else ("nan" if math.isnan(value) else repr(value))
+    return "" if value is None else str(value)
+
+
+def _parse(column: str, text: str) -> Any:
+    if column in BOOL_COLUMNS:
+        return text == "true"
+    if column in INT_COLUMNS:
+        return int(text) if text else 0
+    if column in FLOAT_COLUMNS or (column.startswith("runtime_") and column.endswith("_ms")):
+        return float(text) if text else math.nan
+    return text
+
+
+def columns_for(rows: Iterable[dict[str, Any]]) -> list[str]:
+    """Fixed columns plus one `runtime_<stage>_ms` column per stage seen in any row (sorted)."""
+    stages = sorted({k for r in rows for k in r if k.startswith("runtime_") and k != "runtime_ms"})
+    return [*HEAD_COLUMNS, *stages, *TAIL_COLUMNS]
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    """Rows of a cases.csv with typed values (floats, ints, bools)."""
+    with open(path, newline="") as fh:
+        return [{k: _parse(k, v) for k, v in row.items() if v is not None} for row in csv.DictReader(fh)]
+
+
+def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Write all rows sorted by (case_id, method), atomically."""
+    rows = sorted(rows, key=lambda r: (r["case_id"], r["method"]))
+    header = columns_for(rows)
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        for row in rows:
+            writer.writerow([_format(row.get(col, math.nan if col.startswith("runtime_") else "")) for col in header])
+    os.replace(tmp, path)
+
+
+class _CsvLog:
+    """Append-only cases.csv that survives interruption; rewritten only when a new stage column appears."""
+
+    def __init__(self, path: Path, rows: list[dict[str, Any]]) -> None:
+        self.path = path
+        self.rows = list(rows)
+        self.header = columns_for(self.rows)
+        write_rows(path, self.rows)
+
+    def add(self, row: dict[str, Any]) -> None:
+        self.rows.append(row)
+        if any(k not in self.header for k in row):
+            self.header = columns_for(self.rows)
+            write_rows(self.path, self.rows)
+            return
+        with open(self.path, "a", newline="") as fh:
+            csv.writer(fh).writerow(
+                [_format(row.get(c, math.nan if c.startswith("runtime_") else "")) for c in self.header]
+            )
+
+
+def check_settings(out: Path, settings: dict[str, Any]) -> None:
+    """Refuse to mix runs with different settings in one OUT; record the settings of a new OUT."""
+    path = out / SETTINGS_JSON
+    if path.exists():
+        old = json.loads(path.read_text())
+        diffs = _diff(old, settings)
+        if diffs:
+            raise InputError(
+                f"{out} holds a run with other settings ({'; '.join(diffs[:3])}); use a new --out or delete it"
+            )
+        return
+    if (out / CASES_CSV).exists():
+        raise InputError(f"{out / CASES_CSV} exists without {SETTINGS_JSON}; use a new --out")
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(settings, indent=2, sort_keys=True) + "\n")
+
+
+def _diff(old: Any, new: Any, prefix: str = "") -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for key in sorted(set(old) | set(new)):
+            out += _diff(old.get(key), new.get(key), f"{prefix}{key}.")
+        return out
+    return [] if old == new else [f"{prefix.rstrip('.')}: {old!r} then, {new!r} now"]
+
+
+def _init_worker(num_threads: int) -> None:
+    try:
+        import torch
+
+        torch.set_num_threads(max(1, num_threads))
+    except ImportError:
+        pass
+
+
+def run_benchmark(spec: BenchmarkSpec, progress: bool = True) -> list[dict[str, Any]]:
+    """Run every (case, variant) not yet in OUT/cases.csv; return all rows of OUT (old and new)."""
+    known = set(available_methods())
+    unknown = [m for m in spec.methods if m not in known]
+    if unknown:
+        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(sorted(known))}")
+    if spec.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {spec.workers}")
+    check_settings(spec.out, spec.settings())
+    csv_path = spec.out / CASES_CSV
+    done_rows = read_rows(csv_path) if csv_path.exists() else []
+    done = {(r["case_id"], r["method"]) for r in done_rows}
+    todo = [(c, v) for c, v in build_jobs(spec) if (c.case_id, v.label) not in done]
+    log.info("%d (case, method) rows done, %d to run", len(done), len(todo))
+    store = _CsvLog(csv_path, done_rows)
+    config_dict = spec.config.to_dict()
+    bar = tqdm(total=len(todo), desc="benchmark", unit="run", disable=not progress or not todo, dynamic_ncols=True)
+    try:
+        if spec.workers == 1:
+            for case, variant in todo:
+                bar.set_postfix_str(f"{variant.label} {case.case_id}", refresh=False)
+                store.add(run_one(case, variant, config_dict))
+                bar.update()
+        else:
+            _run_parallel(spec, todo, config_dict, store, bar)
+    finally:
+        bar.close()
+    write_rows(csv_path, store.rows)  # final sorted file: identical for identical runs
+    return read_rows(csv_path)
+
+
+def _run_parallel(spec: BenchmarkSpec, todo: list, config_dict: dict, store: _CsvLog, bar: tqdm) -> None:
+    # Spawned workers each get 1 torch / BLAS thread so W workers use W cores, not W x cores.
+    threads = spec.config.num_threads or 1
+    saved = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    try:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(spec.workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,)) as pool:
+            futures = [pool.submit(run_one, case, variant, config_dict) for case, variant in todo]
+            for fut in as_completed(futures):
+                store.add(fut.result())
+                bar.update()
+    finally:
+        if saved is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
+        else:
+            os.environ["OMP_NUM_THREADS"] = saved

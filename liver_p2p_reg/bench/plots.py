@@ -1,0 +1,90 @@
+"""PNG figures of a benchmark run: success rate vs tau (Fig. 7 form), RMS-TRE vs visibility (Fig. 6), K ablation (Fig. 8)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .cases import BIN_EDGES, BIN_LABELS
+from .stats import Row, by_bin, main_rows, order_methods, select, success_curve, where
+
+TAUS_MM = np.linspace(0.0, 40.0, 81)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only; no display on servers or CI
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def success_vs_tau(rows: list[Row], path: Path) -> Path:
+    """Success rate vs threshold tau (0-40 mm): the lowest visibility bin and all cases."""
+    plt = _pyplot()
+    rows = main_rows(rows)
+    lo, hi = BIN_EDGES[0], BIN_EDGES[1]
+    panels = [
+        (f"visibility {BIN_LABELS[0]}", where(rows, lambda r: lo <= r["visibility"] < hi)),
+        ("all visibilities", rows),
+    ]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for ax, (title, subset) in zip(axes, panels, strict=False):
+        for m in order_methods({r["method"] for r in rows}):
+            mine = select(subset, method=m)
+            if mine:
+                ax.plot(
+                    TAUS_MM, 100 * success_curve(mine, TAUS_MM), label=m, linestyle="--" if m == "procrustes" else "-"
+                )
+        ax.set_title(title)
+        ax.set_xlabel("threshold tau (mm)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success rate (%)")
+    axes[1].legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def tre_vs_visibility(rows: list[Row], path: Path) -> Path:
+    """Mean RMS-TRE per visibility bin for every method (log scale)."""
+    plt = _pyplot()
+    rows = main_rows(rows)
+    centres = [(a + b) / 2 for a, b in zip(BIN_EDGES, BIN_EDGES[1:], strict=False)]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for m in order_methods({r["method"] for r in rows}):
+        groups = by_bin(select(rows, method=m))
+        means = [float(np.mean(g)) if g.size else np.nan for g in groups]
+        ax.plot(centres, means, marker="o", label=m, linestyle="--" if m == "procrustes" else "-")
+    ax.set_yscale("log")
+    ax.set_xlabel("visibility ratio (bin centre)")
+    ax.set_ylabel("mean RMS-TRE (mm)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def k_ablation(curves: dict[str, dict[int, tuple[float, float]]], path: Path) -> Path:
+    """Mean RMS-TRE vs K (number of patches) per P2P method: lowest bin and all ablation cases."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for m, per_k in sorted(curves.items()):
+        ks = sorted(per_k)
+        axes[0].plot(ks, [per_k[k][0] for k in ks], marker="o", label=m)
+        axes[1].plot(ks, [per_k[k][1] for k in ks], marker="o", label=m)
+    for ax, title in zip(axes, (f"visibility {BIN_LABELS[0]}", "all ablation cases"), strict=False):
+        ax.set_title(title)
+        ax.set_xlabel("K (patch candidates)")
+        ax.set_ylabel("mean RMS-TRE (mm)")
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,410 @@
+"""summary.md of a benchmark run (paper Table I-III, VI form), and the README block regenerated from it."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections import Counter
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from . import plots
+from .cases import BIN_EDGES, BIN_LABELS
+from .harness import ABLATION_K, ORACLE
+from .stats import (
+    ALPHA,
+    SUCCESS_TAU_MM,
+    Row,
+    by_bin,
+    main_rows,
+    mean_std,
+    order_methods,
+    p2p_pairs,
+    percentile,
+    rank_sum,
+    select,
+    stage_columns,
+    success_rate,
+    where,
+)
+
+README_START = "<!-- BENCHMARK:START -->"
+README_END = "<!-- BENCHMARK:END -->"
+SLOW_MEDIAN_MS = 5000.0  # methods slower than this per case (median) are marked "slow"
+LOW_DEFORMATION_MM = (0.0, 6.0)  # the paper's Table III deformation ranges (fiducial RMS, mm)
+HIGH_DEFORMATION_MM = (6.0, 12.0)
+DASH = "–"
+
+
+def _fmt(value: float, digits: int = 2) -> str:
+    return DASH if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _pm(values: np.ndarray) -> str:
+    mean, std = mean_std(values)
+    return DASH if not math.isfinite(mean) else f"{mean:.2f} ± {std:.2f}"
+
+
+def _pct(value: float) -> str:
+    return DASH if not math.isfinite(value) else f"{100 * value:.1f} %"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return lines
+
+
+def _in_bin(index: int):
+    lo, hi = BIN_EDGES[index], BIN_EDGES[index + 1]
+    last = index == len(BIN_LABELS) - 1
+    return lambda r: lo <= r["visibility"] < hi or (last and r["visibility"] == hi)
+
+
+class Summary:
+    """Computes every table of the report from the rows of cases.csv."""
+
+    def __init__(self, rows: list[Row], settings: dict[str, Any], machine: dict[str, Any], command: str = "") -> None:
+        self.rows = rows
+        self.main = main_rows(rows)
+        self.settings = settings
+        self.machine = machine
+        self.command = command
+        self.methods = order_methods({r["method"] for r in self.main})
+        counts = by_bin(select(self.main, method=self.methods[0])) if self.methods else []
+        self.bins = [i for i, g in enumerate(counts) if g.size]  # bins that hold cases
+        self.slow = {
+            m
+            for m in self.methods
+            if np.median([r["runtime_ms"] for r in select(self.main, method=m)]) > SLOW_MEDIAN_MS
+        }
+
+    def name(self, method: str) -> str:
+        label = f"{method} (oracle)" if method == ORACLE else method
+        return f"{label} (slow)" if method in self.slow else label
+
+    def n_cases(self) -> int:
+        return len({r["case_id"] for r in self.main})
+
+    # --- tables ------------------------------------------------------------------------
+    def table_tre(self) -> list[str]:
+        header = ["method", *(BIN_LABELS[i] for i in self.bins), "all"]
+        counts = [len({r["case_id"] for r in self.main if _in_bin(i)(r)}) for i in self.bins]
+        rows = [["*cases*", *(str(c) for c in counts), str(self.n_cases())]]
+        for m in self.methods:
+            groups = by_bin(select(self.main, method=m))
+            everything = np.array([r["rms_tre_mm"] for r in select(self.main, method=m)], float)
+            rows.append([self.name(m), *(_pm(groups[i]) for i in self.bins), _pm(everything)])
+        return _table(header, rows)
+
+    def table_ratio(self) -> list[str]:
+        if ORACLE not in self.methods or not self.bins:
+            return [f"*No `{ORACLE}` rows: ratios to the oracle need the oracle.*"]
+        lo, hi = self.bins[0], self.bins[-1]
+        oracle = by_bin(select(self.main, method=ORACLE))
+        header = ["method", f"mean / oracle {BIN_LABELS[lo]}", f"mean / oracle {BIN_LABELS[hi]}"]
+        rows = []
+        for m in self.methods:
+            if m == ORACLE:
+                continue
+            groups = by_bin(select(self.main, method=m))
+            cells = []
+            for i in (lo, hi):
+                ratio = (
+                    mean_std(groups[i])[0] / mean_std(oracle[i])[0] if groups[i].size and oracle[i].size else math.nan
+                )
+                cells.append(_fmt(ratio))
+            rows.append([self.name(m), *cells])
+        return _table(header, rows)
+
+    def table_success(self) -> list[str]:
+        header = ["method", *(BIN_LABELS[i] for i in self.bins), "all"]
+        rows = []
+        for m in self.methods:
+            mine = select(self.main, method=m)
+            cells = [_pct(success_rate(where(mine, _in_bin(i)))) for i in self.bins]
+            rows.append([self.name(m), *cells, _pct(success_rate(mine))])
+        return _table(header, rows)
+
+    def table_failures(self) -> list[str]:
+        rows = []
+        for m in self.methods:
+            mine = select(self.main, method=m)
+            failed = [r for r in mine if r["failed"]]
+            ambiguous = sum(bool(r["ambiguous"]) for r in mine)
+            reason = Counter(r["reason"] for r in failed).most_common(1)
+            rows.append(
+                [self.name(m), f"{len(failed)} / {len(mine)}", str(ambiguous), reason[0][0][:80] if reason else ""]
+            )
+        return _table(["method", "failed", "flagged ambiguous", "most common failure"], rows)
+
+    def table_wilcoxon(self) -> list[str]:
+        pairs = p2p_pairs(self.methods)
+        if not pairs:
+            return ["*No method pairs with and without P2P in this run.*"]
+        header = ["comparison", *(BIN_LABELS[i] for i in self.bins)]
+        rows = []
+        for a, b in pairs:
+            ga, gb = by_bin(select(self.main, method=a)), by_bin(select(self.main, method=b))
+            cells = []
+            for i in self.bins:
+                p = rank_sum(ga[i], gb[i])
+                if not math.isfinite(p):
+                    cells.append(DASH)
+                    continue
+                diff = mean_std(ga[i])[0] - mean_std(gb[i])[0]
+                mark = " **\\***" if p < ALPHA else ""
+                cells.append(f"p={p:.3g}{mark} (Δ {diff:+.2f} mm)")
+            rows.append([f"{a} vs {b}", *cells])
+        return _table(header, rows)
+
+    def table_noise(self) -> list[str] | None:
+        noisy = main_rows(self.rows, with_added_noise=True)
+        levels = sorted({r["noise_mm"] for r in noisy if math.isfinite(r["noise_mm"])})
+        if len(levels) < 2:
+            return None
+        low = where(noisy, _in_bin(0))
+        header = ["method", *(f"noise {lv:g} mm" for lv in levels)]
+        rows = []
+        for m in self.methods:
+            mine = select(low, method=m)
+            cells = []
+            for lv in levels:
+                vals = np.array([r["rms_tre_mm"] for r in mine if r["noise_mm"] == lv], float)
+                cells.append(f"{_pm(vals)} (n={vals.size})")
+            rows.append([self.name(m), *cells])
+        return _table(header, rows)
+
+    def table_deformation(self) -> list[str] | None:
+        def in_range(rng: tuple[float, float]):
+            return lambda r: rng[0] <= r["deformation_rms_mm"] < rng[1]
+
+        mild, large = in_range(LOW_DEFORMATION_MM), in_range(HIGH_DEFORMATION_MM)
+        if not where(self.main, mild) or not where(self.main, large):
+            return None
+        lowbin = _in_bin(0)
+        header = [
+            "method",
+            f"0–6 mm {BIN_LABELS[0]}",
+            f"6–12 mm {BIN_LABELS[0]}",
+            "0–6 mm all",
+            "6–12 mm all",
+            f"success 0–6 / 6–12 mm {BIN_LABELS[0]}",
+        ]
+        rows = []
+        for m in self.methods:
+            mine = select(self.main, method=m)
+            parts = [
+                where(mine, lambda r: mild(r) and lowbin(r)),
+                where(mine, lambda r: large(r) and lowbin(r)),
+                where(mine, mild),
+                where(mine, large),
+            ]
+            cells = [f"{_pm(np.array([r['rms_tre_mm'] for r in p], float))} (n={len(p)})" for p in parts]
+            cells.append(f"{_pct(success_rate(parts[0]))} / {_pct(success_rate(parts[1]))}")
+            rows.append([self.name(m), *cells])
+        return _table(header, rows)
+
+    # --- ablations -----------------------------------------------------------------
+    def ablation_cases(self, method: str) -> set[str]:
+        return {r["case_id"] for r in self.rows if r["base_method"] == method and r["variant"]}
+
+    def _variant_rows(self, method: str, variant: str) -> list[Row]:
+        """Rows of `method` with `variant` on the ablation cases; the default setting is the main run."""
+        ids = self.ablation_cases(method)
+        if variant == "":
+            return [r for r in self.main if r["method"] == method and r["case_id"] in ids]
+        return [r for r in self.rows if r["base_method"] == method and r["variant"] == variant]
+
+    def k_curves(self) -> dict[str, dict[int, tuple[float, float]]]:
+        k_default = int(self.settings["config"]["k"])
+        curves: dict[str, dict[int, tuple[float, float]]] = {}
+        for m in self.methods:
+            if not self.ablation_cases(m):
+                continue
+            per_k = {}
+            for k in ABLATION_K:
+                rows = self._variant_rows(m, "" if k == k_default else f"k={k}")
+                if rows:
+                    low = [r["rms_tre_mm"] for r in rows if _in_bin(0)(r)]
+                    per_k[k] = (
+                        float(np.mean(low)) if low else math.nan,
+                        float(np.mean([r["rms_tre_mm"] for r in rows])),
+                    )
+            curves[m] = per_k
+        return curves
+
+    def ablation_section(self, out: Path) -> list[str]:
+        curves = self.k_curves()
+        if not curves:
+            return []
+        cfg = self.settings["config"]
+        lines = [
+            "## P2P ablations (Fig. 8, Table VI form)",
+            "",
+            f"On the first {self.settings['ablation_cases_per_bin']} cases of each visibility bin; "
+            f"every other setting as in the main run (K={cfg['k']}, selection {cfg['selection']}, "
+            f"candidate proposal {cfg['candidate_proposal']}). Mean RMS-TRE (mm): lowest bin / all ablation cases.",
+            "",
+        ]
+        header = ["method", *(f"K={k}" for k in ABLATION_K)]
+        rows = [
+            [m, *(f"{_fmt(per_k[k][0])} / {_fmt(per_k[k][1])}" if k in per_k else DASH for k in ABLATION_K)]
+            for m, per_k in curves.items()
+        ]
+        lines += _table(header, rows)
+        plots.k_ablation(curves, out / "ablation_k.png")
+        lines += ["", "![mean RMS-TRE vs K](ablation_k.png)", ""]
+        for field, values in (
+            ("selection", ("closest-point", "inlier-count")),
+            ("candidate_proposal", (True, False)),
+        ):
+            header = ["method"]
+            for v in values:
+                header += [f"{field}={v} {BIN_LABELS[0]}", f"{field}={v} all", f"success {field}={v}"]
+            rows = []
+            for m in curves:
+                cells = []
+                for v in values:
+                    variant = "" if str(cfg[field]) == str(v) else f"{field}={v}"
+                    sub = self._variant_rows(m, variant)
+                    low = np.array([r["rms_tre_mm"] for r in sub if _in_bin(0)(r)], float)
+                    cells += [_pm(low), _pm(np.array([r["rms_tre_mm"] for r in sub], float)), _pct(success_rate(sub))]
+                rows.append([m, *cells])
+            lines += _table(header, rows) + [""]
+        return lines
+
+    # --- runtime + machine ------------------------------------------------------
+    def table_runtime(self) -> list[str]:
+        rows = []
+        for m in self.methods:
+            t = np.array([r["runtime_ms"] for r in select(self.main, method=m)], float)
+            rows.append([self.name(m), _fmt(percentile(t, 50), 1), _fmt(percentile(t, 95), 1), str(t.size)])
+        return _table(["method", "median total (ms)", "p95 total (ms)", "runs"], rows)
+
+    def table_stages(self) -> list[str]:
+        stages = stage_columns(self.main)
+        if not stages:
+            return ["*No method reported per-stage runtimes.*"]
+        names = [s[len("runtime_") : -len("_ms")] for s in stages]
+        rows = []
+        for m in self.methods:
+            mine = select(self.main, method=m)
+            cells = []
+            for s in stages:
+                t = np.array([r.get(s, math.nan) for r in mine], float)
+                cells.append(DASH if not np.isfinite(t).any() else f"{percentile(t, 50):.1f} / {percentile(t, 95):.1f}")
+            rows.append([self.name(m), *cells])
+        return _table(["method (median / p95 ms)", *names], rows)
+
+    def machine_lines(self) -> list[str]:
+        return [f"- {k}: {v}" for k, v in self.machine.items()]
+
+    # --- documents ----------------------------------------------------------------
+    def header_lines(self) -> list[str]:
+        s = self.settings
+        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        lines = [
+            f"Dataset `{s['dataset']}` ({self.n_cases()} cases, preset `{s['preset']}`"
+            + (f", limit {s['limit']}" if s.get("limit") else "")
+            + f"), methods: {', '.join(f'`{m}`' for m in self.methods)}; generated {stamp}.",
+        ]
+        if self.command:
+            lines += ["", f"Command: `{self.command}`"]
+        return lines
+
+    def markdown(self, out: Path) -> str:
+        plots.success_vs_tau(self.rows, out / "success_vs_tau.png")
+        plots.tre_vs_visibility(self.rows, out / "tre_vs_visibility.png")
+        lines = ["# Benchmark summary", "", *self.header_lines(), ""]
+        lines += ["## RMS-TRE (mm) per visibility bin, mean ± std (Table I form)", "", *self.table_tre(), ""]
+        lines += ["## Mean RMS-TRE relative to the oracle", "", *self.table_ratio(), ""]
+        lines += [f"## Success rate (RMS-TRE < {SUCCESS_TAU_MM:g} mm)", "", *self.table_success(), ""]
+        lines += [
+            "![success rate vs tau](success_vs_tau.png)",
+            "",
+            "![RMS-TRE vs visibility](tre_vs_visibility.png)",
+            "",
+        ]
+        lines += ["## Failures and ambiguity flags", "", *self.table_failures(), ""]
+        lines += [
+            f"## Wilcoxon rank-sum tests, with vs without P2P (two-sided; **\\*** = p < {ALPHA:g}; Δ = difference of means)",
+            "",
+            *self.table_wilcoxon(),
+            "",
+        ]
+        noise = self.table_noise()
+        if noise:
+            lines += [f"## Sensor noise at visibility {BIN_LABELS[0]} (Table II form), RMS-TRE mm", "", *noise, ""]
+        deformation = self.table_deformation()
+        if deformation:
+            lines += ["## Deformation range (fiducial RMS after rigid removal; Table III form), RMS-TRE mm", ""]
+            lines += [*deformation, ""]
+        lines += self.ablation_section(out)
+        lines += [
+            "## Runtime per case (wall clock, all stages through `Registrar.register`)",
+            "",
+            *self.table_runtime(),
+            "",
+        ]
+        lines += ["### Per stage", "", *self.table_stages(), ""]
+        lines += ["## Machine", "", *self.machine_lines(), ""]
+        lines += [
+            "## Rules",
+            "",
+            f"- Visibility bins use the case's stored visibility ratio; the last bin is closed. Success: no failure and RMS-TRE < {SUCCESS_TAU_MM:g} mm.",
+            "- A method that raises (RegistrationError / InputError / an internal error) or returns a non-finite transform is a *failure*: "
+            "it keeps the initial (identity) pose, so its RMS-TRE is the initial misalignment, and it never counts as a success. "
+            "A method that returns a transform but reports ok=False is also a failure, with the TRE of its transform.",
+            f"- *slow*: median runtime above {SLOW_MEDIAN_MS / 1000:g} s per case. std is the population standard deviation.",
+            "- Runtimes are wall clock on the machine below, including preprocessing; they vary with machine load.",
+            "",
+        ]
+        return "\n".join(lines)
+
+    def readme_block(self, summary_link: str) -> str:
+        lines = [*self.header_lines(), ""]
+        lines += ["RMS-TRE (mm) per visibility bin, mean ± std:", "", *self.table_tre(), ""]
+        lines += [f"Success rate (RMS-TRE < {SUCCESS_TAU_MM:g} mm):", "", *self.table_success(), ""]
+        lines += ["Runtime per case:", "", *self.table_runtime(), ""]
+        cpu = self.machine.get("cpu", "")
+        lines += [
+            f"Machine: {cpu}, {self.machine.get('usable_cores', '?')} usable cores, torch {self.machine.get('torch', '?')}, "
+            f"device {self.machine.get('device', '?')}. Full report with curves, statistics and ablations: [{summary_link}]({summary_link}).",
+        ]
+        return "\n".join(lines)
+
+
+def write_summary(
+    out: Path, rows: list[Row], settings: dict[str, Any], machine: dict[str, Any], command: str = ""
+) -> Summary:
+    """Write OUT/summary.md and its PNGs; return the Summary (for the README block)."""
+    if not rows:
+        raise InputError(f"no benchmark rows in {out}")
+    summary = Summary(rows, settings, machine, command)
+    (out / "summary.md").write_text(summary.markdown(out))
+    return summary
+
+
+def replace_readme_block(readme: Path, block: str) -> None:
+    """Replace the text between the BENCHMARK markers of `readme` with `block`."""
+    try:
+        text = readme.read_text()
+    except OSError as exc:
+        raise InputError(f"cannot read {readme}: {exc.strerror or exc}") from None
+    start, end = text.find(README_START), text.find(README_END)
+    if start < 0 or end < 0 or end < start:
+        raise InputError(f"{readme} lacks the {README_START} ... {README_END} markers")
+    new = text[: start + len(README_START)] + "\n" + block.strip() + "\n" + text[end:]
+    tmp = readme.with_name(readme.name + ".tmp")
+    tmp.write_text(new)
+    os.replace(tmp, readme)
+
+
+def relative_link(target: Path, start_dir: Path) -> str:
+    """A POSIX relative link from `start_dir` to `target` (for the README)."""
+    return Path(os.path.relpath(target.resolve(), start_dir.resolve())).as_posix()

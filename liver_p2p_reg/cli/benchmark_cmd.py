@@ -1,0 +1,135 @@
+"""`liver-p2p benchmark`: run methods on a test set; write cases.csv, summary.md and PNG curves."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from ..config import DEVICES, Config
+from ..errors import InputError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "benchmark",
+        help="compare registration methods on a test set (tables, curves, statistics, timing)",
+        description=(
+            "Runs every method on every case through the public Registrar API. Resumable: rows already in "
+            "OUT/cases.csv are skipped, so rerunning (or adding --methods) only runs what is missing. "
+            "The summary covers every method in OUT/cases.csv."
+        ),
+    )
+    p.add_argument("--dataset", required=True, help="folder of case NPZs, or a named test set such as insilico-test-v1")
+    p.add_argument("--methods", help="comma-separated method names (default: all registered methods)")
+    p.add_argument("--out", required=True, help="output folder (cases.csv, summary.md, PNGs)")
+    p.add_argument("--limit", type=int, help="only the first N cases (after the preset)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--device", choices=DEVICES, help="compute device for learned methods (default: config)")
+    p.add_argument(
+        "--preset", choices=("smoke", "full"), default="full", help="smoke: first 3 cases per visibility bin"
+    )
+    p.add_argument("--ablations", action="store_true", help="also run the P2P ablations (K, selection, proposal)")
+    p.add_argument("--ablation-cases-per-bin", type=int, default=10, help="cases per bin used by the ablations")
+    p.add_argument("--config", help="start from this YAML config instead of the defaults")
+    p.add_argument("--seed", type=int, help="base seed (each case derives its own from it)")
+    p.add_argument("--threads", type=int, help="torch CPU threads per worker (config num_threads)")
+    p.add_argument(
+        "--noise-levels",
+        help="comma-separated sensor-noise levels in mm (e.g. 2,4) added to the [0.2,0.3) cases as extra cases (Table II)",
+    )
+    p.add_argument("--data-root", help="where named test sets live (default: $LIVER_P2P_DATA or ./data)")
+    p.add_argument("--readme", help="replace the README's BENCHMARK block with the main tables")
+    p.set_defaults(func=run)
+
+
+def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
+    """The canonical command that reproduces this run (shown in the summary and the README)."""
+    parts = ["liver-p2p", "benchmark", "--dataset", args.dataset, "--methods", ",".join(methods), "--out", args.out]
+    for flag, value in (
+        ("--preset", args.preset if args.preset != "full" else None),
+        ("--limit", args.limit),
+        ("--workers", args.workers if args.workers != 1 else None),
+        ("--device", args.device),
+        ("--config", args.config),
+        ("--seed", args.seed),
+        ("--threads", args.threads),
+        ("--noise-levels", args.noise_levels),
+    ):
+        if value is not None:
+            parts += [flag, str(value)]
+    if args.ablations:
+        parts.append("--ablations")
+    if args.readme:
+        parts += ["--readme", args.readme]
+    return " ".join(shlex.quote(p) for p in parts)
+
+
+def _noise_levels(text: str | None) -> list[float]:
+    if not text:
+        return []
+    try:
+        levels = sorted({float(x) for x in text.split(",") if x.strip()})
+    except ValueError:
+        raise InputError(f"--noise-levels must be comma-separated numbers in mm, got {text!r}") from None
+    if any(not 0 <= lv <= 50 for lv in levels):
+        raise InputError(f"--noise-levels must lie in [0, 50] mm, got {text!r}")
+    return levels
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..bench.cases import case_info, list_case_paths, resolve_dataset, select_cases, with_noise
+    from ..bench.harness import SETTINGS_JSON, BenchmarkSpec, run_benchmark
+    from ..bench.summary import relative_link, replace_readme_block, write_summary
+    from ..bench.sysinfo import machine_info
+    from ..registrar import available_methods
+
+    config = Config.from_yaml(args.config) if args.config else Config()
+    overrides = {
+        k: v for k, v in (("device", args.device), ("seed", args.seed), ("num_threads", args.threads)) if v is not None
+    }
+    config = config.replace(**overrides) if overrides else config
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else available_methods()
+    if not methods:
+        raise InputError("no methods to run (--methods is empty)")
+    if args.readme and not Path(args.readme).is_file():
+        raise InputError(f"README {args.readme} does not exist")
+    if args.ablation_cases_per_bin < 1:
+        raise InputError(f"--ablation-cases-per-bin must be >= 1, got {args.ablation_cases_per_bin}")
+    noise_levels = _noise_levels(args.noise_levels)
+    folder, dataset_id = resolve_dataset(args.dataset, Path(args.data_root) if args.data_root else None)
+    cases = select_cases([case_info(p) for p in list_case_paths(folder)], args.preset, args.limit)
+    cases = with_noise(cases, noise_levels)
+    out = Path(args.out)
+    spec = BenchmarkSpec(
+        out=out,
+        dataset_id=dataset_id,
+        cases=cases,
+        methods=methods,
+        config=config,
+        preset=args.preset,
+        limit=args.limit,
+        ablations=args.ablations,
+        ablation_cases_per_bin=args.ablation_cases_per_bin,
+        workers=args.workers,
+        noise_levels_mm=tuple(noise_levels),
+    )
+    quiet = getattr(args, "quiet", False)
+    rows = run_benchmark(spec, progress=not quiet)
+    machine = machine_info(config.device)
+    machine["workers"] = args.workers
+    (out / "machine.json").write_text(json.dumps(machine, indent=2) + "\n")
+    settings = json.loads((out / SETTINGS_JSON).read_text())
+    summary = write_summary(out, rows, settings, machine, _command_line(args, methods))
+    if args.readme:
+        readme = Path(args.readme)
+        replace_readme_block(readme, summary.readme_block(relative_link(out / "summary.md", readme.parent)))
+    if not quiet:
+        n_failed = sum(r["failed"] for r in rows)
+        print(
+            f"{len(rows)} rows ({n_failed} failed) in {out / 'cases.csv'}; summary: {out / 'summary.md'}",
+            file=sys.stdout,
+        )
+    return 0
