@@ -1,0 +1,1 @@
+"""In silico liver phantoms: procedural anatomy, tetrahedral FEM deformation, target crops, datasets."""

@@ -1,0 +1,361 @@
+"""In silico registration cases on disk: one NPZ per case, a CSV manifest, deterministic generation.
+
+Every random stream is derived from indices only -- liver id, deformation index, target index
+-- never from worker order, so a dataset is identical for any number of workers and can be
+resumed (finished case files are skipped). Liver ids are `seed * 10000 + liver index`; seeds
+900-999 are reserved for the named test sets (testset.py), so training livers drawn with any
+other seed are disjoint from them by construction.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, LiverP2PError
+from .crop import CROP_MODES, VisibilityMeter, make_target
+from .simulate import SimulatedLiver, simulate_liver
+
+log = logging.getLogger(__name__)
+
+GENERATOR_VERSION = 1
+VISIBILITY_BINS = tuple((round(0.2 + 0.1 * i, 1), round(0.3 + 0.1 * i, 1)) for i in range(8))
+# A full resampled target occupies a few percent fewer voxels than the source (its own grid
+# offset, sampling gaps), so the top bin is drawn from [0.9, 0.97].
+MAX_RANDOM_VISIBILITY = 0.97
+# An anterior camera sees about half of the liver at most; camera targets use these bins.
+CAMERA_VISIBILITY_BINS = VISIBILITY_BINS[:3]
+RESERVED_SEEDS = range(900, 1000)
+MAX_LIVERS_PER_SEED = 10_000
+CASE_KEYS = (
+    "src_pcd",
+    "tgt_pcd",
+    "src_marker",
+    "tgt_marker",
+    "R_gt",
+    "t_gt",
+    "visibility",
+    "visibility_requested",
+    "deformation_rms_mm",
+    "deformation_max_mm",
+    "noise_mm",
+    "crop_mode",
+    "liver_id",
+    "deformation_id",
+    "target_id",
+    "seed",
+    "generator_version",
+)
+MANIFEST_FIELDS = (
+    "file",
+    "split",
+    "liver_id",
+    "deformation_id",
+    "target_id",
+    "crop_mode",
+    "noise_mm",
+    "visibility",
+    "visibility_requested",
+    "deformation_rms_mm",
+    "deformation_max_mm",
+    "initial_rms_tre_mm",
+    "n_src",
+    "n_tgt",
+)
+
+
+def make_case(
+    sim: SimulatedLiver,
+    deformation_index: int,
+    visibility: float,
+    crop_mode: str = "random",
+    noise_mm: float = 0.0,
+    seed: int = 0,
+    meter: VisibilityMeter | None = None,
+) -> dict:
+    """One registration case from a simulated liver: source = undeformed surface, target = crop.
+
+    tgt_pcd = R_gt @ deformed + t_gt (+ noise); tgt_marker = R_gt @ deformed fiducials + t_gt.
+    """
+    if not 0 <= deformation_index < len(sim.deformations):
+        raise InputError(f"deformation index {deformation_index} out of range (liver has {len(sim.deformations)})")
+    deformation = sim.deformations[deformation_index]
+    rng = np.random.default_rng([int(sim.liver_id), 4, int(deformation_index), int(seed)])
+    target = make_target(
+        sim.vertices_mm,
+        deformation.surface_mm,
+        sim.triangles,
+        visibility,
+        crop_mode,
+        noise_mm,
+        rng,
+        meter=meter,
+    )
+    R, t = target["R_gt"], target["t_gt"]
+    return {
+        "src_pcd": np.asarray(sim.vertices_mm, dtype=np.float64),
+        "tgt_pcd": target["tgt_pcd"],
+        "src_marker": np.asarray(sim.fiducials_mm, dtype=np.float64),
+        "tgt_marker": deformation.fiducials_mm @ R.T + t,
+        "R_gt": R,
+        "t_gt": t,
+        "visibility": target["visibility"],
+        "visibility_requested": target["visibility_requested"],
+        "deformation_rms_mm": float(deformation.rms_mm),
+        "deformation_max_mm": float(deformation.max_mm),
+        "noise_mm": float(noise_mm),
+        "crop_mode": crop_mode,
+        "liver_id": int(sim.liver_id),
+        "deformation_id": int(deformation_index),
+        "target_id": 0,
+        "seed": int(seed),
+        "generator_version": GENERATOR_VERSION,
+    }
+
+
+def write_case(path: str | Path, case: dict) -> Path:
+    """Write a case as a compressed NPZ without pickled objects (clouds stored as float32)."""
+    path = Path(path)
+    missing = [k for k in ("src_pcd", "tgt_pcd", "src_marker", "tgt_marker", "R_gt", "t_gt") if k not in case]
+    if missing:
+        raise InputError(f"case lacks {', '.join(missing)}")
+    arrays = {}
+    for key, value in case.items():
+        if key in ("src_pcd", "tgt_pcd"):
+            arrays[key] = np.asarray(value, dtype=np.float32)  # 1e-5 mm precision; halves the size
+        elif isinstance(value, str):
+            arrays[key] = np.str_(value)
+        elif isinstance(value, dict):
+            continue
+        else:
+            arrays[key] = np.asarray(value)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)  # atomic: a half-written file never looks finished
+    return path
+
+
+def read_case(path: str | Path) -> dict:
+    """Read a case NPZ (ours or the public P2P layout): arrays as float64, scalars as Python values."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such case file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            raw = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable case NPZ ({exc})") from exc
+    for key in ("src_pcd", "tgt_pcd"):
+        if key not in raw:
+            raise InputError(f"{path}: missing key {key!r}")
+    case: dict = {}
+    for key, value in raw.items():
+        if value.dtype.kind == "U":
+            case[key] = str(value)
+        elif value.ndim == 0:
+            case[key] = value.item()
+        elif value.dtype.kind == "f":
+            case[key] = value.astype(np.float64)
+        else:
+            case[key] = value
+    return case
+
+
+@dataclass
+class DatasetSpec:
+    """Everything that determines a generated dataset (stored as dataset.json)."""
+
+    livers: int
+    deformations: int
+    targets: int
+    crop: str = "random"
+    noise_mm: float = 0.0
+    seed: int = 0
+    split: str = "train"
+    target_tets: int = 10_000
+    generator_version: int = GENERATOR_VERSION
+    visibility_bins: list = field(default_factory=list)
+
+    def validate(self, allow_reserved: bool = False) -> DatasetSpec:
+        if self.livers < 1 or self.livers > MAX_LIVERS_PER_SEED:
+            raise InputError(f"--livers must be in [1, {MAX_LIVERS_PER_SEED}], got {self.livers}")
+        if self.deformations < 1:
+            raise InputError(f"--deformations must be >= 1, got {self.deformations}")
+        if self.targets < 1:
+            raise InputError(f"--targets must be >= 1, got {self.targets}")
+        if self.crop not in CROP_MODES:
+            raise InputError(f"--crop must be one of {', '.join(CROP_MODES)}, got {self.crop!r}")
+        if not 0 <= self.noise_mm <= 50:
+            raise InputError(f"--noise must be in [0, 50] mm, got {self.noise_mm}")
+        if self.seed < 0:
+            raise InputError(f"--seed must be >= 0, got {self.seed}")
+        if self.seed in RESERVED_SEEDS and not allow_reserved:
+            raise InputError(f"--seed {self.seed} is reserved for the named test sets (900-999); pick another")
+        if self.target_tets < 500:
+            raise InputError(f"target_tets must be >= 500, got {self.target_tets}")
+        if not self.visibility_bins:
+            bins = CAMERA_VISIBILITY_BINS if self.crop == "camera" else VISIBILITY_BINS
+            self.visibility_bins = [list(b) for b in bins]
+        return self
+
+
+def liver_id_for(seed: int, index: int) -> int:
+    """The liver id (= anatomy seed) of liver `index` of a dataset generated with `seed`."""
+    return int(seed) * MAX_LIVERS_PER_SEED + int(index)
+
+
+def case_name(liver_id: int, deformation: int, target: int) -> str:
+    return f"case_L{liver_id:07d}_D{deformation:02d}_T{target:03d}.npz"
+
+
+def requested_visibility(spec: DatasetSpec, liver_id: int, deformation: int, target: int) -> float:
+    """Target t of a deformation falls in bin t mod n_bins (balanced bins), uniform inside it."""
+    lo, hi = spec.visibility_bins[target % len(spec.visibility_bins)]
+    hi = min(hi, MAX_RANDOM_VISIBILITY)
+    rng = np.random.default_rng([int(liver_id), 5, int(deformation), int(target)])
+    return float(rng.uniform(lo + 0.005, hi - 0.005))
+
+
+def _generate_liver(args: tuple[DatasetSpec, int, str]) -> list[dict]:
+    """Worker: simulate one liver and write all its cases; returns manifest rows."""
+    spec, liver_index, out = args
+    out_dir = Path(out)
+    liver_id = liver_id_for(spec.seed, liver_index)
+    paths = [out_dir / case_name(liver_id, d, t) for d in range(spec.deformations) for t in range(spec.targets)]
+    if all(p.exists() for p in paths):  # resumed run: nothing to simulate for this liver
+        return [manifest_row(p, read_case(p), spec.split) for p in paths]
+    sim = simulate_liver(liver_id, spec.deformations, target_tets=spec.target_tets)
+    meter = VisibilityMeter(sim.vertices_mm)
+    rows = []
+    for d in range(spec.deformations):
+        for t in range(spec.targets):
+            path = out_dir / case_name(liver_id, d, t)
+            if path.exists():
+                rows.append(manifest_row(path, read_case(path), spec.split))
+                continue
+            case = None
+            for attempt in range(4):  # a camera pose may miss the request; retry deterministically
+                seed = t + 100_000 * attempt
+                try:
+                    case = make_case(
+                        sim,
+                        d,
+                        requested_visibility(spec, liver_id, d, t),
+                        spec.crop,
+                        spec.noise_mm,
+                        seed=seed,
+                        meter=meter,
+                    )
+                    break
+                except LiverP2PError as exc:
+                    log.debug("liver %d def %d target %d attempt %d: %s", liver_id, d, t, attempt, exc)
+            if case is None:
+                log.warning("skipped %s: requested visibility not reachable", path.name)
+                continue
+            case["target_id"] = t
+            write_case(path, case)
+            rows.append(manifest_row(path, case, spec.split))
+    return rows
+
+
+def manifest_row(path: Path, case: dict, split: str) -> dict:
+    """One manifest line describing a case."""
+    init = np.sqrt(np.mean(np.sum((case["tgt_marker"] - case["src_marker"]) ** 2, axis=1)))
+    return {
+        "file": path.name,
+        "split": split,
+        "liver_id": int(case["liver_id"]),
+        "deformation_id": int(case["deformation_id"]),
+        "target_id": int(case["target_id"]),
+        "crop_mode": str(case["crop_mode"]),
+        "noise_mm": float(case["noise_mm"]),
+        "visibility": round(float(case["visibility"]), 6),
+        "visibility_requested": round(float(case["visibility_requested"]), 6),
+        "deformation_rms_mm": round(float(case["deformation_rms_mm"]), 6),
+        "deformation_max_mm": round(float(case["deformation_max_mm"]), 6),
+        "initial_rms_tre_mm": round(float(init), 6),
+        "n_src": len(case["src_pcd"]),
+        "n_tgt": len(case["tgt_pcd"]),
+    }
+
+
+def generate_dataset(
+    out: str | Path,
+    spec: DatasetSpec,
+    workers: int = 1,
+    progress: bool = True,
+    allow_reserved_seed: bool = False,
+    on_liver_done: Callable[[int], None] | None = None,
+) -> Path:
+    """Generate (or finish) a dataset in `out`; returns the manifest path (manifest.csv)."""
+    spec.validate(allow_reserved=allow_reserved_seed)
+    if workers < 1:
+        raise InputError(f"--workers must be >= 1, got {workers}")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out} exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    spec_path = out / "dataset.json"
+    if spec_path.exists():
+        old = json.loads(spec_path.read_text())
+        if old != asdict(spec):
+            raise InputError(f"{out} holds a dataset with different parameters; use another --out")
+    spec_path.write_text(json.dumps(asdict(spec), indent=2))
+    rows_by_liver: dict[int, list[dict]] = {}
+    jobs = [(spec, i, str(out)) for i in range(spec.livers)]
+    from tqdm import tqdm
+
+    bar = tqdm(total=spec.livers, desc="livers", unit="liver", disable=not progress)
+    if workers == 1:
+        for job in jobs:
+            rows_by_liver[job[1]] = _generate_liver(job)
+            bar.update(1)
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            for job, rows in zip(jobs, pool.map(_generate_liver, jobs), strict=True):
+                rows_by_liver[job[1]] = rows
+                bar.update(1)
+    bar.close()
+    rows = [row for i in sorted(rows_by_liver) for row in rows_by_liver[i]]
+    return write_manifest(out, rows)
+
+
+def write_manifest(out: Path, rows: Sequence[dict]) -> Path:
+    path = out / "manifest.csv"
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=MANIFEST_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def read_manifest(directory: str | Path) -> list[dict]:
+    """Manifest rows of a generated dataset (numbers converted)."""
+    path = Path(directory) / "manifest.csv"
+    if not path.is_file():
+        raise InputError(f"{directory}: no manifest.csv (not a generated dataset?)")
+    rows = []
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            for key in ("liver_id", "deformation_id", "target_id", "n_src", "n_tgt"):
+                row[key] = int(row[key])
+            for key in (
+                "noise_mm",
+                "visibility",
+                "visibility_requested",
+                "deformation_rms_mm",
+                "deformation_max_mm",
+                "initial_rms_tre_mm",
+            ):
+                row[key] = float(row[key])
+            rows.append(row)
+    return rows

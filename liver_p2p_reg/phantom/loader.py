@@ -1,0 +1,196 @@
+"""Training store of simulated livers and the paper's dynamic pairing of fresh random training pairs.
+
+Store layout (`liver-p2p dataset generate --store DIR ...`): `store.json` plus one
+`liver_<id>.npz` per liver holding the undeformed surface (vertices, triangles), its fiducials
+and every deformation (surfaces (D, V, 3), fiducials (D, F, 3), RMS and max displacement).
+`PairSampler` draws a liver, two different shapes among {undeformed, deformations} as source
+and target, then a fresh crop, pose and noise: the same target pipeline as the test cases.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import OrderedDict
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, LiverP2PError
+from .crop import CROP_MODES, VisibilityMeter, make_target
+from .dataset import GENERATOR_VERSION, MAX_LIVERS_PER_SEED, RESERVED_SEEDS, liver_id_for
+from .simulate import simulate_liver
+
+STORE_VERSION = 1
+
+
+def _store_liver(args: tuple[int, int, int, str]) -> str:
+    liver_id, deformations, target_tets, out = args
+    path = Path(out) / f"liver_{liver_id:07d}.npz"
+    if path.exists():
+        return path.name
+    sim = simulate_liver(liver_id, deformations, target_tets=target_tets)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(
+        tmp,
+        liver_id=np.int64(liver_id),
+        vertices_mm=sim.vertices_mm.astype(np.float32),
+        triangles=sim.triangles.astype(np.int32),
+        fiducials_mm=sim.fiducials_mm,
+        surfaces_mm=np.stack([d.surface_mm for d in sim.deformations]).astype(np.float32),
+        deformed_fiducials_mm=np.stack([d.fiducials_mm for d in sim.deformations]),
+        rms_mm=np.array([d.rms_mm for d in sim.deformations]),
+        max_mm=np.array([d.max_mm for d in sim.deformations]),
+    )
+    tmp.replace(path)
+    return path.name
+
+
+def build_store(
+    store_dir: str | Path,
+    livers: int,
+    deformations: int,
+    seed: int = 0,
+    workers: int = 1,
+    target_tets: int = 10_000,
+    progress: bool = True,
+) -> Path:
+    """Simulate `livers` livers with `deformations` deformations each into a training store."""
+    if livers < 1 or livers > MAX_LIVERS_PER_SEED:
+        raise InputError(f"--livers must be in [1, {MAX_LIVERS_PER_SEED}], got {livers}")
+    if deformations < 1:
+        raise InputError(f"--deformations must be >= 1, got {deformations}")
+    if seed < 0 or seed in RESERVED_SEEDS:
+        raise InputError(f"--seed must be >= 0 and outside 900-999 (test livers), got {seed}")
+    if workers < 1:
+        raise InputError(f"--workers must be >= 1, got {workers}")
+    store = Path(store_dir)
+    store.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "store_version": STORE_VERSION,
+        "generator_version": GENERATOR_VERSION,
+        "seed": seed,
+        "deformations": deformations,
+        "target_tets": target_tets,
+    }
+    meta_path = store / "store.json"
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if {k: old.get(k) for k in meta} != meta:
+            raise InputError(f"{store} holds a store with different parameters; use another directory")
+    jobs = [(liver_id_for(seed, i), deformations, target_tets, str(store)) for i in range(livers)]
+    from tqdm import tqdm
+
+    with tqdm(total=len(jobs), desc="livers", unit="liver", disable=not progress) as bar:
+        if workers == 1:
+            for job in jobs:
+                _store_liver(job)
+                bar.update(1)
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                for _ in pool.map(_store_liver, jobs):
+                    bar.update(1)
+    files = sorted(p.name for p in store.glob("liver_*.npz") if not p.name.endswith(".tmp.npz"))
+    meta["livers"] = files
+    meta_path.write_text(json.dumps(meta, indent=2))
+    return store
+
+
+class PairSampler:
+    """Fresh random training pairs from a store (deterministic sequence for a given seed)."""
+
+    def __init__(
+        self,
+        store_dir: str | Path,
+        seed: int,
+        visibility_range: tuple[float, float] = (0.2, 0.97),
+        crop_modes: Sequence[str] = ("random",),
+        noise_levels_mm: Sequence[float] = (0.0,),
+        cache_livers: int = 64,
+    ) -> None:
+        self.store = Path(store_dir)
+        meta_path = self.store / "store.json"
+        if not meta_path.is_file():
+            raise InputError(f"{self.store}: no store.json (build one with `liver-p2p dataset generate --store`)")
+        self.files = sorted(self.store / name for name in json.loads(meta_path.read_text()).get("livers", []))
+        self.files = [f for f in self.files if f.is_file()]
+        if not self.files:
+            raise InputError(f"{self.store}: the store holds no livers")
+        lo, hi = visibility_range
+        if not 0.05 <= lo <= hi <= 1.0:
+            raise InputError(f"visibility range must satisfy 0.05 <= lo <= hi <= 1, got {visibility_range}")
+        bad = [m for m in crop_modes if m not in CROP_MODES]
+        if bad or not crop_modes:
+            raise InputError(f"crop modes must be among {CROP_MODES}, got {list(crop_modes)}")
+        self.visibility_range = (float(lo), float(hi))
+        self.crop_modes = tuple(crop_modes)
+        self.noise_levels_mm = tuple(float(n) for n in noise_levels_mm) or (0.0,)
+        self.rng = np.random.default_rng([int(seed), 6])
+        self.seed = int(seed)
+        self.count = 0
+        self._cache: OrderedDict[Path, dict] = OrderedDict()
+        self._cache_size = max(1, cache_livers)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def _liver(self, path: Path) -> dict:
+        if path in self._cache:
+            self._cache.move_to_end(path)
+            return self._cache[path]
+        with np.load(path, allow_pickle=False) as data:
+            liver = {k: data[k] for k in data.files}
+        liver["meters"] = {}
+        self._cache[path] = liver
+        if len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        return liver
+
+    def sample(self) -> dict:
+        """One training pair with the keys of a test case (tgt = R_gt @ target shape + t_gt)."""
+        for _ in range(20):
+            rng = self.rng
+            liver = self._liver(self.files[int(rng.integers(len(self.files)))])
+            n_shapes = 1 + len(liver["surfaces_mm"])
+            s, t = rng.choice(n_shapes, size=2, replace=False)
+            src = liver["vertices_mm"] if s == 0 else liver["surfaces_mm"][s - 1]
+            tgt = liver["vertices_mm"] if t == 0 else liver["surfaces_mm"][t - 1]
+            src_fid = liver["fiducials_mm"] if s == 0 else liver["deformed_fiducials_mm"][s - 1]
+            tgt_fid = liver["fiducials_mm"] if t == 0 else liver["deformed_fiducials_mm"][t - 1]
+            src = src.astype(np.float64)
+            meter = liver["meters"].get(int(s))
+            if meter is None:
+                meter = liver["meters"][int(s)] = VisibilityMeter(src)
+            visibility = float(rng.uniform(*self.visibility_range))
+            mode = str(rng.choice(self.crop_modes))
+            noise = float(rng.choice(self.noise_levels_mm))
+            try:
+                target = make_target(
+                    src, tgt.astype(np.float64), liver["triangles"], visibility, mode, noise, rng, meter=meter
+                )
+            except LiverP2PError:
+                continue  # e.g. a camera cannot see that much; draw another pair
+            self.count += 1
+            R, tr = target["R_gt"], target["t_gt"]
+            d = tgt_fid - src_fid
+            return {
+                "src_pcd": src,
+                "tgt_pcd": target["tgt_pcd"],
+                "src_marker": src_fid.astype(np.float64),
+                "tgt_marker": tgt_fid @ R.T + tr,
+                "R_gt": R,
+                "t_gt": tr,
+                "visibility": target["visibility"],
+                "visibility_requested": visibility,
+                "deformation_rms_mm": float(np.sqrt(np.mean(np.sum(d**2, axis=1)))),
+                "deformation_max_mm": float(np.max(np.linalg.norm(d, axis=1))),
+                "noise_mm": noise,
+                "crop_mode": mode,
+                "liver_id": int(liver["liver_id"]),
+                "deformation_id": int(t) - 1,
+                "target_id": self.count,
+                "seed": self.seed,
+                "generator_version": GENERATOR_VERSION,
+            }
+        raise LiverP2PError("could not draw a training pair (crop requests unreachable)")

@@ -1,0 +1,86 @@
+"""One liver and its FEM deformations: anatomy -> tetrahedral mesh -> fiducials -> deformed surfaces."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from .anatomy import LiverMesh, make_liver
+from .fem import assemble, calibrate, random_load_case, solve_displacement
+from .tetmesh import TetMesh, build_tetmesh
+
+MAX_FIDUCIALS = 300
+
+
+@dataclass
+class Deformation:
+    """One deformed state, rigidly re-aligned onto the undeformed liver (Procrustes)."""
+
+    surface_mm: np.ndarray  # (V, 3) deformed surface vertices, same triangles as the liver
+    fiducials_mm: np.ndarray  # (F, 3) deformed fiducials, same order as the undeformed ones
+    rms_mm: float  # RMS fiducial displacement after rigid removal
+    max_mm: float  # largest fiducial displacement after rigid removal
+    n_fixed_nodes: int = 0
+
+
+@dataclass
+class SimulatedLiver:
+    """An undeformed liver surface, its interior fiducials and its deformations (all mm)."""
+
+    liver_id: int
+    vertices_mm: np.ndarray  # (V, 3)
+    triangles: np.ndarray  # (F, 3)
+    fiducials_mm: np.ndarray  # (F, 3) interior tetrahedral-mesh vertices
+    deformations: list[Deformation] = field(default_factory=list)
+    n_tets: int = 0
+    n_nodes: int = 0
+
+
+def select_fiducials(mesh: TetMesh, seed: int, max_count: int = MAX_FIDUCIALS) -> np.ndarray:
+    """Node ids of up to `max_count` interior vertices, in a fixed (ascending) order."""
+    ids = np.flatnonzero(mesh.interior)
+    if len(ids) < 3:
+        raise InputError("liver interior too small for fiducials")
+    if len(ids) > max_count:
+        ids = np.sort(np.random.default_rng([int(seed), 3]).choice(ids, size=max_count, replace=False))
+    return ids
+
+
+def simulate_liver(
+    seed: int, n_deformations: int, target_tets: int = 10_000, liver: LiverMesh | None = None
+) -> SimulatedLiver:
+    """Generate liver `seed` and `n_deformations` random FEM deformations of it."""
+    if n_deformations < 0:
+        raise InputError(f"number of deformations must be >= 0, got {n_deformations}")
+    liver = liver if liver is not None else make_liver(seed)
+    mesh = build_tetmesh(liver, target_tets=target_tets)
+    fid_ids = select_fiducials(mesh, seed)
+    sim = SimulatedLiver(
+        liver_id=int(seed),
+        vertices_mm=liver.vertices_mm,
+        triangles=liver.triangles,
+        fiducials_mm=mesh.nodes_mm[fid_ids].copy(),
+        n_tets=len(mesh.tets),
+        n_nodes=len(mesh.nodes_mm),
+    )
+    if n_deformations == 0:
+        return sim
+    system = assemble(mesh)
+    ids, weights = mesh.embed(liver.vertices_mm)
+    for d in range(n_deformations):
+        rng = np.random.default_rng([int(seed), 2, d])
+        load = random_load_case(mesh, rng)
+        unit = solve_displacement(system, load)
+        scale, R, t, rms = calibrate(mesh.nodes_mm, unit, fid_ids, load.target_rms_mm)
+        disp = scale * unit
+        surface = (liver.vertices_mm + mesh.interpolate(disp, ids, weights)) @ R.T + t
+        fids = (mesh.nodes_mm[fid_ids] + disp[fid_ids]) @ R.T + t
+        max_mm = float(np.max(np.linalg.norm(fids - sim.fiducials_mm, axis=1)))
+        sim.deformations.append(
+            Deformation(
+                surface_mm=surface, fiducials_mm=fids, rms_mm=rms, max_mm=max_mm, n_fixed_nodes=len(load.fixed_nodes)
+            )
+        )
+    return sim

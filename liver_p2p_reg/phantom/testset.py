@@ -1,0 +1,67 @@
+"""Named, versioned test sets that regenerate identically on any machine.
+
+`insilico-test-v1`: 12 livers (seed 900, never used for training), 5 FEM deformations each,
+8 random-crop targets per deformation, one per visibility bin [0.2,0.3) ... [0.9,1.0), no
+noise: 480 cases, 60 per bin (the paper's protocol). `insilico-camera-v1`: the same livers
+seen by an anterior laparoscope (visibility bins up to 0.5). `insilico-smoke`: 2 livers x 1
+deformation x 8 bins for fast tests and demo bags. Noise levels are applied by the benchmark
+on top of these clean targets (or with `--noise` when generating other sets).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict
+from pathlib import Path
+
+from ..errors import InputError
+from .dataset import DatasetSpec, generate_dataset, read_manifest
+
+TESTSETS: dict[str, DatasetSpec] = {
+    "insilico-test-v1": DatasetSpec(livers=12, deformations=5, targets=8, crop="random", seed=900, split="test"),
+    "insilico-camera-v1": DatasetSpec(livers=12, deformations=5, targets=3, crop="camera", seed=900, split="test"),
+    "insilico-smoke": DatasetSpec(livers=2, deformations=1, targets=8, crop="random", seed=901, split="test"),
+}
+ENV_DATA_ROOT = "LIVER_P2P_DATA"
+
+
+def default_root() -> Path:
+    """$LIVER_P2P_DATA if set, else ./data."""
+    return Path(os.environ.get(ENV_DATA_ROOT, "data"))
+
+
+def testset_spec(name: str) -> DatasetSpec:
+    if name not in TESTSETS:
+        raise InputError(f"unknown test set {name!r}; known: {', '.join(sorted(TESTSETS))}")
+    spec = TESTSETS[name]
+    return DatasetSpec(**asdict(spec)).validate(allow_reserved=True)
+
+
+def is_complete(path: Path, spec: DatasetSpec) -> bool:
+    """True when the directory holds this spec's manifest and every listed case file."""
+    spec_path = path / "dataset.json"
+    if not spec_path.is_file() or not (path / "manifest.csv").is_file():
+        return False
+    if json.loads(spec_path.read_text()) != asdict(spec):
+        return False
+    rows = read_manifest(path)
+    expected = spec.livers * spec.deformations * spec.targets
+    return len(rows) >= expected * 0.98 and all((path / r["file"]).is_file() for r in rows)
+
+
+def ensure_testset(
+    name: str = "insilico-test-v1", root: str | Path | None = None, workers: int = 1, progress: bool = True
+) -> Path:
+    """Path of the named test set under `root`, generating (or finishing) it when absent."""
+    spec = testset_spec(name)
+    path = Path(root) / name if root is not None else default_root() / name
+    if not is_complete(path, spec):
+        generate_dataset(path, spec, workers=workers, progress=progress, allow_reserved_seed=True)
+    return path
+
+
+def testset_cases(path: str | Path) -> list[Path]:
+    """Sorted case files of a generated dataset (from its manifest)."""
+    path = Path(path)
+    return sorted(path / row["file"] for row in read_manifest(path))

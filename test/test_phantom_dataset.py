@@ -1,0 +1,143 @@
+"""In silico cases: visibility crops, ground-truth pose, NPZ files, deterministic generation, CLI errors."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+
+from liver_p2p_reg.cli import dataset_cmd
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.phantom.crop import VisibilityMeter
+from liver_p2p_reg.phantom.dataset import (
+    DatasetSpec,
+    generate_dataset,
+    make_case,
+    read_case,
+    read_manifest,
+    write_case,
+)
+from liver_p2p_reg.phantom.loader import PairSampler, build_store
+from liver_p2p_reg.phantom.simulate import simulate_liver
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_liver(21, 2, target_tets=2000)
+
+
+@pytest.mark.parametrize(
+    ("mode", "visibility"),
+    [("random", 0.22), ("random", 0.5), ("random", 0.95), ("camera", 0.25), ("camera", 0.4)],
+)
+def test_crop_visibility_and_ground_truth(sim, mode: str, visibility: float) -> None:
+    case = make_case(sim, 1, visibility, crop_mode=mode, noise_mm=2.0, seed=3)
+    meter = VisibilityMeter(case["src_pcd"])
+    assert abs(meter(case["tgt_pcd"]) - visibility) <= 0.03
+    assert case["visibility"] == pytest.approx(meter(case["tgt_pcd"]))
+    R, t = case["R_gt"], case["t_gt"]
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
+    assert np.all(np.abs(t) <= 100.0)
+    assert np.allclose(sim.deformations[1].fiducials_mm @ R.T + t, case["tgt_marker"])
+    # Target points lie on the moved deformed surface up to the noise (|noise| <= 1 mm per axis).
+    moved_back = (case["tgt_pcd"] - t) @ R
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(sim.deformations[1].surface_mm).query(moved_back)
+    assert dist.max() < 1.8 + 2.5  # noise diagonal + sample-to-vertex gap on ~2 mm triangles
+
+
+def test_camera_crop_sees_the_anterior_side(sim) -> None:
+    case = make_case(sim, 0, 0.3, crop_mode="camera", seed=5)
+    back = (case["tgt_pcd"] - case["t_gt"]) @ case["R_gt"]
+    assert np.median(back[:, 1]) > np.median(sim.vertices_mm[:, 1])  # +y is anterior
+
+
+def test_case_round_trip_without_pickle(sim, tmp_path) -> None:
+    case = make_case(sim, 0, 0.6, seed=1)
+    path = write_case(tmp_path / "c.npz", case)
+    with np.load(path, allow_pickle=False) as data:
+        assert {"src_pcd", "tgt_pcd", "src_marker", "tgt_marker", "R_gt", "t_gt", "crop_mode"} <= set(data.files)
+    back = read_case(path)
+    assert back["crop_mode"] == "random" and back["liver_id"] == 21
+    assert np.allclose(back["tgt_pcd"], case["tgt_pcd"], atol=1e-3)
+    assert np.array_equal(back["tgt_marker"], case["tgt_marker"])
+
+
+def test_bad_case_arguments(sim, tmp_path) -> None:
+    with pytest.raises(InputError):
+        make_case(sim, 5, 0.5)
+    with pytest.raises(InputError):
+        make_case(sim, 0, 1.5)
+    with pytest.raises(InputError):
+        make_case(sim, 0, 0.5, crop_mode="sideways")
+    with pytest.raises(InputError):
+        read_case(tmp_path / "missing.npz")
+    (tmp_path / "junk.npz").write_text("not a zip")
+    with pytest.raises(InputError):
+        read_case(tmp_path / "junk.npz")
+
+
+def test_generation_is_identical_for_any_worker_count_and_resumes(tmp_path) -> None:
+    spec = dict(livers=2, deformations=1, targets=2, seed=3, target_tets=1500)
+    m1 = generate_dataset(tmp_path / "w1", DatasetSpec(**spec), workers=1, progress=False)
+    m2 = generate_dataset(tmp_path / "w2", DatasetSpec(**spec), workers=2, progress=False)
+    rows1, rows2 = read_manifest(m1.parent), read_manifest(m2.parent)
+    assert rows1 == rows2 and len(rows1) == 4
+    for row in rows1:
+        a, b = read_case(m1.parent / row["file"]), read_case(m2.parent / row["file"])
+        assert all(np.array_equal(np.asarray(a[k]), np.asarray(b[k])) for k in a)
+    # Resume: a deleted case is regenerated identically, the others are kept.
+    victim = m1.parent / rows1[0]["file"]
+    before = read_case(victim)
+    victim.unlink()
+    generate_dataset(tmp_path / "w1", DatasetSpec(**spec), workers=1, progress=False)
+    assert np.array_equal(read_case(victim)["tgt_pcd"], before["tgt_pcd"])
+    with pytest.raises(InputError):  # same directory, different parameters
+        generate_dataset(tmp_path / "w1", DatasetSpec(**{**spec, "targets": 3}), progress=False)
+
+
+def test_pair_sampler_draws_valid_pairs(tmp_path) -> None:
+    store = build_store(tmp_path / "store", livers=1, deformations=2, seed=4, target_tets=1500, progress=False)
+    sampler = PairSampler(store, seed=0, visibility_range=(0.3, 0.6), noise_levels_mm=(0.0, 2.0))
+    pairs = [sampler.sample() for _ in range(3)]
+    for pair in pairs:
+        assert 0.27 <= pair["visibility"] <= 0.63
+        assert pair["tgt_marker"].shape == pair["src_marker"].shape
+    again = PairSampler(store, seed=0, visibility_range=(0.3, 0.6), noise_levels_mm=(0.0, 2.0)).sample()
+    assert np.array_equal(again["tgt_pcd"], pairs[0]["tgt_pcd"])
+    with pytest.raises(InputError):
+        PairSampler(tmp_path / "nowhere", seed=0)
+
+
+def _cli(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser()
+    dataset_cmd.add_parser(parser.add_subparsers())
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--livers", "0"],
+        ["--crop", "sideways"],
+        ["--noise", "-1"],
+        ["--seed", "900"],
+        ["--workers", "0"],
+        ["--targets", "0"],
+    ],
+)
+def test_cli_bad_arguments_are_input_errors(tmp_path, argv: list[str]) -> None:
+    with pytest.raises(InputError):
+        _cli(["dataset", "generate", "--out", str(tmp_path / "d"), *argv])
+
+
+def test_cli_needs_exactly_one_destination_and_known_testset(tmp_path) -> None:
+    with pytest.raises(InputError):
+        _cli(["dataset", "generate"])
+    with pytest.raises(InputError):
+        _cli(["dataset", "generate", "--testset", "insilico-test-v0", "--out", str(tmp_path)])
+    with pytest.raises(InputError):
+        _cli(["dataset", "stats", str(tmp_path)])
