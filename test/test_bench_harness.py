@@ -265,3 +265,16 @@ def test_oracle_error_equals_best_rigid_fit_of_the_fiducials(dataset: Path, tmp_
         assert r["rms_tre_mm"] == pytest.approx(expected, rel=1e-6, abs=1e-6)
         assert expected > 0.5  # the deformation leaves a residual a rigid fit cannot remove
     assert not math.isnan(rows[0]["max_tre_mm"])
+
+
+def test_readme_option_regenerates_the_benchmark_block(dataset: Path, tmp_path: Path) -> None:
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n<!-- BENCHMARK:START -->\nstale\n<!-- BENCHMARK:END -->\ntail\n")
+    out = tmp_path / "docs" / "benchmark"
+    assert _bench(dataset, out, "probe-test-p2p", "--limit", "3", "--readme", str(readme)) == 0
+    text = readme.read_text()
+    assert (
+        "stale" not in text and text.startswith("# x\n<!-- BENCHMARK:START -->\n") and text.endswith("END -->\ntail\n")
+    )
+    assert "| probe-test-p2p |" in text and "[docs/benchmark/summary.md](docs/benchmark/summary.md)" in text
+    assert "--readme" in text  # the command that regenerates it is quoted

@@ -1,0 +1,115 @@
+"""Benchmark report arithmetic: bins, oracle ratios, success rates, rank-sum marks, slow flags, README block."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import ranksums
+
+from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
+from liver_p2p_reg.bench.summary import README_END, README_START, Summary, replace_readme_block
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+
+
+def _row(case: int, method: str, vis: float, tre: float, runtime_ms: float = 10.0, failed: bool = False) -> dict:
+    return {
+        "case_id": f"c{case:03d}",
+        "method": method,
+        "base_method": method,
+        "variant": "",
+        "visibility": vis,
+        "noise_mm": 0.0,
+        "added_noise_mm": 0.0,
+        "crop_mode": "random",
+        "deformation_rms_mm": 3.0,
+        "rms_tre_mm": tre,
+        "max_tre_mm": tre * 1.5,
+        "initial_rms_tre_mm": 100.0,
+        "residual_mm": 1.0,
+        "runtime_ms": runtime_ms,
+        "failed": failed,
+        "reason": "RegistrationError: x" if failed else "",
+        "ambiguous": False,
+    }
+
+
+def _settings() -> dict:
+    return {
+        "dataset": "synthetic",
+        "preset": "full",
+        "limit": None,
+        "ablation_cases_per_bin": 10,
+        "config": Config().to_dict(),
+    }
+
+
+def _summary(rows: list[dict]) -> Summary:
+    return Summary(rows, _settings(), {"cpu": "test cpu", "usable_cores": 2, "torch": "x", "device": "cpu"})
+
+
+def test_visibility_bins_follow_the_paper() -> None:
+    assert BIN_LABELS[0] == "[0.2,0.3)" and BIN_LABELS[-1] == "[0.9,1.0]" and len(BIN_LABELS) == 8
+    assert visibility_bin(0.2) == 0 and visibility_bin(0.2999) == 0 and visibility_bin(0.3) == 1
+    assert visibility_bin(0.95) == 7 and visibility_bin(1.0) == 7
+    assert visibility_bin(0.19) is None and visibility_bin(1.01) is None and visibility_bin(float("nan")) is None
+
+
+def test_tables_ratios_success_and_significance() -> None:
+    rng = np.random.default_rng(3)
+    rows = []
+    low_p2p, low_base = rng.normal(6, 1, 20), rng.normal(12, 2, 20)
+    high_p2p, high_base = rng.normal(3.5, 0.3, 20), rng.normal(3.5, 0.3, 20)
+    for i in range(20):
+        rows += [
+            _row(i, "procrustes", 0.25, 2.0),
+            _row(i, "x-p2p", 0.25, low_p2p[i]),
+            _row(i, "x", 0.25, low_base[i], 9000.0),
+        ]
+        j = 100 + i
+        rows += [_row(j, "procrustes", 0.95, 3.0), _row(j, "x-p2p", 0.95, high_p2p[i])]
+        rows += [_row(j, "x", 0.95, high_base[i], runtime_ms=9000.0, failed=i < 5)]
+    s = _summary(rows)
+    assert s.bins == [0, 7] and s.methods == ["procrustes", "x", "x-p2p"]
+    assert s.slow == {"x"}  # median 9 s per case
+    table = "\n".join(s.table_tre())
+    assert "| procrustes (oracle) | 2.00 ± 0.00 | 3.00 ± 0.00 | 2.50 ± 0.50 |" in table
+    assert f"| x-p2p | {np.mean(low_p2p):.2f} ± {np.std(low_p2p):.2f} |" in table
+    ratio = "\n".join(s.table_ratio())
+    assert f"| x-p2p | {np.mean(low_p2p) / 2:.2f} | {np.mean(high_p2p) / 3:.2f} |" in ratio
+    success = "\n".join(s.table_success())
+    low_rate = 100 * np.mean(low_base < 20)
+    # At [0.9,1.0] 5 of 20 runs failed: they never count as successes, whatever their TRE.
+    assert f"| x (slow) | {low_rate:.1f} % | 75.0 % | {(low_rate + 75) / 2:.1f} % |" in success
+    wilcoxon = "\n".join(s.table_wilcoxon())
+    p_low = ranksums(low_p2p, low_base).pvalue
+    p_high = ranksums(high_p2p, high_base).pvalue
+    assert p_low < 0.05 < p_high
+    assert f"p={p_low:.3g} **\\***" in wilcoxon and f"p={p_high:.3g} (" in wilcoxon
+    runtime = "\n".join(s.table_runtime())
+    assert "| x (slow) |" in runtime
+
+
+def test_readme_block_is_replaced_and_nothing_else(tmp_path: Path) -> None:
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# Title\n\nintro\n\n{README_START}\nold numbers\n{README_END}\n\n## After\ntext\n")
+    replace_readme_block(readme, "new table\n| a | b |")
+    text = readme.read_text()
+    assert text == f"# Title\n\nintro\n\n{README_START}\nnew table\n| a | b |\n{README_END}\n\n## After\ntext\n"
+    replace_readme_block(readme, "again")  # idempotent markers: a second run replaces the first
+    assert text.replace("new table\n| a | b |", "again") == readme.read_text()
+    bare = tmp_path / "bare.md"
+    bare.write_text("no markers here\n")
+    with pytest.raises(InputError, match="lacks the"):
+        replace_readme_block(bare, "x")
+    assert bare.read_text() == "no markers here\n"
+
+
+def test_readme_block_holds_the_main_tables() -> None:
+    rows = [_row(i, m, 0.25, 2.0 + i) for i in range(3) for m in ("procrustes", "x")]
+    block = _summary(rows).readme_block("docs/benchmark/summary.md")
+    assert "| procrustes (oracle) | 3.00 ± 0.82 | 3.00 ± 0.82 |" in block
+    assert "Success rate" in block and "median total (ms)" in block
+    assert "[docs/benchmark/summary.md](docs/benchmark/summary.md)" in block and "test cpu" in block
