@@ -157,6 +157,9 @@ class BagWriter:
 
     def close(self) -> None:
         self._writer.close()
+        # rosbags records itself as the distro; say jazzy, the distribution these bags target
+        meta = self.path / "metadata.yaml"
+        meta.write_text(meta.read_text().replace("ros_distro: rosbags", "ros_distro: jazzy", 1))
 
     def __enter__(self) -> BagWriter:
         return self

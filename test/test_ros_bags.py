@@ -1,0 +1,135 @@
+"""Bag making/import, reading back with rosbags (dirs and bare .mcap), replay output bags and CLI errors."""
+
+import numpy as np
+import pytest
+import yaml
+
+from liver_p2p_reg.cli import main
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registrar import available_methods
+from liver_p2p_reg.ros.bag_io import bag_topics, read_messages
+from liver_p2p_reg.ros.bag_make import CASE_KEY, make_case_bag
+from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
+from liver_p2p_reg.ros.replay import OUTPUT_TOPICS, format_table, replay_bag
+
+PC2 = "sensor_msgs/msg/PointCloud2"
+
+
+def synthetic_case(seed=0):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(3000, 3))
+    source = d / np.linalg.norm(d, axis=1, keepdims=True) * [80.0, 55.0, 40.0]
+    fid = rng.uniform(-20, 20, size=(6, 3))
+    c, s = np.cos(0.4), np.sin(0.4)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    t = np.array([15.0, -10.0, 280.0])
+    target = source[source[:, 2] > 0] @ R.T + t
+    return source, target, fid, fid @ R.T + t
+
+
+@pytest.fixture
+def case_bag(tmp_path):
+    source, target, fs, ft = synthetic_case()
+    return make_case_bag(
+        tmp_path / "case_bag", source, target, source_fiducials_mm=fs, target_fiducials_mm=ft, info={"visibility": 0.5}
+    )
+
+
+def test_made_bag_is_jazzy_rosbag2_mcap(case_bag):
+    meta = yaml.safe_load((case_bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == 9 and meta["storage_identifier"] == "mcap" and meta["ros_distro"] == "jazzy"
+    assert meta["relative_file_paths"] == ["case_bag.mcap"]
+    assert CASE_KEY in meta["custom_data"]
+    latched = {
+        t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"][0]["durability"]
+        for t in meta["topics_with_message_count"]
+    }
+    assert latched["/preop/points"] == "transient_local" and latched["/intraop/points"] == "volatile"
+    assert bag_topics(case_bag) == {
+        "/preop/points": (PC2, 1),
+        "/preop/fiducials": (PC2, 1),
+        "/intraop/points": (PC2, 5),
+        "/intraop/fiducials": (PC2, 5),
+    }
+
+
+def test_bag_contents_round_trip_in_metres_and_order(case_bag):
+    source, target, fs, ft = synthetic_case()
+    msgs = list(read_messages(case_bag))
+    assert [m.timestamp_ns for m in msgs] == sorted(m.timestamp_ns for m in msgs)
+    preop = next(m.msg for m in msgs if m.topic == "/preop/fiducials")
+    assert preop.header.frame_id == "ct"
+    np.testing.assert_allclose(cloud_to_points_mm(preop), fs, atol=1e-3)  # float32 metres
+    frames = [m.msg for m in msgs if m.topic == "/intraop/points"]
+    fids = [m.msg for m in msgs if m.topic == "/intraop/fiducials"]
+    assert all(f.header.frame_id == "camera" for f in frames)
+    assert [f.header.stamp for f in frames] == [f.header.stamp for f in fids]  # paired by stamp
+    np.testing.assert_allclose(cloud_to_points_mm(fids[0]), ft, atol=1e-3)  # frame 0: no sensor motion
+    moved = np.linalg.norm(cloud_to_points_mm(fids[-1]) - ft, axis=1)
+    assert 0.05 < moved.max() < 10  # later frames: small sensor motion
+
+
+def test_bare_mcap_file_is_readable(case_bag):
+    mcap = case_bag / "case_bag.mcap"
+    assert sum(1 for m in read_messages(mcap) if m.topic == "/intraop/points") == 5
+
+
+def test_bag_import_cli_and_overwrite_refusal(tmp_path, capsys):
+    source, target, fs, ft = synthetic_case(1)
+    npz = tmp_path / "case_0001.npz"
+    np.savez(npz, src_pcd=source, tgt_pcd=target, src_marker=fs, tgt_marker=ft, visibility=np.float64(0.5))
+    out = tmp_path / "imported"
+    assert main(["bag", "import", str(npz), str(out), "--frames", "3"]) == 0
+    assert bag_topics(out)["/intraop/points"] == (PC2, 3)
+    assert main(["bag", "import", str(npz), str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main(["bag", "import", str(npz), str(out), "--force", "--frames", "2"]) == 0
+    assert bag_topics(out)["/intraop/points"] == (PC2, 2)
+
+
+def test_bag_make_from_plain_files(tmp_path):
+    source, target, fs, ft = synthetic_case(2)
+    np.savetxt(tmp_path / "src.xyz", source)
+    np.save(tmp_path / "tgt.npy", target)
+    np.savetxt(tmp_path / "pairs.txt", np.hstack([fs, ft]))
+    out = tmp_path / "plain"
+    args = ["bag", "make", str(out), "--source", str(tmp_path / "src.xyz"), "--target", str(tmp_path / "tgt.npy")]
+    assert main([*args, "--fiducials", str(tmp_path / "pairs.txt")]) == 0
+    assert bag_topics(out)["/preop/fiducials"] == (PC2, 1)
+
+
+def test_bag_make_bad_inputs(tmp_path, capsys):
+    assert main(["bag", "make", str(tmp_path / "x")]) == 2
+    assert main(["bag", "import", str(tmp_path / "missing.npz"), str(tmp_path / "y")]) == 2
+    assert "not found" in capsys.readouterr().err
+    with pytest.raises(InputError):
+        make_case_bag(tmp_path / "z", np.zeros((0, 3)), np.ones((5, 3)))
+
+
+def test_replay_refuses_missing_bag_and_unknown_method(tmp_path, case_bag, capsys):
+    assert main(["replay", str(tmp_path / "nope")]) == 2
+    assert main(["replay", str(case_bag), "--method", "no-such-method"]) == 2
+    assert "unknown method" in capsys.readouterr().err
+
+
+@pytest.mark.skipif("procrustes" not in available_methods(), reason="procrustes method not implemented yet")
+def test_replay_writes_output_bag_with_registration_topics(tmp_path, case_bag):
+    out = tmp_path / "out_bag"
+    row = replay_bag(case_bag, Config(method="procrustes"), out_path=out)
+    assert row.frames == 5 and row.registered == 5 and row.status in ("OK", "WARN")
+    assert row.rms_tre_mm < 0.01  # oracle on exact fiducials (float32 metres in the bag)
+    topics = bag_topics(out)
+    for topic, msgtype in OUTPUT_TOPICS.items():
+        assert topics[topic][0] == msgtype
+    assert topics["/registration/pose"][1] == 5 and topics["/intraop/points"][1] == 5
+    poses = [m.msg for m in read_messages(out, ["/registration/pose"])]
+    _, _, _, ft = synthetic_case()
+    assert poses[0].header.frame_id == "camera"
+    assert abs(poses[0].pose.position.z - 0.280) < 1e-4  # ct origin in the sensor frame, metres
+    diags = [m.msg for m in read_messages(out, ["/diagnostics"])]
+    keys = {kv.key for d in diags for s in d.status for kv in s.values}
+    assert {"residual_mm", "rms_tre_mm", "max_tre_mm", "visibility", "matches", "runtime_ms.total"} <= keys
+    with pytest.raises(InputError, match="exists"):
+        replay_bag(case_bag, Config(method="procrustes"), out_path=out)
+    assert "case_bag" in format_table([row])
