@@ -187,5 +187,9 @@ def fingerprint(infos: list[CaseInfo]) -> str:
 
 
 def case_seed(base_seed: int, info: CaseInfo) -> int:
-    """The seed a method gets on this case: fixed per case, independent of order and workers."""
-    return int((base_seed * 1_000_003 + info.seed) % (2**31 - 1))
+    """The seed a method gets on this case: fixed per case, independent of order and workers.
+
+    Mixes the stored seed with the case id, so cases that share a stored seed still differ.
+    """
+    mixed = zlib.crc32(f"{base_seed}:{info.seed}:{info.case_id}".encode())
+    return int(mixed % (2**31 - 1))

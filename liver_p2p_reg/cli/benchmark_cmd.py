@@ -93,7 +93,10 @@ def run(args: argparse.Namespace) -> int:
     config = config.replace(**overrides) if overrides else config
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else available_methods()
     if not methods:
-        raise InputError("no methods to run (--methods is empty)")
+        raise InputError("no methods to run (--methods is empty; is any method module installed?)")
+    unknown = [m for m in methods if m not in available_methods()]
+    if unknown:  # before a named test set is generated, which can take minutes
+        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(available_methods())}")
     if args.readme and not Path(args.readme).is_file():
         raise InputError(f"README {args.readme} does not exist")
     if args.ablation_cases_per_bin < 1:
