@@ -21,7 +21,7 @@ def main() -> int:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--count", type=int, default=12)
     parser.add_argument("--elev", type=float, default=25.0, help="view elevation (deg)")
-    parser.add_argument("--azim", type=float, default=-70.0, help="view azimuth (deg); -90 looks from anterior")
+    parser.add_argument("--azim", type=float, default=80.0, help="view azimuth (deg); 90 looks from anterior")
     args = parser.parse_args()
     cols = 4
     rows = int(np.ceil(args.count / cols))
@@ -40,7 +40,7 @@ def main() -> int:
         w, d, h = liver.extents_mm
         ax.set_title(f"seed {seed}: {w:.0f} x {d:.0f} x {h:.0f} mm", fontsize=9)
         ax.set_axis_off()
-    fig.suptitle("Procedural livers (x: right->left lobe, y: anterior, z: superior)")
+    fig.suptitle("Procedural livers, anterior view (RAS frame: x patient right, y anterior, z superior)")
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out)

@@ -1,12 +1,13 @@
 """Procedural liver surfaces: an implicit anatomical shape, marching cubes, Taubin smoothing.
 
-Frame of every liver (mm, centred at the mesh centroid): +x runs from the large right lobe
-towards the tapering left lobe (the patient's left), +y is anterior, +z is superior (the
-diaphragmatic dome). The shape is the smooth union of a right-lobe ellipsoid and a tapering,
-flattened left-lobe ellipsoid, cut from below by a tilted visceral plane that rises towards the
-anterior side; where that plane meets the dome the anterior-inferior edge is sharp. Shallow
-ellipsoidal dents on the visceral side (gallbladder fossa, renal and colic impressions), a
-posterior groove (vena cava) and a few random low-frequency waves make every seed distinct.
+Frame of every liver (mm, centred at the vertex centroid, RAS like CT viewers): +x points to
+the patient's right (the large right lobe), +y is anterior, +z is superior (the diaphragmatic
+dome); the left lobe tapers towards -x. The shape is the smooth union of a right-lobe
+ellipsoid and a tapering, flattened left-lobe ellipsoid, cut from below by a tilted visceral
+plane that rises towards the anterior side; where that plane meets the dome the
+anterior-inferior edge is sharp. Broad shallow dents on the visceral side (gallbladder fossa,
+renal and colic impressions), a posterior groove (vena cava) and a few random low-frequency
+waves make every seed distinct.
 After meshing, the liver is scaled anisotropically to random extents inside the anatomical
 ranges (the paper's random scaling).
 """
@@ -97,20 +98,20 @@ def random_shape(seed: int) -> LiverShape:
     cut_z0 = u(-38, -25)
     cut_slope_y = u(0.55, 0.9)
     cut_slope_x = u(-0.1, 0.15)
-    # Visceral impressions: ellipsoids centred below the visceral plane that bite a few mm in.
-    for cx, cy in ((u(-20, 0), u(10, 30)), (u(-70, -50), u(-25, -5)), (u(-55, -30), u(15, 35))):
+    # Visceral impressions: broad ellipsoids centred below the visceral plane, biting 2-5 mm in.
+    for cx, cy in ((u(-25, -5), u(-5, 15)), (u(-75, -50), u(-30, -10)), (u(-60, -35), u(5, 20))):
         plane_z = cut_z0 + cut_slope_y * cy + cut_slope_x * cx
-        r = np.array([u(14, 24), u(12, 20), u(10, 16)])
-        dents.append((np.array([cx, cy, plane_z - r[2] + u(4, 7)]), r))
+        r = np.array([u(22, 34), u(18, 28), u(12, 18)])
+        dents.append((np.array([cx, cy, plane_z - r[2] + u(2, 5)]), r))
     # Vena-cava groove on the posterior side of the right lobe: a vertical elongated dent.
     r = np.array([u(10, 14), u(10, 14), 90.0])
-    dents.append((np.array([u(-15, 0), -right_radii[1] - r[1] + u(5, 8), 0.0]), r))
+    dents.append((np.array([u(-15, 0), -right_radii[1] - r[1] + u(4, 7), 0.0]), r))
     waves = []
     for _ in range(4):
         direction = rng.normal(size=3)
         direction /= np.linalg.norm(direction)
         wavelength = u(90, 220)
-        waves.append((direction * 2 * np.pi / wavelength, u(0, 2 * np.pi), u(1.5, 4.0)))
+        waves.append((direction * 2 * np.pi / wavelength, u(0, 2 * np.pi), u(1.0, 3.0)))
     return LiverShape(
         right_center=right_center,
         right_radii=right_radii,
@@ -127,10 +128,11 @@ def random_shape(seed: int) -> LiverShape:
 
 def shape_sdf(shape: LiverShape, p: np.ndarray) -> np.ndarray:
     """Approximate signed distance (mm, < 0 inside) of the raw-frame shape at points (..., 3)."""
-    p = np.asarray(p, dtype=np.float64)
+    # Parameters are written with the right lobe at -x; mirroring puts it at the patient's right (+x).
+    p = np.asarray(p, dtype=np.float64) * np.array([-1.0, 1.0, 1.0])
     right = _ellipsoid(p, shape.right_center, shape.right_radii)
     # Left lobe: its y/z radii shrink linearly towards its tip so it tapers to a thin wedge.
-    rel = np.clip((p[..., 0] - shape.left_center[0]) / shape.left_radii[0] + 0.3, 0.0, 1.3)
+    rel = np.clip((p[..., 0] - shape.left_center[0]) / shape.left_radii[0] + 0.3, 0.0, 1.0)
     shrink = (1.0 - shape.left_taper * rel)[..., None]
     lq = p - shape.left_center
     lq = np.concatenate([lq[..., :1], lq[..., 1:] / shrink], axis=-1)

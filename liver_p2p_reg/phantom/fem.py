@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import brentq
 from scipy.sparse.linalg import spsolve
 from skfem import Basis, ElementTetP1, ElementVector, MeshTet, asm, condense
 from skfem.models.elasticity import lame_parameters, linear_elasticity
@@ -117,8 +118,9 @@ def calibrate(
     """Scale the displacement so the fiducial RMS after rigid removal equals the target.
 
     Returns (scale, R, t, rms_mm) where R, t align the deformed nodes back onto the undeformed
-    ones (Procrustes on all volumetric vertices). Secant iterations: the residual is almost
-    linear in the scale because the supports keep the linearized rotations small.
+    ones (Procrustes on all volumetric vertices). The residual is almost
+    linear in the scale, but linearized rotations add a quadratic part, so a bracketing root finder
+    is used rather than a plain secant.
     """
 
     def residual_rms(scale: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -130,11 +132,12 @@ def calibrate(
     r1, _, _ = residual_rms(1.0)
     if not np.isfinite(r1) or r1 <= 0:
         raise InputError("finite-element solve gave no deformation")
-    scale = target_rms_mm / r1
-    r, R, t = residual_rms(scale)
-    for _ in range(6):
-        if abs(r - target_rms_mm) < 1e-3:
+    # Bracket the root (the residual grows monotonically with the scale), then Brent's method.
+    hi = target_rms_mm / r1
+    for _ in range(60):
+        if residual_rms(hi)[0] >= target_rms_mm:
             break
-        scale *= target_rms_mm / r
-        r, R, t = residual_rms(scale)
+        hi *= 1.5
+    scale = brentq(lambda s: residual_rms(s)[0] - target_rms_mm, 0.0, hi, xtol=1e-9 * hi, rtol=1e-10)
+    r, R, t = residual_rms(scale)
     return scale, R, t, r
