@@ -11,7 +11,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
-from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.logging import get_logger
@@ -52,8 +52,10 @@ def config_from_parameters(node: Node) -> Config:
     """Declare one ROS parameter per Config field (defaults from Config: one source of truth) and read them."""
     defaults = Config()
     values = {}
+    # dynamic typing: `-p max_rate_hz:=2` (an integer) is coerced by Config instead of rejected
+    descriptor = ParameterDescriptor(dynamic_typing=True)
     for f in dataclasses.fields(Config):
-        node.declare_parameter(f.name, getattr(defaults, f.name))
+        node.declare_parameter(f.name, getattr(defaults, f.name), descriptor)
         values[f.name] = node.get_parameter(f.name).value
     return Config.from_dict(values)
 
