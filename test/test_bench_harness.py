@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import liver_p2p_reg.registrar as registrar_module
 from liver_p2p_reg.bench.harness import read_rows
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.config import Config
@@ -86,18 +88,15 @@ def kabsch_rms_mm(source_mm: np.ndarray, target_mm: np.ndarray) -> float:
 
 
 # --- methods that exist only in this test: a broken one, a failing one, a config probe ---------------
-@method("identity-test")
 def _identity(source: np.ndarray, target: np.ndarray, config: Config, ctx: MethodContext) -> RegistrationResult:
     """Deliberately broken: never moves the source."""
     return RegistrationResult(np.eye(4), "identity-test", mean_closest_point_mm(target, source))
 
 
-@method("raise-test")
 def _raise(source: np.ndarray, target: np.ndarray, config: Config, ctx: MethodContext) -> RegistrationResult:
     raise RegistrationError("too few matches (test)")
 
 
-@method("probe-test-p2p")
 def _probe(source: np.ndarray, target: np.ndarray, config: Config, ctx: MethodContext) -> RegistrationResult:
     """Ground-truth fit shifted along x by k mm (+30 mm for inlier-count, +60 mm without proposal)."""
     s, t = ctx.source_fiducials_mm, ctx.target_fiducials_mm
@@ -108,6 +107,19 @@ def _probe(source: np.ndarray, target: np.ndarray, config: Config, ctx: MethodCo
     T[:3, :3], T[:3, 3] = R, ct - R @ cs
     T[0, 3] += config.k + 30.0 * (config.selection == "inlier-count") + 60.0 * (not config.candidate_proposal)
     return RegistrationResult(T, "probe-test-p2p", 0.0, runtime_ms={"match": 1.0, "select": 0.5})
+
+
+TEST_METHODS = {"identity-test": _identity, "raise-test": _raise, "probe-test-p2p": _probe}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def test_methods() -> Iterator[None]:
+    """Register the test-only methods for this module and remove them afterwards (other tests list methods)."""
+    for name, fn in TEST_METHODS.items():
+        method(name)(fn)
+    yield
+    for name in TEST_METHODS:
+        registrar_module._REGISTRY.pop(name, None)
 
 
 @pytest.fixture(scope="module")
