@@ -375,11 +375,17 @@ def _run_parallel(spec: BenchmarkSpec, todo: list, config_dict: dict, store: _Cs
     os.environ["OMP_NUM_THREADS"] = str(threads)
     try:
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(spec.workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,)) as pool:
+        pool = ProcessPoolExecutor(spec.workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,))
+        try:
             futures = [pool.submit(run_one, case, variant, config_dict) for case, variant in todo]
             for fut in as_completed(futures):
                 store.add(fut.result())
                 bar.update()
+        except BaseException:
+            # Ctrl-C or a crashed worker: drop the queue now (finished rows are already in cases.csv).
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
     finally:
         if saved is None:
             os.environ.pop("OMP_NUM_THREADS", None)
