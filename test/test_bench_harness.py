@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -227,6 +228,11 @@ def test_refuses_to_mix_settings_in_one_out(dataset: Path, tmp_path: Path, capsy
     assert _bench(dataset, out, "identity-test", "--limit", "2", "--seed", "3") == 2
     assert "holds a run with other settings (config.seed: 0 then, 3 now)" in capsys.readouterr().err
     assert _bench(dataset, out, "identity-test", "--limit", "3") == 2
+    # A Config field added to the code after the first run does not block adding methods later.
+    settings = json.loads((out / "settings.json").read_text())
+    del settings["config"]["icp_trim_ratio"]
+    (out / "settings.json").write_text(json.dumps(settings))
+    assert _bench(dataset, out, "identity-test,probe-test-p2p", "--limit", "2") == 0
 
 
 def test_bad_arguments_are_one_line_errors(dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

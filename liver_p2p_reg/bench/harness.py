@@ -323,6 +323,8 @@ def _diff(old: Any, new: Any, prefix: str = "") -> list[str]:
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
         for key in sorted(set(old) | set(new)):
+            if prefix == "config." and (key not in old or key not in new):
+                continue  # a Config field added or removed since: the rows' settings did not change
             out += _diff(old.get(key), new.get(key), f"{prefix}{key}.")
         return out
     return [] if old == new else [f"{prefix.rstrip('.')}: {old!r} then, {new!r} now"]

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 from importlib import metadata
+from pathlib import Path
 from typing import Any
 
 
@@ -27,6 +29,31 @@ def _version(dist: str) -> str:
         return "not installed"
 
 
+def code_version() -> str:
+    """Git commit of the package's checkout (with `+dirty` for local changes), or the package version."""
+    from .. import __version__
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return __version__
+    return f"{__version__} ({commit}{'+dirty' if dirty else ''})"
+
+
 def machine_info(device: str = "cpu") -> dict[str, Any]:
     """CPU, usable cores, torch threads, versions and the compute device of this process."""
     try:
@@ -43,6 +70,7 @@ def machine_info(device: str = "cpu") -> dict[str, Any]:
         "scipy": _version("scipy"),
         "open3d": _version("open3d-cpu") if _version("open3d") == "not installed" else _version("open3d"),
         "device": device,
+        "liver_p2p_reg": code_version(),
     }
     try:
         import torch
