@@ -67,6 +67,14 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
     return " ".join(shlex.quote(p) for p in parts)
 
 
+def _cuda_available() -> bool:
+    try:
+        import torch
+    except ImportError:
+        return False
+    return bool(torch.cuda.is_available())
+
+
 def _noise_levels(text: str | None) -> list[float]:
     if not text:
         return []
@@ -97,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
     unknown = [m for m in methods if m not in available_methods()]
     if unknown:  # before a named test set is generated, which can take minutes
         raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(available_methods())}")
+    if config.device == "cuda" and not _cuda_available():
+        raise InputError("--device cuda: no CUDA device is available to torch here")
     if args.readme and not Path(args.readme).is_file():
         raise InputError(f"README {args.readme} does not exist")
     if args.ablation_cases_per_bin < 1:
