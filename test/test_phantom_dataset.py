@@ -141,3 +141,20 @@ def test_cli_needs_exactly_one_destination_and_known_testset(tmp_path) -> None:
         _cli(["dataset", "generate", "--testset", "insilico-test-v0", "--out", str(tmp_path)])
     with pytest.raises(InputError):
         _cli(["dataset", "stats", str(tmp_path)])
+
+
+def test_read_case_accepts_the_public_p2p_layout(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    src, tgt, vol = rng.normal(size=(50, 3)), rng.normal(size=(30, 3)), rng.normal(size=(10, 3))
+    np.savez(
+        tmp_path / "p2p.npz",
+        src_pcd=src,
+        tgt_pcd=tgt,
+        src_vol=vol,
+        tgt_vol=vol + 1,
+        R_gt=np.eye(3),
+        t_gt=np.ones((3, 1)),
+    )
+    case = read_case(tmp_path / "p2p.npz")
+    assert np.array_equal(case["src_marker"], vol) and np.array_equal(case["tgt_marker"], vol + 1)
+    assert case["t_gt"].shape == (3,)

@@ -145,7 +145,7 @@ def write_case(path: str | Path, case: dict) -> Path:
 
 
 def read_case(path: str | Path) -> dict:
-    """Read a case NPZ (ours or the public P2P layout): arrays as float64, scalars as Python values."""
+    """Read a case NPZ (ours or the public P2P layout): float arrays as float64, scalars as Python values."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such case file")
@@ -167,6 +167,12 @@ def read_case(path: str | Path) -> dict:
             case[key] = value.astype(np.float64)
         else:
             case[key] = value
+    # The public P2P dataset names the fiducials src_vol / tgt_vol and stores t_gt as (3, 1).
+    for ours, theirs in (("src_marker", "src_vol"), ("tgt_marker", "tgt_vol")):
+        if ours not in case and theirs in case:
+            case[ours] = case[theirs]
+    if "t_gt" in case and np.size(case["t_gt"]) == 3:
+        case["t_gt"] = np.asarray(case["t_gt"], dtype=np.float64).reshape(3)
     return case
 
 
