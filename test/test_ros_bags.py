@@ -88,6 +88,15 @@ def test_bag_import_cli_and_overwrite_refusal(tmp_path, capsys):
     assert bag_topics(out)["/intraop/points"] == (PC2, 2)
 
 
+def test_bag_import_public_layout_with_src_vol(tmp_path):
+    source, target, fs, ft = synthetic_case(3)
+    npz = tmp_path / "public.npz"
+    np.savez(npz, src_pcd=source, tgt_pcd=target, src_vol=fs, tgt_vol=ft, t_gt=np.zeros((3, 1)))
+    assert main(["bag", "import", str(npz), str(tmp_path / "pub")]) == 0
+    fids = [m.msg for m in read_messages(tmp_path / "pub", ["/intraop/fiducials"])]
+    np.testing.assert_allclose(cloud_to_points_mm(fids[0]), ft, atol=1e-3)
+
+
 def test_bag_make_from_plain_files(tmp_path):
     source, target, fs, ft = synthetic_case(2)
     np.savetxt(tmp_path / "src.xyz", source)

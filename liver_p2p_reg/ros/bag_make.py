@@ -121,26 +121,20 @@ def make_case_bag(
 
 
 def load_case_npz(path: str | Path) -> dict[str, Any]:
-    """A case in the public P2P dataset NPZ layout (src_pcd, tgt_pcd, src_marker, tgt_marker, ...), mm."""
+    """A case NPZ (ours or the public P2P layout: src_pcd, tgt_pcd, src_marker|src_vol, tgt_marker|tgt_vol), mm."""
+    from ..phantom.dataset import read_case  # the one reader of case files (both layouts)
+
     path = Path(path)
     if not path.is_file():
         raise InputError(f"case file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: np.asarray(data[key]) for key in data.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read case {path}: {exc}") from None
-    for key in ("src_pcd", "tgt_pcd"):
-        if key not in arrays:
-            raise InputError(f"{path} lacks key {key!r} (P2P case layout: src_pcd, tgt_pcd, src_marker, tgt_marker)")
-    case: dict[str, Any] = {"source_mm": arrays["src_pcd"], "target_mm": arrays["tgt_pcd"], "info": {"case": path.stem}}
-    if "src_marker" in arrays and "tgt_marker" in arrays:
-        case["source_fiducials_mm"] = arrays["src_marker"]
-        case["target_fiducials_mm"] = arrays["tgt_marker"]
-    for key in ("visibility", "noise_mm", "crop", "deformation_mean_mm", "deformation_max_mm"):
-        if key in arrays and arrays[key].size == 1:
-            value = arrays[key].item()
-            case["info"][key] = value.decode() if isinstance(value, bytes) else value
+    raw = read_case(path)
+    case: dict[str, Any] = {"source_mm": raw["src_pcd"], "target_mm": raw["tgt_pcd"], "info": {"case": path.stem}}
+    if "src_marker" in raw and "tgt_marker" in raw:
+        case["source_fiducials_mm"] = raw["src_marker"]
+        case["target_fiducials_mm"] = raw["tgt_marker"]
+    for key in ("visibility", "noise_mm", "crop_mode", "deformation_rms_mm", "deformation_max_mm"):
+        if key in raw and isinstance(raw[key], (int, float, str)):
+            case["info"][key] = raw[key]
     return case
 
 
