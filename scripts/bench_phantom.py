@@ -23,7 +23,7 @@ def main() -> int:
     parser.add_argument("--first-seed", type=int, default=500_000)
     parser.add_argument("--tets", type=int, default=10_000)
     args = parser.parse_args()
-    one, anatomy_s, tets, nodes, rms, mx, per_def, crop_s = [], [], [], [], [], [], [], []
+    one, anatomy_s, tets, nodes, rms, mx, rot, per_def, crop_s = [], [], [], [], [], [], [], [], []
     for i in range(args.livers):
         seed = args.first_seed + i
         t0 = time.perf_counter()
@@ -40,6 +40,7 @@ def main() -> int:
         nodes.append(sim.n_nodes)
         rms += [d.rms_mm for d in sim.deformations]
         mx += [d.max_mm for d in sim.deformations]
+        rot += [d.rigid_rotation_deg for d in sim.deformations]
         meter = VisibilityMeter(sim.vertices_mm)
         for vis, mode in ((0.25, "random"), (0.95, "random"), (0.3, "camera")):
             t4 = time.perf_counter()
@@ -61,6 +62,7 @@ def main() -> int:
         f" median {np.median(rms):.2f}, p95 {np.percentile(rms, 95):.2f}, max {rms.max():.2f}"
     )
     print(f"max fiducial displacement: mean {mx.mean():.2f} mm, max {mx.max():.2f}")
+    print(f"rigid rotation removed by Procrustes: mean {np.mean(rot):.2f} deg, max {np.max(rot):.2f}")
     return 0
 
 

@@ -95,8 +95,40 @@ def random_load_case(mesh: TetMesh, rng: np.random.Generator) -> LoadCase:
     gravity = rng.normal(size=3)
     gravity *= rng.uniform(0.0, 0.3) * np.abs(forces).sum() / (np.linalg.norm(gravity) * len(nodes) + 1e-12)
     forces += gravity
+    forces = _equilibrate(nodes, forces, bnd)
     target = float(np.clip(rng.gamma(RMS_SHAPE, RMS_MEAN_MM / RMS_SHAPE), *RMS_RANGE_MM))
     return LoadCase(fixed_nodes=np.unique(fixed), forces=forces, target_rms_mm=target)
+
+
+def _equilibrate(nodes: np.ndarray, forces: np.ndarray, boundary: np.ndarray) -> np.ndarray:
+    """Remove the net force and torque by a counter-traction spread over the whole boundary.
+
+    Why: with only a small support patch, unbalanced loads swing the whole liver about it by
+    15-25 degrees, and a linear (small-strain) model turns such rotations into spurious
+    stretching. A self-equilibrated load (the surrounding organs and abdominal wall push back)
+    keeps the rotations small, where linear elasticity is accurate.
+    """
+    c = nodes[boundary].mean(axis=0)
+    r = nodes[boundary] - c
+    # Counter-traction g_i = a + b x r_i with sum g = F and sum r x g = T: a 6x6 linear system.
+    net_force = forces.sum(axis=0)
+    net_torque = np.cross(nodes - c, forces).sum(axis=0)
+    n = len(boundary)
+    rr = r.T @ r
+    inertia = np.trace(rr) * np.eye(3) - rr  # sum r x (b x r) = inertia @ b
+    A = np.zeros((6, 6))
+    A[:3, :3] = n * np.eye(3)
+    A[:3, 3:] = -_skew(r.sum(axis=0))  # sum b x r = -[sum r]_x b
+    A[3:, :3] = _skew(r.sum(axis=0))  # sum r x a = [sum r]_x a
+    A[3:, 3:] = inertia
+    ab = np.linalg.solve(A, np.concatenate([net_force, net_torque]))
+    out = forces.copy()
+    out[boundary] -= ab[:3] + np.cross(ab[3:], r)
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def solve_displacement(system: FemSystem, load: LoadCase) -> np.ndarray:

@@ -23,6 +23,7 @@ class Deformation:
     rms_mm: float  # RMS fiducial displacement after rigid removal
     max_mm: float  # largest fiducial displacement after rigid removal
     n_fixed_nodes: int = 0
+    rigid_rotation_deg: float = 0.0  # rotation Procrustes removed (small: linear model valid)
 
 
 @dataclass
@@ -80,7 +81,12 @@ def simulate_liver(
         max_mm = float(np.max(np.linalg.norm(fids - sim.fiducials_mm, axis=1)))
         sim.deformations.append(
             Deformation(
-                surface_mm=surface, fiducials_mm=fids, rms_mm=rms, max_mm=max_mm, n_fixed_nodes=len(load.fixed_nodes)
+                surface_mm=surface,
+                fiducials_mm=fids,
+                rms_mm=rms,
+                max_mm=max_mm,
+                n_fixed_nodes=len(load.fixed_nodes),
+                rigid_rotation_deg=float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))),
             )
         )
     return sim
