@@ -16,15 +16,15 @@ import argparse
 import logging
 import math
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.phantom.crop import VisibilityMeter, camera_order, sample_surface, vertex_normals
-from liver_p2p_reg.phantom.dataset import make_case, requested_visibility
+from liver_p2p_reg.phantom.dataset import case_name, generate_dataset, liver_id_for, read_case
 from liver_p2p_reg.phantom.simulate import simulate_liver
 from liver_p2p_reg.phantom.testset import testset_spec
 from liver_p2p_reg.ros.bag_io import bag_size_bytes
@@ -42,65 +42,53 @@ INSILICO = (
     ("insilico-test-v1", 0, 0, 2, 0.0),
     ("insilico-test-v1", 0, 1, 4, 0.0),
     ("insilico-test-v1", 1, 0, 7, 0.0),
-    ("insilico-camera-v1", 1, 0, 0, 0.0),
-    ("insilico-camera-v1", 1, 1, 1, 0.0),
+    ("insilico-camera-v1", 0, 0, 0, 0.0),
+    ("insilico-camera-v1", 0, 1, 1, 0.0),
     ("insilico-test-v1", 1, 1, 3, 3.0),
 )
 PHANTOMS = ((0, 0.30), (1, 0.40), (2, 0.35), (3, 0.45))  # (phantom liver index, visibility of the selection)
 
 
 def insilico_cases() -> list[tuple[str, dict]]:
-    """Reproduce test-set cases exactly (same ids, visibility draw, crop seeds and retries)."""
+    """Cases of the named test sets, made by the generator itself (its first two livers only)."""
     out = []
-    sims: dict[int, object] = {}
-    for set_name, liver_index, d, t, noise_mm in INSILICO:
-        spec = testset_spec(set_name)
-        liver_id = spec.seed * 10_000 + liver_index
-        if liver_id not in sims:
-            sims[liver_id] = simulate_liver(liver_id, 2, target_tets=spec.target_tets)
-        sim = sims[liver_id]
-        case = None
-        for attempt in range(4):
-            try:
-                case = make_case(
-                    sim,
-                    d,
-                    requested_visibility(spec, liver_id, d, t),
-                    spec.crop,
-                    noise_mm or spec.noise_mm,
-                    seed=t + 100_000 * attempt,
+    with tempfile.TemporaryDirectory() as tmp:
+        for set_name in sorted({entry[0] for entry in INSILICO}):
+            spec = testset_spec(set_name)
+            spec.livers = 1 + max(e[1] for e in INSILICO if e[0] == set_name)  # same ids: seed*10000 + index
+            generate_dataset(Path(tmp) / set_name, spec, workers=1, progress=True, allow_reserved_seed=True)
+        for set_name, liver_index, d, t, noise_mm in INSILICO:
+            spec = testset_spec(set_name)
+            liver_id = liver_id_for(spec.seed, liver_index)
+            case = read_case(Path(tmp) / set_name / case_name(liver_id, d, t))
+            target = case["tgt_pcd"]
+            if noise_mm:  # the benchmark's noise model: uniform in [-noise/2, noise/2] per axis
+                rng = np.random.default_rng([liver_id, d, t, 7])
+                target = target + rng.uniform(-0.5, 0.5, target.shape) * noise_mm
+            name = f"insilico_L{liver_id}_D{d:02d}_T{t:03d}_{spec.crop}" + (f"_noise{noise_mm:g}mm" if noise_mm else "")
+            info = {
+                "kind": "insilico",
+                "test_set": set_name,
+                "case": case_name(liver_id, d, t).removesuffix(".npz"),
+                "crop": spec.crop,
+                "visibility": round(float(case["visibility"]), 3),
+                "noise_mm": float(noise_mm),
+                "deformation_rms_mm": round(float(case["deformation_rms_mm"]), 2),
+                "deformation_max_mm": round(float(case["deformation_max_mm"]), 2),
+                "fiducials": len(case["src_marker"]),
+            }
+            out.append(
+                (
+                    name,
+                    {
+                        "source_mm": case["src_pcd"],
+                        "target_mm": target,
+                        "source_fiducials_mm": case["src_marker"],
+                        "target_fiducials_mm": case["tgt_marker"],
+                        "info": info,
+                    },
                 )
-                break
-            except LiverP2PError:
-                continue
-        if case is None:
-            raise SystemExit(f"cannot reproduce {set_name} liver {liver_id} D{d} T{t}")
-        name = f"insilico_L{liver_id}_D{d:02d}_T{t:03d}_{spec.crop}"
-        if noise_mm:
-            name += f"_noise{noise_mm:g}mm"
-        info = {
-            "kind": "insilico",
-            "test_set": set_name,
-            "case": f"case_L{liver_id:07d}_D{d:02d}_T{t:03d}",
-            "crop": spec.crop,
-            "visibility": round(float(case["visibility"]), 3),
-            "noise_mm": float(noise_mm),
-            "deformation_rms_mm": round(float(case["deformation_rms_mm"]), 2),
-            "deformation_max_mm": round(float(case["deformation_max_mm"]), 2),
-            "fiducials": len(case["src_marker"]),
-        }
-        out.append(
-            (
-                name,
-                {
-                    "source_mm": case["src_pcd"],
-                    "target_mm": case["tgt_pcd"],
-                    "source_fiducials_mm": case["src_marker"],
-                    "target_fiducials_mm": case["tgt_marker"],
-                    "info": info,
-                },
             )
-        )
     return out
 
 
