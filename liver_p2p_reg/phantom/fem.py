@@ -131,8 +131,8 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def solve_displacement(system: FemSystem, load: LoadCase) -> np.ndarray:
-    """Nodal displacement (N, 3) for the load case's forces and supports."""
+def solve_displacement(system: FemSystem, load: LoadCase, nodes_mm: np.ndarray) -> np.ndarray:
+    """Nodal displacement (N, 3) for the load case's forces and supports, infinitesimal rigid part removed."""
     f = np.zeros(system.stiffness.shape[0])
     dofs = system.nodal_dofs  # (3, N)
     for axis in range(3):
@@ -141,7 +141,23 @@ def solve_displacement(system: FemSystem, load: LoadCase) -> np.ndarray:
     A, b, _, interior_dofs = condense(system.stiffness, f, D=D)
     u = np.zeros_like(f)
     u[interior_dofs] = spsolve(A.tocsc(), b)
-    return np.stack([u[dofs[axis]] for axis in range(3)], axis=1)
+    return remove_infinitesimal_rigid(nodes_mm, np.stack([u[dofs[axis]] for axis in range(3)], axis=1))
+
+
+def remove_infinitesimal_rigid(nodes_mm: np.ndarray, disp: np.ndarray) -> np.ndarray:
+    """Subtract the least-squares infinitesimal rigid motion a + w x (x - c) from a displacement.
+
+    Why: infinitesimal rotations carry no strain in linear elasticity, but applied as finite
+    displacements they stretch the body by |w|^2 r / 2. Removing them leaves the same strain
+    field without that artifact; the paper's Procrustes alignment removes the rest.
+    """
+    c = nodes_mm.mean(axis=0)
+    r = nodes_mm - c
+    a = disp.mean(axis=0)
+    rr = r.T @ r
+    inertia = np.trace(rr) * np.eye(3) - rr
+    w = np.linalg.solve(inertia, np.cross(r, disp - a).sum(axis=0))
+    return disp - a - np.cross(w, r)
 
 
 def calibrate(

@@ -73,7 +73,7 @@ def simulate_liver(
     for d in range(n_deformations):
         rng = np.random.default_rng([int(seed), 2, d])
         load = random_load_case(mesh, rng)
-        unit = solve_displacement(system, load)
+        unit = solve_displacement(system, load, mesh.nodes_mm)
         scale, R, t, rms = calibrate(mesh.nodes_mm, unit, fid_ids, load.target_rms_mm)
         disp = scale * unit
         surface = (liver.vertices_mm + mesh.interpolate(disp, ids, weights)) @ R.T + t
