@@ -1,0 +1,87 @@
+"""Classical baselines: Procrustes oracle, ICP from identity, FPFH + RANSAC, Fast Global Registration."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import Config
+from .features.fpfh import FPFHProvider, outward_normals
+from .o3d import o3d_module
+
+
+def kabsch_np(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Least-squares rigid 4x4 transform source -> target from paired points (float64)."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    H = (source - cs).T @ (target - ct)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, ct - R @ cs
+    return T
+
+
+def _cloud(points: np.ndarray, normal_radius: float | None = None):
+    o3d = o3d_module()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if normal_radius is not None:
+        cloud.normals = o3d.utility.Vector3dVector(outward_normals(points, normal_radius))
+    return cloud
+
+
+def icp_point_to_plane(source: np.ndarray, target: np.ndarray, T_init: np.ndarray, config: Config) -> np.ndarray:
+    """Open3D point-to-plane ICP (target normals), normalized units."""
+    o3d = o3d_module()
+    reg = o3d.pipelines.registration
+    result = reg.registration_icp(
+        _cloud(source),
+        _cloud(target, config.normal_radius_norm),
+        config.icp_max_corr_norm,
+        T_init,
+        reg.TransformationEstimationPointToPlane(),
+        reg.ICPConvergenceCriteria(max_iteration=config.icp_max_iterations),
+    )
+    return np.asarray(result.transformation)
+
+
+def _fpfh_features(source: np.ndarray, target: np.ndarray, config: Config, cache: dict):
+    o3d = o3d_module()
+    provider = FPFHProvider(config.normal_radius_norm, config.fpfh_radius_norm)
+    feats = []
+    for points, c in ((source, cache), (target, None)):
+        f = o3d.pipelines.registration.Feature()
+        f.data = provider.raw(points, c).T.copy()
+        feats.append(f)
+    return feats
+
+
+def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: dict) -> np.ndarray:
+    """FPFH + RANSAC (Open3D), max correspondence distance 0.05 normalized as in the paper."""
+    o3d = o3d_module()
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(config.seed)  # Open3D's RANSAC draws from its own generator
+    f_src, f_tgt = _fpfh_features(source, target, config, cache)
+    dist = config.ransac_max_corr_norm
+    result = reg.registration_ransac_based_on_feature_matching(
+        _cloud(source),
+        _cloud(target),
+        f_src,
+        f_tgt,
+        True,  # mutual filter
+        dist,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
+        reg.RANSACConvergenceCriteria(config.ransac_max_iterations, config.ransac_confidence),
+    )
+    return np.asarray(result.transformation)
+
+
+def fast_global_registration(source: np.ndarray, target: np.ndarray, config: Config, cache: dict) -> np.ndarray:
+    """Fast Global Registration (Zhou et al. 2016) on FPFH matches (Open3D)."""
+    o3d = o3d_module()
+    reg = o3d.pipelines.registration
+    f_src, f_tgt = _fpfh_features(source, target, config, cache)
+    option = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=config.ransac_max_corr_norm)
+    result = reg.registration_fgr_based_on_feature_matching(_cloud(source), _cloud(target), f_src, f_tgt, option)
+    return np.asarray(result.transformation)

@@ -1,0 +1,1 @@
+"""Per-point feature providers (FPFH, learned) behind one small interface."""

@@ -1,0 +1,148 @@
+"""The patches-to-partial (P2P) module: K patch candidates + selection, on any point features."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from .matching import dual_softmax, matches_per_row, score_matrix
+from .procrustes import weighted_procrustes
+
+
+@dataclass
+class P2PSettings:
+    """The module's knobs (taken from Config by the pipelines)."""
+
+    k: int = 5
+    temperature: float = 0.1
+    confidence_threshold: float = 0.0
+    selection: str = "closest-point"  # or "inlier-count"
+    inlier_radius: float = 0.05  # normalized units (the paper's tau)
+    candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
+    use_p2p: bool = True  # False: only the complete-to-partial candidate
+
+
+@dataclass
+class P2POutput:
+    """All candidates (index 0 = complete-to-partial, 1..K = patches), in normalized units."""
+
+    R: torch.Tensor  # (C, 3, 3)
+    t: torch.Tensor  # (C, 3)
+    ok: torch.Tensor  # (C,) bool
+    n_matches: torch.Tensor  # (C,) long
+    residual: torch.Tensor  # (C,) mean closest-point distance target -> moved source (inf if failed)
+    inliers: torch.Tensor  # (C,) long
+    chosen: int
+    names: list[str]
+    patch_nodes: torch.Tensor  # (K,) source indices of the patch nodes
+    runtime_ms: dict[str, float] = field(default_factory=dict)
+
+
+def farthest_point_sampling(points: torch.Tensor, k: int, start: int = 0) -> torch.Tensor:
+    """Indices of k points by farthest point sampling from `start` (deterministic)."""
+    n = points.shape[0]
+    k = min(k, n)
+    chosen = torch.empty(k, dtype=torch.long, device=points.device)
+    dist = torch.full((n,), float("inf"), dtype=points.dtype, device=points.device)
+    current = start
+    for i in range(k):  # K is small (<= 8); the O(K N) loop is negligible
+        chosen[i] = current
+        dist = torch.minimum(dist, ((points - points[current]) ** 2).sum(dim=1))
+        current = int(torch.argmax(dist))
+    return chosen
+
+
+def p2p_register(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    x_source: torch.Tensor,
+    x_target: torch.Tensor,
+    settings: P2PSettings,
+) -> P2POutput:
+    """Run complete-to-partial matching and, if enabled, P2P on voxelized normalized clouds.
+
+    source (N, 3), target (M, 3), x_source (N, d), x_target (M, d) (L2-normalized).
+    Differentiable with respect to the features (until the discrete selection).
+    """
+    t0 = time.perf_counter()
+    n, m = source.shape[0], target.shape[0]
+    scores = score_matrix(x_source, x_target)  # (N, M)
+
+    # Complete-to-partial candidate: dual-softmax + mutual NN on the whole source.
+    conf = dual_softmax(scores, settings.temperature)
+    tgt_idx, weight = matches_per_row(conf, settings.confidence_threshold)  # (N,), (N,)
+    R0, t0_vec, ok0 = weighted_procrustes(source, target[tgt_idx], weight)
+    R_list, t_list, ok_list = [R0[None]], [t0_vec[None]], [ok0[None]]
+    matched_src = [source]
+    matched_tgt = [target[tgt_idx]]
+    matched_w = [weight]
+    names = ["complete-to-partial"]
+    nodes = torch.empty(0, dtype=torch.long, device=source.device)
+
+    if settings.use_p2p and settings.k > 0:
+        # 1. Visible source point estimation: score summed over targets, keep the top M.
+        visibility_score = scores.sum(dim=1)  # (N,)
+        n_visible = min(m, n)
+        visible = torch.topk(visibility_score, n_visible).indices
+        pool = visible if settings.candidate_proposal else torch.arange(n, device=source.device)
+        # 2. Patch nodes by FPS, starting from the most visible point of the pool.
+        start = int(torch.argmax(visibility_score[pool]))
+        nodes = pool[farthest_point_sampling(source[pool], settings.k, start=start)]
+        k = nodes.shape[0]
+        # 3. Patches: each node's min(M, N) nearest source points.
+        patch_size = min(m, n)
+        d_nodes = torch.cdist(source[nodes], source)  # (K, N)
+        patch_idx = torch.topk(d_nodes, patch_size, dim=1, largest=False).indices  # (K, P)
+        # 4. Patch-to-target matching, all K patches at once.
+        patch_scores = scores[patch_idx]  # (K, P, M)
+        patch_conf = dual_softmax(patch_scores, settings.temperature)
+        p_tgt_idx, p_weight = matches_per_row(patch_conf, settings.confidence_threshold)  # (K, P)
+        patch_src = source[patch_idx]  # (K, P, 3)
+        patch_tgt = target[p_tgt_idx]  # (K, P, 3)
+        Rk, tk, okk = weighted_procrustes(patch_src, patch_tgt, p_weight)
+        R_list.append(Rk)
+        t_list.append(tk)
+        ok_list.append(okk)
+        matched_src.extend(patch_src.unbind(0))
+        matched_tgt.extend(patch_tgt.unbind(0))
+        matched_w.extend(p_weight.unbind(0))
+        names += [f"patch-{i}" for i in range(k)]
+    R = torch.cat(R_list)
+    t = torch.cat(t_list)
+    ok = torch.cat(ok_list)
+    n_matches = torch.stack([(w > 0).sum() for w in matched_w])
+    t_match = time.perf_counter()
+
+    # 5. Selection among the candidates.
+    with torch.no_grad():
+        moved = source[None] @ R.detach().transpose(1, 2) + t.detach()[:, None]  # (C, N, 3)
+        nearest = torch.cdist(target[None].expand(len(R), -1, -1), moved).amin(dim=2)  # (C, M)
+        residual = torch.where(ok, nearest.mean(dim=1), torch.full_like(nearest[:, 0], float("inf")))
+        # Inlier count over the union of all correspondences (the paper's alternative rule).
+        all_src = torch.cat(matched_src)
+        all_tgt = torch.cat(matched_tgt)
+        all_valid = torch.cat(matched_w) > 0
+        moved_pairs = all_src[None] @ R.detach().transpose(1, 2) + t.detach()[:, None]
+        close = ((moved_pairs - all_tgt[None]).norm(dim=2) < settings.inlier_radius) & all_valid[None]
+        inliers = torch.where(ok, close.sum(dim=1), torch.zeros_like(close.sum(dim=1)))
+        if not bool(ok.any()):
+            chosen = 0
+        elif settings.selection == "inlier-count":
+            chosen = int(torch.argmax(inliers))
+        else:
+            chosen = int(torch.argmin(residual))
+    t_end = time.perf_counter()
+    return P2POutput(
+        R=R,
+        t=t,
+        ok=ok,
+        n_matches=n_matches,
+        residual=residual,
+        inliers=inliers,
+        chosen=chosen,
+        names=names,
+        patch_nodes=nodes,
+        runtime_ms={"matching": (t_match - t0) * 1e3, "selection": (t_end - t_match) * 1e3},
+    )

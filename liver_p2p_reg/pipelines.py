@@ -1,0 +1,289 @@
+"""The named registration methods: feature + P2P pipelines and the classical baselines."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from . import baselines
+from .config import Config
+from .errors import InputError, RegistrationError
+from .features.base import FeatureProvider
+from .features.fpfh import FPFHProvider
+from .metrics import transform_points
+from .p2p import P2PSettings, p2p_register
+from .preprocess import (
+    Normalization,
+    denormalize_transform,
+    source_normalization,
+    target_normalization,
+    voxel_downsample,
+)
+from .refine import trimmed_icp
+from .registrar import MethodContext, method
+from .result import Candidate, RegistrationResult
+
+
+@dataclass
+class Prepared:
+    """Both clouds normalized (full and voxelized) plus the maps back to mm."""
+
+    source_norm: Normalization
+    target_norm: Normalization
+    source_full: np.ndarray  # (N0, 3) normalized, not voxelized (refinement)
+    target_full: np.ndarray
+    source: np.ndarray  # (N, 3) voxelized
+    target: np.ndarray  # (M, 3) voxelized
+
+    @property
+    def visibility(self) -> float:
+        return len(self.target) / len(self.source)
+
+
+def prepare(source_mm: np.ndarray, target_mm: np.ndarray, config: Config) -> Prepared:
+    """The paper's preprocessing; refuses a target larger than the source after voxelization."""
+    ns = source_normalization(source_mm)
+    nt = target_normalization(target_mm, ns)
+    src_full, tgt_full = ns.apply(source_mm), nt.apply(target_mm)
+    src = voxel_downsample(src_full, config.voxel_size_norm)
+    tgt = voxel_downsample(tgt_full, config.voxel_size_norm)
+    if len(src) < 3 or len(tgt) < 3:
+        raise InputError(f"too few points after voxelization (source {len(src)}, target {len(tgt)}); need >= 3 each")
+    if len(tgt) > len(src):
+        raise InputError(
+            f"target ({len(tgt)} voxels) is larger than the source ({len(src)} voxels): "
+            "expected the complete preoperative surface as SOURCE and the partial view as TARGET"
+        )
+    return Prepared(ns, nt, src_full, tgt_full, src, tgt)
+
+
+def residual_norm(T_norm: np.ndarray, prep: Prepared) -> float:
+    """Mean closest-point distance target -> transformed voxelized source (normalized units)."""
+    moved = transform_points(T_norm, prep.source)
+    dist, _ = cKDTree(moved).query(prep.target, k=1)
+    return float(dist.mean())
+
+
+def _refine(T_norm: np.ndarray, prep: Prepared, config: Config) -> np.ndarray:
+    return trimmed_icp(
+        T_norm,
+        prep.source_full,
+        prep.target_full,
+        max_iterations=config.icp_max_iterations,
+        max_corr=config.icp_max_corr_norm,
+        trim_ratio=config.icp_trim_ratio,
+        normal_radius=config.normal_radius_norm,
+    )
+
+
+def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
+    """Map the Config onto the P2P module's settings."""
+    return P2PSettings(
+        k=config.k,
+        temperature=config.temperature,
+        confidence_threshold=config.confidence_threshold,
+        selection=config.selection,
+        inlier_radius=config.inlier_radius_norm,
+        candidate_proposal=config.candidate_proposal,
+        use_p2p=use_p2p,
+    )
+
+
+def run_feature_pipeline(
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    config: Config,
+    ctx: MethodContext,
+    provider: FeatureProvider,
+    *,
+    use_p2p: bool,
+    refine: bool,
+) -> RegistrationResult:
+    """preprocess -> features -> dual-softmax matching [-> P2P] [-> refine] -> result in mm."""
+    times: dict[str, float] = {}
+    t = time.perf_counter()
+    prep = prepare(source_mm, target_mm, config)
+    device = torch.device(config.device)
+    src = torch.as_tensor(prep.source, dtype=torch.float32, device=device)
+    tgt = torch.as_tensor(prep.target, dtype=torch.float32, device=device)
+    times["preprocess"] = _lap(t)
+    t = time.perf_counter()
+    with torch.no_grad():
+        x_src, x_tgt = provider.describe(src, tgt, ctx.cache)
+        times["features"] = _lap(t)
+        out = p2p_register(src, tgt, x_src, x_tgt, p2p_settings(config, use_p2p))
+    times.update(out.runtime_ms)
+    scale = prep.source_norm.scale_mm
+    R, tr = out.R.double().cpu().numpy(), out.t.double().cpu().numpy()
+    candidates = []
+    for i, name in enumerate(out.names):
+        T_norm = np.eye(4)
+        T_norm[:3, :3], T_norm[:3, 3] = R[i], tr[i]
+        candidates.append(
+            Candidate(
+                name=name,
+                T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
+                residual_mm=float(out.residual[i]) * scale,
+                n_matches=int(out.n_matches[i]),
+                ok=bool(out.ok[i]),
+                inliers=int(out.inliers[i]),
+            )
+        )
+    chosen = out.chosen
+    if not candidates[chosen].ok:
+        raise RegistrationError(
+            f"{provider.name}: no candidate had >= 3 non-degenerate matches (visibility {prep.visibility:.2f})"
+        )
+    T_norm = np.eye(4)
+    T_norm[:3, :3], T_norm[:3, 3] = R[chosen], tr[chosen]
+    residual = float(out.residual[chosen])
+    if refine:
+        t = time.perf_counter()
+        T_norm = _refine(T_norm, prep, config)
+        residual = residual_norm(T_norm, prep)
+        times["refine"] = _lap(t)
+    return RegistrationResult(
+        T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
+        method=provider.name,
+        residual_mm=residual * scale,
+        runtime_ms=times,
+        candidates=candidates,
+        chosen=chosen,
+        n_matches=candidates[chosen].n_matches,
+        visibility=prep.visibility,
+        n_source=len(prep.source),
+        n_target=len(prep.target),
+    )
+
+
+def run_global_pipeline(
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    config: Config,
+    ctx: MethodContext,
+    estimate: Callable[[np.ndarray, np.ndarray, Config, dict[str, Any]], np.ndarray],
+    *,
+    refine: bool,
+) -> RegistrationResult:
+    """preprocess -> one global estimate (RANSAC, FGR, ICP) [-> refine] -> result in mm."""
+    times: dict[str, float] = {}
+    t = time.perf_counter()
+    prep = prepare(source_mm, target_mm, config)
+    times["preprocess"] = _lap(t)
+    t = time.perf_counter()
+    T_norm = np.asarray(estimate(prep.source, prep.target, config, ctx.cache), dtype=np.float64)
+    times["estimate"] = _lap(t)
+    if not np.isfinite(T_norm).all():
+        raise RegistrationError("the estimator returned a non-finite transform")
+    if refine:
+        t = time.perf_counter()
+        T_norm = _refine(T_norm, prep, config)
+        times["refine"] = _lap(t)
+    residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
+    T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
+    return RegistrationResult(
+        T_target_source=T_mm,
+        method="",
+        residual_mm=residual,
+        runtime_ms=times,
+        candidates=[Candidate("estimate", T_mm, residual, 0)],
+        chosen=0,
+        visibility=prep.visibility,
+        n_source=len(prep.source),
+        n_target=len(prep.target),
+    )
+
+
+def _lap(start: float) -> float:
+    return (time.perf_counter() - start) * 1e3
+
+
+def _fpfh(config: Config) -> FPFHProvider:
+    return FPFHProvider(config.normal_radius_norm, config.fpfh_radius_norm)
+
+
+@method("fpfh")
+def fpfh_c2p(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """FPFH features, complete-to-partial dual-softmax matching only."""
+    return run_feature_pipeline(source_mm, target_mm, config, ctx, _fpfh(config), use_p2p=False, refine=False)
+
+
+@method("fpfh-p2p")
+def fpfh_p2p(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """FPFH features + the P2P module."""
+    return run_feature_pipeline(source_mm, target_mm, config, ctx, _fpfh(config), use_p2p=True, refine=False)
+
+
+@method("fpfh-p2p-icp")
+def fpfh_p2p_icp(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """FPFH + P2P, then trimmed point-to-plane ICP."""
+    return run_feature_pipeline(source_mm, target_mm, config, ctx, _fpfh(config), use_p2p=True, refine=True)
+
+
+@method("fpfh-ransac")
+def fpfh_ransac(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """Open3D FPFH + RANSAC (max correspondence distance 0.05 normalized)."""
+    return run_global_pipeline(source_mm, target_mm, config, ctx, baselines.fpfh_ransac, refine=False)
+
+
+@method("fpfh-ransac-icp")
+def fpfh_ransac_icp(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """FPFH + RANSAC, then trimmed point-to-plane ICP."""
+    return run_global_pipeline(source_mm, target_mm, config, ctx, baselines.fpfh_ransac, refine=True)
+
+
+@method("fgr")
+def fgr(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """Open3D Fast Global Registration on FPFH matches."""
+    return run_global_pipeline(source_mm, target_mm, config, ctx, baselines.fast_global_registration, refine=False)
+
+
+@method("icp")
+def icp(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """Point-to-plane ICP from identity (centroids aligned by the preprocessing)."""
+
+    def estimate(src: np.ndarray, tgt: np.ndarray, cfg: Config, cache: dict) -> np.ndarray:
+        return baselines.icp_point_to_plane(src, tgt, np.eye(4), cfg)
+
+    return run_global_pipeline(source_mm, target_mm, config, ctx, estimate, refine=False)
+
+
+@method("procrustes")
+def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """Oracle: least-squares rigid fit of the ground-truth fiducials (lower bound of rigid error)."""
+    if ctx.source_fiducials_mm is None or ctx.target_fiducials_mm is None:
+        raise InputError("method 'procrustes' is the ground-truth oracle and needs source and target fiducials")
+    if len(ctx.source_fiducials_mm) < 3:
+        raise InputError("method 'procrustes' needs at least 3 fiducial pairs")
+    t = time.perf_counter()
+    T = baselines.kabsch_np(ctx.source_fiducials_mm, ctx.target_fiducials_mm)
+    times = {"estimate": _lap(t)}
+    prep = prepare(source_mm, target_mm, config)
+    T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ T @ _norm_to_mm(prep.source_norm)
+    residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
+    return RegistrationResult(
+        T_target_source=T,
+        method="procrustes",
+        residual_mm=residual,
+        runtime_ms=times,
+        candidates=[Candidate("fiducials", T, residual, len(ctx.source_fiducials_mm))],
+        chosen=0,
+        n_matches=len(ctx.source_fiducials_mm),
+        visibility=prep.visibility,
+        n_source=len(prep.source),
+        n_target=len(prep.target),
+    )
+
+
+def _norm_to_mm(norm: Normalization) -> np.ndarray:
+    """4x4 matrix mapping normalized coordinates to mm: p_mm = s p_norm + c."""
+    T = np.eye(4)
+    T[:3, :3] *= norm.scale_mm
+    T[:3, 3] = norm.centroid_mm
+    return T

@@ -1,0 +1,66 @@
+"""Robust (trimmed) point-to-plane ICP refinement of a rigid transform, source -> partial target."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .features.fpfh import outward_normals
+
+
+def _rotation(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the axis-angle vector omega (Rodrigues)."""
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = omega / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def trimmed_icp(
+    T_init: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    *,
+    max_iterations: int = 50,
+    max_corr: float = 0.1,
+    trim_ratio: float = 0.8,
+    normal_radius: float = 0.1,
+    max_target_points: int = 4000,
+    tol: float = 1e-6,
+) -> np.ndarray:
+    """Refine T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.
+
+    Pairs go from each target point to its closest source point: the target is partial, so
+    every target point has a counterpart on the complete source but not the other way round.
+    The source k-d tree and normals are built once; target points are moved into the source
+    frame instead. Units are whatever the clouds use (normalized in the pipelines).
+    """
+    T = np.asarray(T_init, dtype=np.float64).copy()
+    if len(target) > max_target_points:  # even subsample keeps the cost bounded
+        target = target[:: int(np.ceil(len(target) / max_target_points))]
+    tree = cKDTree(source)
+    normals = outward_normals(source, normal_radius)
+    T_inv = np.linalg.inv(T)
+    for _ in range(max_iterations):
+        q = target @ T_inv[:3, :3].T + T_inv[:3, 3]  # target in the source frame
+        dist, idx = tree.query(q, k=1)
+        keep = dist < max_corr
+        if keep.sum() < 6:
+            break
+        d_keep = dist[keep]
+        cutoff = np.quantile(d_keep, trim_ratio)
+        sel = np.flatnonzero(keep)[d_keep <= cutoff]
+        p, s, n = q[sel], source[idx[sel]], normals[idx[sel]]
+        # Linearized: find small (omega, dt) moving q onto the source planes.
+        A = np.hstack([np.cross(p, n), n])
+        b = -np.einsum("ij,ij->i", p - s, n)
+        x, *_ = np.linalg.lstsq(A, b, rcond=None)
+        step = np.eye(4)
+        step[:3, :3] = _rotation(x[:3])
+        step[:3, 3] = x[3:]
+        T_inv = step @ T_inv
+        if np.linalg.norm(x) < tol:
+            break
+    return np.linalg.inv(T_inv)
