@@ -1,0 +1,74 @@
+"""`liver-p2p register SOURCE TARGET`: register two point-cloud files and print the JSON result."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..cloud_io import load_points
+from ..config import SELECTION_RULES, Config
+from ..errors import InputError
+from ..registrar import Registrar
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "register",
+        help="register a complete preoperative surface (SOURCE) to a partial view (TARGET)",
+        description="Estimate the rigid transform mapping SOURCE (complete, mm) into TARGET (partial, mm). "
+        "Prints the result as JSON.",
+    )
+    p.add_argument("source", metavar="SOURCE", help="complete preoperative surface (PLY/PCD/XYZ/STL/OBJ/NPY/NPZ, mm)")
+    p.add_argument("target", metavar="TARGET", help="partial intraoperative surface (same formats, mm)")
+    p.add_argument("--method", help=f"registration method (default: {Config().method}; a wrong name lists them)")
+    p.add_argument("--k", type=int, help="number of P2P patch candidates (default: 5)")
+    p.add_argument("--selection", choices=SELECTION_RULES, help="P2P candidate selection rule")
+    p.add_argument("--seed", type=int, help="random seed (RANSAC, mesh sampling)")
+    p.add_argument("--config", help="YAML configuration (plain mapping or ROS parameter file)")
+    p.add_argument("--device", choices=("cpu", "cuda"), help="torch device")
+    p.add_argument("--source-fiducials", metavar="F", help="(F, 3) fiducials in the source frame (mm)")
+    p.add_argument("--target-fiducials", metavar="F", help="the same fiducials in the target frame (mm)")
+    p.add_argument("--output", "-o", metavar="PATH", help="also write the JSON result to PATH")
+    p.add_argument("--force", action="store_true", help="overwrite --output if it exists")
+    p.set_defaults(func=run)
+
+
+def _config(args: argparse.Namespace) -> Config:
+    config = Config.from_yaml(args.config) if args.config else Config()
+    overrides = {
+        name: getattr(args, name)
+        for name in ("method", "k", "selection", "seed", "device")
+        if getattr(args, name, None) is not None
+    }
+    return config.replace(**overrides) if overrides else config
+
+
+def run(args: argparse.Namespace) -> int:
+    output = Path(args.output) if args.output else None
+    if output is not None:
+        if output.exists() and not args.force:
+            raise InputError(f"{output} exists; pass --force to overwrite it")
+        if not output.parent.exists():
+            raise InputError(f"output folder does not exist: {output.parent}")
+    if (args.source_fiducials is None) != (args.target_fiducials is None):
+        raise InputError("give both --source-fiducials and --target-fiducials, or neither")
+    config = _config(args)
+    source = load_points(args.source, seed=config.seed)
+    target = load_points(args.target, seed=config.seed)
+    fid_s = fid_t = None
+    if args.source_fiducials is not None:
+        fid_s = load_points(args.source_fiducials)
+        fid_t = load_points(args.target_fiducials)
+        if not (np.isfinite(fid_s).all() and np.isfinite(fid_t).all()):
+            raise InputError("fiducials contain NaN or infinite coordinates")
+    result = Registrar(config).register(
+        source, target, method=config.method, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t
+    )
+    text = json.dumps(result.to_json_dict(), indent=2)
+    if output is not None:
+        output.write_text(text + "\n")
+    print(text)
+    return 0
