@@ -141,6 +141,10 @@ def test_cli_needs_exactly_one_destination_and_known_testset(tmp_path) -> None:
         _cli(["dataset", "generate", "--testset", "insilico-test-v0", "--out", str(tmp_path)])
     with pytest.raises(InputError):
         _cli(["dataset", "stats", str(tmp_path)])
+    with pytest.raises(InputError, match="900-999"):  # training stores never use test livers
+        _cli(["dataset", "generate", "--store", str(tmp_path / "s"), "--seed", "950"])
+    with pytest.raises(InputError):
+        _cli(["dataset", "generate", "--store", str(tmp_path / "s"), "--out", str(tmp_path / "o")])
 
 
 def test_read_case_accepts_the_public_p2p_layout(tmp_path) -> None:
@@ -158,3 +162,12 @@ def test_read_case_accepts_the_public_p2p_layout(tmp_path) -> None:
     case = read_case(tmp_path / "p2p.npz")
     assert np.array_equal(case["src_marker"], vol) and np.array_equal(case["tgt_marker"], vol + 1)
     assert case["t_gt"].shape == (3,)
+
+
+def test_voxel_count_matches_the_pipelines_voxelization(rng) -> None:
+    from liver_p2p_reg.phantom.crop import count_voxels
+    from liver_p2p_reg.preprocess import voxel_downsample
+
+    for scale in (0.1, 1.0, 3.0):
+        pts = rng.normal(size=(5000, 3)) * scale - 0.3
+        assert count_voxels(pts, 0.04) == len(voxel_downsample(pts, 0.04))

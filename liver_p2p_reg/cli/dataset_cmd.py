@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 from ..errors import InputError
@@ -47,6 +48,7 @@ def run_generate(args: argparse.Namespace) -> int:
     from ..phantom.loader import build_store
     from ..phantom.testset import ensure_testset
 
+    logging.getLogger("skfem").setLevel(logging.WARNING)  # one INFO line per assembly otherwise
     chosen = [x for x in (args.out and not args.testset, args.store, args.testset) if x]
     if len(chosen) != 1:
         raise InputError("give exactly one of --out DIR, --store DIR or --testset NAME [--out ROOT]")

@@ -25,6 +25,21 @@ MIN_VISIBILITY = 0.05
 TRANSLATION_RANGE_MM = 100.0
 
 
+def count_voxels(points: np.ndarray, voxel_size: float) -> int:
+    """Number of occupied voxels = len(preprocess.voxel_downsample(points, voxel_size)), faster.
+
+    Same floor(p / voxel) cells, but counted through one int64 key per point (np.unique on a
+    1-D array) instead of unique rows and per-voxel means: the crop bisection calls it often.
+    """
+    if len(points) == 0:
+        return 0
+    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    return int(np.unique(flat).size)
+
+
 class VisibilityMeter:
     """M/N of target clouds against one fixed source, with the pipeline's normalization."""
 
@@ -37,7 +52,7 @@ class VisibilityMeter:
         if len(target_mm) == 0:
             return 0.0
         tnorm = target_normalization(target_mm, self.norm)
-        return len(voxel_downsample(tnorm.apply(target_mm), self.voxel)) / self.n_source
+        return count_voxels(tnorm.apply(target_mm), self.voxel) / self.n_source
 
 
 def sample_surface(vertices: np.ndarray, triangles: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError, LiverP2PError
 from .crop import CROP_MODES, VisibilityMeter, make_target
-from .dataset import GENERATOR_VERSION, MAX_LIVERS_PER_SEED, RESERVED_SEEDS, liver_id_for
+from .dataset import GENERATOR_VERSION, MAX_CAMERA_VISIBILITY, MAX_LIVERS_PER_SEED, RESERVED_SEEDS, liver_id_for
 from .simulate import simulate_liver
 
 STORE_VERSION = 1
@@ -148,7 +148,11 @@ class PairSampler:
         return liver
 
     def sample(self) -> dict:
-        """One training pair with the keys of a test case (tgt = R_gt @ target shape + t_gt)."""
+        """One training pair with the keys of a test case (tgt = R_gt @ target shape + t_gt).
+
+        deformation_id is the target shape's deformation index (-1: the undeformed liver);
+        deformation_rms_mm / _max_mm compare the source and target shapes' fiducials.
+        """
         for _ in range(20):
             rng = self.rng
             liver = self._liver(self.files[int(rng.integers(len(self.files)))])
@@ -162,8 +166,11 @@ class PairSampler:
             meter = liver["meters"].get(int(s))
             if meter is None:
                 meter = liver["meters"][int(s)] = VisibilityMeter(src)
-            visibility = float(rng.uniform(*self.visibility_range))
             mode = str(rng.choice(self.crop_modes))
+            lo, hi = self.visibility_range
+            if mode == "camera":  # a laparoscope rarely sees more; larger requests only fail
+                hi = max(lo, min(hi, MAX_CAMERA_VISIBILITY))
+            visibility = float(rng.uniform(lo, hi))
             noise = float(rng.choice(self.noise_levels_mm))
             try:
                 target = make_target(
