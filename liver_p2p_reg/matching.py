@@ -10,10 +10,31 @@ def score_matrix(x_source: torch.Tensor, x_target: torch.Tensor) -> torch.Tensor
     return x_source @ x_target.transpose(-1, -2)
 
 
+# exp() of scores shifted by their global maximum is safe while the scores' range (divided
+# by the temperature) stays below this; beyond it the slower per-axis logsumexp is used.
+_EXP_SAFE_RANGE = 60.0
+
+
+def log_dual_softmax(scores: torch.Tensor, temperature: float) -> torch.Tensor:
+    """log(softmax_row(S / T) * softmax_col(S / T)), computed stably.
+
+    Fast path: one exp() of the globally shifted scores and two sums (the axis-wise
+    logsumexp along dim -2 is several times slower on CPU); exact in float32 as long as the
+    score range over the temperature is moderate, which L2-normalized features guarantee.
+    """
+    scaled = scores / temperature
+    top = scaled.amax(dim=(-2, -1), keepdim=True)
+    low = scaled.amin(dim=(-2, -1), keepdim=True)
+    if bool(((top - low) < _EXP_SAFE_RANGE).all()):
+        shifted = scaled - top
+        e = shifted.exp()
+        return 2 * shifted - e.sum(dim=-1, keepdim=True).log() - e.sum(dim=-2, keepdim=True).log()
+    return 2 * scaled - scaled.logsumexp(dim=-1, keepdim=True) - scaled.logsumexp(dim=-2, keepdim=True)
+
+
 def dual_softmax(scores: torch.Tensor, temperature: float) -> torch.Tensor:
     """Confidence softmax_row(S / T) * softmax_col(S / T) over the last two dims."""
-    scaled = scores / temperature
-    return torch.softmax(scaled, dim=-1) * torch.softmax(scaled, dim=-2)
+    return log_dual_softmax(scores, temperature).exp()
 
 
 def mutual_nearest(confidence: torch.Tensor, threshold: float = 0.0) -> torch.Tensor:
@@ -23,13 +44,16 @@ def mutual_nearest(confidence: torch.Tensor, threshold: float = 0.0) -> torch.Te
     return row_best & col_best & (confidence > threshold)
 
 
-def matches_per_row(confidence: torch.Tensor, threshold: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+def matches_per_row(log_confidence: torch.Tensor, threshold: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """For each source row: its best target column and a weight (confidence if mutual, else 0).
 
+    Takes the LOG confidence (log_dual_softmax) so no second (N, M) matrix is materialized.
     Returns (target_index (..., N) long, weight (..., N)); a row has at most one mutual match,
     so this dense form carries every mutual-NN correspondence and batches over patches.
     """
-    mask = mutual_nearest(confidence, threshold)
-    weight_matrix = confidence * mask
-    weight, index = weight_matrix.max(dim=-1)
+    best_log, index = log_confidence.max(dim=-1)  # (..., N)
+    col_best = log_confidence.argmax(dim=-2)  # (..., M): best row of each column
+    mutual = torch.gather(col_best, -1, index) == torch.arange(index.shape[-1], device=index.device)
+    weight = best_log.exp()
+    weight = torch.where(mutual & (weight > threshold), weight, torch.zeros_like(weight))
     return index, weight

@@ -5,9 +5,11 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
-from .matching import dual_softmax, matches_per_row, score_matrix
+from .matching import log_dual_softmax, matches_per_row, score_matrix
 from .procrustes import weighted_procrustes
 
 
@@ -54,6 +56,23 @@ def farthest_point_sampling(points: torch.Tensor, k: int, start: int = 0) -> tor
     return chosen
 
 
+def closest_point_residuals(
+    source: torch.Tensor, target: torch.Tensor, R: torch.Tensor, t: torch.Tensor, ok: torch.Tensor
+) -> torch.Tensor:
+    """Mean distance from each target point to the closest moved source point, per candidate.
+
+    Moves the target into the source frame (R^T (y - t)) so one k-d tree over the source
+    serves every candidate: O(C M log N) instead of a (C, M, N) distance tensor.
+    """
+    tree = cKDTree(source.detach().cpu().double().numpy())
+    R_np, t_np, tgt = R.cpu().double().numpy(), t.cpu().double().numpy(), target.cpu().double().numpy()
+    out = np.full(len(R_np), np.inf)
+    for c in np.flatnonzero(ok.cpu().numpy()):
+        dist, _ = tree.query((tgt - t_np[c]) @ R_np[c], k=1)
+        out[c] = dist.mean()
+    return torch.as_tensor(out, dtype=target.dtype, device=target.device)
+
+
 def p2p_register(
     source: torch.Tensor,
     target: torch.Tensor,
@@ -71,8 +90,9 @@ def p2p_register(
     scores = score_matrix(x_source, x_target)  # (N, M)
 
     # Complete-to-partial candidate: dual-softmax + mutual NN on the whole source.
-    conf = dual_softmax(scores, settings.temperature)
-    tgt_idx, weight = matches_per_row(conf, settings.confidence_threshold)  # (N,), (N,)
+    log_conf = log_dual_softmax(scores, settings.temperature)
+    tgt_idx, weight = matches_per_row(log_conf, settings.confidence_threshold)
+    del log_conf  # (N,), (N,)
     R0, t0_vec, ok0 = weighted_procrustes(source, target[tgt_idx], weight)
     R_list, t_list, ok_list = [R0[None]], [t0_vec[None]], [ok0[None]]
     matched_src = [source]
@@ -97,8 +117,9 @@ def p2p_register(
         patch_idx = torch.topk(d_nodes, patch_size, dim=1, largest=False).indices  # (K, P)
         # 4. Patch-to-target matching, all K patches at once.
         patch_scores = scores[patch_idx]  # (K, P, M)
-        patch_conf = dual_softmax(patch_scores, settings.temperature)
-        p_tgt_idx, p_weight = matches_per_row(patch_conf, settings.confidence_threshold)  # (K, P)
+        patch_log_conf = log_dual_softmax(patch_scores, settings.temperature)
+        p_tgt_idx, p_weight = matches_per_row(patch_log_conf, settings.confidence_threshold)  # (K, P)
+        del patch_scores, patch_log_conf
         patch_src = source[patch_idx]  # (K, P, 3)
         patch_tgt = target[p_tgt_idx]  # (K, P, 3)
         Rk, tk, okk = weighted_procrustes(patch_src, patch_tgt, p_weight)
@@ -117,9 +138,7 @@ def p2p_register(
 
     # 5. Selection among the candidates.
     with torch.no_grad():
-        moved = source[None] @ R.detach().transpose(1, 2) + t.detach()[:, None]  # (C, N, 3)
-        nearest = torch.cdist(target[None].expand(len(R), -1, -1), moved).amin(dim=2)  # (C, M)
-        residual = torch.where(ok, nearest.mean(dim=1), torch.full_like(nearest[:, 0], float("inf")))
+        residual = closest_point_residuals(source, target, R.detach(), t.detach(), ok)
         # Inlier count over the union of all correspondences (the paper's alternative rule).
         all_src = torch.cat(matched_src)
         all_tgt = torch.cat(matched_tgt)
