@@ -61,7 +61,9 @@ def test_case_round_trip_without_pickle(sim, tmp_path) -> None:
         assert {"src_pcd", "tgt_pcd", "src_marker", "tgt_marker", "R_gt", "t_gt", "crop_mode"} <= set(data.files)
     back = read_case(path)
     assert back["crop_mode"] == "random" and back["liver_id"] == 21
-    assert np.allclose(back["tgt_pcd"], case["tgt_pcd"], atol=1e-3)
+    # Clouds are float32 on disk and were float32-exact already: the stored visibility reproduces.
+    assert np.array_equal(back["tgt_pcd"], case["tgt_pcd"]) and np.array_equal(back["src_pcd"], case["src_pcd"])
+    assert VisibilityMeter(back["src_pcd"])(back["tgt_pcd"]) == back["visibility"]
     assert np.array_equal(back["tgt_marker"], case["tgt_marker"])
 
 

@@ -187,7 +187,7 @@ def make_target(
     points = sample_surface(deformed_vertices_mm, triangles, n, rng)
     R, t = random_pose(rng)
     noise = rng.uniform(-0.5, 0.5, size=points.shape) * noise_mm
-    final = points @ R.T + t + noise
+    final = np.asarray(points @ R.T + t + noise, dtype=np.float32).astype(np.float64)  # = stored values
     info: dict = {}
     if crop_mode == "random":
         order = geodesic_order(points, rng)

@@ -14,6 +14,15 @@ from .tetmesh import TetMesh, build_tetmesh
 MAX_FIDUCIALS = 300
 
 
+def float32_exact(points: np.ndarray) -> np.ndarray:
+    """Round to float32 precision, kept as float64.
+
+    Clouds are stored as float32; measuring visibility on exactly the stored values makes the
+    stored visibility reproducible from the file.
+    """
+    return np.asarray(points, dtype=np.float32).astype(np.float64)
+
+
 @dataclass
 class Deformation:
     """One deformed state, rigidly re-aligned onto the undeformed liver (Procrustes)."""
@@ -60,7 +69,7 @@ def simulate_liver(
     fid_ids = select_fiducials(mesh, seed)
     sim = SimulatedLiver(
         liver_id=int(seed),
-        vertices_mm=liver.vertices_mm,
+        vertices_mm=float32_exact(liver.vertices_mm),
         triangles=liver.triangles,
         fiducials_mm=mesh.nodes_mm[fid_ids].copy(),
         n_tets=len(mesh.tets),
@@ -76,7 +85,7 @@ def simulate_liver(
         unit = solve_displacement(system, load, mesh.nodes_mm)
         scale, R, t, rms = calibrate(mesh.nodes_mm, unit, fid_ids, load.target_rms_mm)
         disp = scale * unit
-        surface = (liver.vertices_mm + mesh.interpolate(disp, ids, weights)) @ R.T + t
+        surface = float32_exact((liver.vertices_mm + mesh.interpolate(disp, ids, weights)) @ R.T + t)
         fids = (mesh.nodes_mm[fid_ids] + disp[fid_ids]) @ R.T + t
         max_mm = float(np.max(np.linalg.norm(fids - sim.fiducials_mm, axis=1)))
         sim.deformations.append(
