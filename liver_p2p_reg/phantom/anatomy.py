@@ -91,15 +91,15 @@ def random_shape(seed: int) -> LiverShape:
     rng = np.random.default_rng([int(seed), 0])
     u = rng.uniform
     right_radii = np.array([u(62, 78), u(52, 62), u(62, 76)])
-    right_center = np.array([-35.0, 0.0, 0.0])
+    right_center = np.array([-35.0, -6.0, 4.0])  # bulk sits posterior-superior: a wedge in profile
     left_radii = np.array([u(60, 80), u(38, 48), u(30, 42)])
     left_center = np.array([u(30, 45), u(8, 18), u(12, 28)])
     dents: list[tuple[np.ndarray, np.ndarray]] = []
-    cut_z0 = u(-38, -25)
-    cut_slope_y = u(0.55, 0.9)
+    cut_z0 = u(-34, -22)
+    cut_slope_y = u(0.8, 1.15)
     cut_slope_x = u(-0.1, 0.15)
     # Visceral impressions: broad ellipsoids centred below the visceral plane, biting 2-5 mm in.
-    for cx, cy in ((u(-25, -5), u(-5, 15)), (u(-75, -50), u(-30, -10)), (u(-60, -35), u(5, 20))):
+    for cx, cy in ((u(-25, -5), u(-12, 6)), (u(-75, -50), u(-35, -15)), (u(-60, -35), u(-5, 10))):
         plane_z = cut_z0 + cut_slope_y * cy + cut_slope_x * cx
         r = np.array([u(22, 34), u(18, 28), u(12, 18)])
         dents.append((np.array([cx, cy, plane_z - r[2] + u(2, 5)]), r))
