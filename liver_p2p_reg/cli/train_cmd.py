@@ -1,0 +1,41 @@
+"""`liver-p2p train`: train the learned matcher on fresh in silico pairs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from ..errors import InputError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register the `train` subcommand."""
+    p = subparsers.add_parser("train", help="train the learned matcher (checkpoints, CSV log, validation)")
+    p.add_argument("--config", default="config/train.yaml", help="training config YAML (default: %(default)s)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.safetensors + OUT/state.json")
+    p.add_argument("--out", default="train_out", help="output directory (default: %(default)s)")
+    p.add_argument("--steps", type=int, help="override the number of steps in the config")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train; print where the best weights are."""
+    import torch
+
+    from ..learned.train import TrainConfig, train
+
+    cfg = TrainConfig.from_yaml(args.config)
+    if args.steps is not None:
+        if args.steps < 1:
+            raise InputError(f"--steps must be >= 1, got {args.steps}")
+        cfg.steps = args.steps
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: torch sees no CUDA device")
+    state = train(cfg, args.out, device=args.device, resume=args.resume, progress=not args.no_progress)
+    print(
+        f"trained {state['step']} steps in {state['elapsed_s'] / 60:.1f} min; best weights: {args.out}/best.safetensors"
+    )
+    print(json.dumps(state.get("best_metrics", {})))
+    return 0

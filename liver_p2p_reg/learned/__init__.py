@@ -1,0 +1,1 @@
+"""Learned rotation-invariant point matcher: invariant descriptors, network, weights, training, pipelines."""

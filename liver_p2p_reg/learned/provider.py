@@ -1,0 +1,48 @@
+"""FeatureProvider backed by the learned matcher (source features cached across registrations)."""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import numpy as np
+import torch
+
+from .descriptors import local_features
+from .model import MatcherNet
+from .weights import load_weights
+
+
+class LearnedProvider:
+    """Describes (source, target) jointly with the matcher network."""
+
+    name = "learned"
+
+    def __init__(self, model: MatcherNet | None = None, weights_path: str = "", device: str = "cpu") -> None:
+        self.model = model if model is not None else load_weights(weights_path or None, device)
+        self.device = device
+
+    def describe(
+        self, source_norm: torch.Tensor, target_norm: torch.Tensor, cache: dict[str, Any]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """source (N,3), target (M,3) normalized -> L2-normalized descriptors (N,d), (M,d)."""
+        src = source_norm.detach().to("cpu", torch.float64).numpy()
+        # The preoperative source is fixed across frames: compute its invariant inputs once.
+        key = f"learned_src_features:{src.shape[0]}:{hashlib.sha1(src.tobytes()).hexdigest()}"
+        f_src = cache.get(key)
+        if f_src is None:
+            for old in [k for k in cache if k.startswith("learned_src_features:")]:
+                del cache[old]  # one source at a time: bounded memory over a benchmark
+            f_src = cache[key] = torch.as_tensor(local_features(src), dtype=torch.float32)
+        f_tgt = torch.as_tensor(
+            local_features(target_norm.detach().to("cpu", torch.float64).numpy()), dtype=torch.float32
+        )
+        dev = source_norm.device
+        with torch.no_grad():
+            xs, xt, _, _ = self.model(source_norm.float(), target_norm.float(), f_src.to(dev), f_tgt.to(dev))
+        return xs, xt
+
+
+def features_of(points: np.ndarray) -> torch.Tensor:
+    """Invariant input features of one cloud as float32 (convenience for tests/benchmarks)."""
+    return torch.as_tensor(local_features(points), dtype=torch.float32)

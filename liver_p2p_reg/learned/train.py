@@ -1,0 +1,342 @@
+"""Training of the matcher on fresh in silico pairs: dual-softmax matching loss + overlap BCE."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from ..config import Config
+from ..errors import InputError
+from ..matching import dual_softmax, score_matrix
+from ..metrics import rms_tre_mm
+from ..pipelines import prepare
+from .descriptors import local_features
+from .model import MatcherNet, ModelConfig
+from .weights import save_weights
+
+log = logging.getLogger(__name__)
+
+GT_RADIUS_NORM = 0.04  # ground-truth pair: nearest neighbour within this after GT alignment (paper)
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on (config/train.yaml)."""
+
+    store_dir: str = "/tmp/liver_p2p_store"
+    store_livers: int = 80  # livers simulated into the store when it is built here
+    store_deformations: int = 6
+    store_seed: int = 11  # generator seed of the training livers (outside the test seeds 900-999)
+    store_tets: int = 6000
+    val_livers: int = 6  # the last livers of the store: validation only, never trained on
+    val_pairs: int = 24
+    seed: int = 0
+    steps: int = 6000
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    warmup_steps: int = 200
+    temperature: float = 0.1  # must match Config.temperature used at inference
+    overlap_weight: float = 0.5
+    visibility_min: float = 0.15
+    visibility_max: float = 1.0
+    crop_modes: list[str] = field(default_factory=lambda: ["random", "camera"])
+    noise_levels_mm: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0, 2.0, 4.0])
+    val_every: int = 500
+    checkpoint_every: int = 250
+    threads: int = 1
+    loader_workers: int = 1  # processes drawing pairs while the main process trains
+    max_minutes: float = 0.0  # 0: no wall-clock limit; else stop (and validate) after this long
+    model: dict[str, Any] = field(default_factory=dict)  # ModelConfig overrides
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> TrainConfig:
+        try:
+            data = yaml.safe_load(Path(path).read_text()) or {}
+        except OSError as exc:
+            raise InputError(f"cannot read training config {path}: {exc.strerror or exc}") from None
+        except yaml.YAMLError as exc:
+            raise InputError(f"training config {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        known = {f.name for f in fields(cls)}
+        bad = sorted(set(data) - known)
+        if bad:
+            raise InputError(f"unknown training config keys: {', '.join(bad)}")
+        return cls(**data)
+
+
+def prepare_pair(
+    sample: dict, voxel_size_norm: float, rng: np.random.Generator | None = None
+) -> dict[str, torch.Tensor]:
+    """A sampled case -> voxelized normalized clouds, invariant features, GT pairs and overlap labels.
+
+    A random rotation of the source before voxelization varies the voxel grid (the only
+    non-invariant step), so the net sees the sampling jitter it meets at test time.
+    """
+    src_mm, tgt_mm = sample["src_pcd"], sample["tgt_pcd"]
+    R, t = np.asarray(sample["R_gt"], dtype=np.float64), np.asarray(sample["t_gt"], dtype=np.float64).reshape(3)
+    if rng is not None:
+        Rs = Rotation.random(random_state=rng).as_matrix()
+        src_mm = src_mm @ Rs.T
+        R = R @ Rs.T
+    prep = prepare(src_mm, tgt_mm, Config(voxel_size_norm=voxel_size_norm))
+    s, cs, ct = prep.source_norm.scale_mm, prep.source_norm.centroid_mm, prep.target_norm.centroid_mm
+    src_in_t = ((prep.source * s + cs) @ R.T + t - ct) / s
+    d_t, nn_t = cKDTree(src_in_t).query(prep.target, k=1)
+    d_s, _ = cKDTree(prep.target).query(src_in_t, k=1)
+    keep = d_t < GT_RADIUS_NORM
+    return {
+        "src": torch.as_tensor(prep.source, dtype=torch.float32),
+        "tgt": torch.as_tensor(prep.target, dtype=torch.float32),
+        "f_src": torch.as_tensor(local_features(prep.source), dtype=torch.float32),
+        "f_tgt": torch.as_tensor(local_features(prep.target), dtype=torch.float32),
+        "gt_src": torch.as_tensor(nn_t[keep], dtype=torch.long),
+        "gt_tgt": torch.as_tensor(np.nonzero(keep)[0], dtype=torch.long),
+        "ov_src": torch.as_tensor(d_s < GT_RADIUS_NORM, dtype=torch.float32),
+        "ov_tgt": torch.as_tensor(keep, dtype=torch.float32),
+    }
+
+
+def pair_loss(
+    model: MatcherNet, pair: dict[str, torch.Tensor], temperature: float, overlap_weight: float
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Negative log dual-softmax confidence at GT pairs (Lepard) + overlap BCE."""
+    xs, xt, os_, ot = model(pair["src"], pair["tgt"], pair["f_src"], pair["f_tgt"], with_overlap=True)
+    conf = dual_softmax(score_matrix(xs, xt), temperature)
+    if len(pair["gt_src"]) == 0:
+        match = xs.sum() * 0.0
+    else:
+        match = -torch.log(conf[pair["gt_src"], pair["gt_tgt"]].clamp_min(1e-12)).mean()
+    overlap = F.binary_cross_entropy_with_logits(os_, pair["ov_src"]) + F.binary_cross_entropy_with_logits(
+        ot, pair["ov_tgt"]
+    )
+    loss = match + overlap_weight * overlap
+    return loss, {"loss": float(loss.detach()), "match": float(match.detach()), "overlap": float(overlap.detach())}
+
+
+class PairStream(torch.utils.data.IterableDataset):
+    """Endless stream of prepared training pairs (deterministic for a seed and start step)."""
+
+    def __init__(self, cfg: TrainConfig, files: list[Path], start: int, voxel_size_norm: float) -> None:
+        super().__init__()
+        self.cfg, self.files, self.start, self.voxel = cfg, files, start, voxel_size_norm
+
+    def __iter__(self):
+        from ..phantom.loader import PairSampler
+
+        torch.set_num_threads(1)
+        cfg = self.cfg
+        sampler = PairSampler(
+            cfg.store_dir,
+            seed=cfg.seed * 1_000_003 + self.start,
+            visibility_range=(cfg.visibility_min, cfg.visibility_max),
+            crop_modes=cfg.crop_modes,
+            noise_levels_mm=cfg.noise_levels_mm,
+        )
+        sampler.files = list(self.files)  # training livers only (validation livers held out)
+        rng = np.random.default_rng([cfg.seed, self.start, 17])
+        while True:
+            yield prepare_pair(sampler.sample(), self.voxel, rng)
+
+
+def ensure_store(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], list[Path]]:
+    """Build the training store if needed; split its livers into (train, validation)."""
+    from ..phantom.loader import build_store
+
+    store = Path(cfg.store_dir)
+    if not (store / "store.json").is_file():
+        build_store(
+            store, cfg.store_livers, cfg.store_deformations, cfg.store_seed, 1, cfg.store_tets, progress=progress
+        )
+    meta = json.loads((store / "store.json").read_text())
+    files = [store / name for name in meta.get("livers", [])]
+    if len(files) <= cfg.val_livers:
+        raise InputError(f"{store}: {len(files)} livers, need more than val_livers={cfg.val_livers}")
+    return files[: -cfg.val_livers], files[-cfg.val_livers :]
+
+
+def validation_cases(cfg: TrainConfig, val_files: list[Path]) -> list[dict]:
+    """A fixed set of validation pairs from the held-out livers (random crops, no noise)."""
+    from ..phantom.loader import PairSampler
+
+    sampler = PairSampler(cfg.store_dir, seed=10_000 + cfg.seed, visibility_range=(0.2, 1.0))
+    sampler.files = list(val_files)
+    return [sampler.sample() for _ in range(cfg.val_pairs)]
+
+
+def validate(model: MatcherNet, cases: list[dict], device: str) -> dict[str, float]:
+    """Mean RMS-TRE (mm) of learned and learned-p2p, and learned-p2p success at 20 mm."""
+    from ..pipelines import run_feature_pipeline
+    from ..registrar import MethodContext
+    from .provider import LearnedProvider
+
+    model.eval()
+    provider = LearnedProvider(model=model)
+    config = Config(device=device)
+    out: dict[str, list[float]] = {"learned": [], "learned_p2p": [], "low_vis_p2p": []}
+    for case in cases:
+        for name, use_p2p in (("learned", False), ("learned_p2p", True)):
+            ctx = MethodContext()
+            try:
+                res = run_feature_pipeline(
+                    case["src_pcd"], case["tgt_pcd"], config, ctx, provider, use_p2p=use_p2p, refine=False
+                )
+                err = rms_tre_mm(res.T_target_source, case["src_marker"], case["tgt_marker"])
+            except Exception:  # noqa: BLE001 - a failed registration counts as a large error
+                err = 1e3
+            out[name].append(err)
+            if use_p2p and case["visibility"] < 0.35:
+                out["low_vis_p2p"].append(err)
+    model.train()
+    p2p = np.array(out["learned_p2p"])
+    return {
+        "val_learned_mm": float(np.mean(out["learned"])),
+        "val_learned_p2p_mm": float(np.mean(p2p)),
+        "val_success20": float(np.mean(p2p <= 20.0)),
+        "val_low_vis_p2p_mm": float(np.mean(out["low_vis_p2p"])) if out["low_vis_p2p"] else float("nan"),
+    }
+
+
+def _lr(cfg: TrainConfig, step: int) -> float:
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    frac = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return cfg.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
+
+
+def _save_checkpoint(out: Path, model: MatcherNet, opt: torch.optim.Optimizer, state: dict) -> None:
+    """Model + optimizer tensors as safetensors, counters as JSON (no pickle anywhere)."""
+    from safetensors.torch import save_file
+
+    save_weights(model, out / "last.safetensors")
+    opt_tensors: dict[str, torch.Tensor] = {}
+    for i, p in enumerate(model.parameters()):
+        st = opt.state.get(p, {})
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in st:
+                opt_tensors[f"{i}.{key}"] = st[key].detach().cpu().contiguous()
+        if "step" in st:
+            opt_tensors[f"{i}.step"] = torch.as_tensor(st["step"], dtype=torch.float32).reshape(1).cpu()
+    save_file(opt_tensors, str(out / "optimizer.safetensors.tmp"))
+    (out / "optimizer.safetensors.tmp").replace(out / "optimizer.safetensors")
+    (out / "state.json").write_text(json.dumps(state, indent=2))
+
+
+def _load_checkpoint(out: Path, model: MatcherNet, opt: torch.optim.Optimizer) -> dict:
+    from safetensors.torch import load_file
+
+    from .weights import load_weights
+
+    loaded = load_weights(out / "last.safetensors")
+    model.load_state_dict(loaded.state_dict())
+    tensors = load_file(str(out / "optimizer.safetensors"))
+    for i, p in enumerate(model.parameters()):
+        if f"{i}.exp_avg" in tensors:
+            opt.state[p] = {
+                "exp_avg": tensors[f"{i}.exp_avg"].to(p.device),
+                "exp_avg_sq": tensors[f"{i}.exp_avg_sq"].to(p.device),
+                "step": tensors[f"{i}.step"].reshape(()),
+            }
+    return json.loads((out / "state.json").read_text())
+
+
+def train(
+    cfg: TrainConfig, out_dir: str | Path, device: str = "cpu", resume: bool = False, progress: bool = True
+) -> dict:
+    """Run (or resume) training; returns the final state dict (best validation numbers, paths)."""
+    from tqdm import tqdm
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    train_files, val_files = ensure_store(cfg, progress)
+    voxel = Config().voxel_size_norm
+    model = MatcherNet(ModelConfig(**cfg.model)).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    state: dict[str, Any] = {"step": 0, "best_val_mm": None, "elapsed_s": 0.0, "config": asdict(cfg)}
+    if resume and (out / "state.json").is_file():
+        state = _load_checkpoint(out, model, opt)
+        log.info("resumed at step %d", state["step"])
+    (out / "train_config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    val_cases = validation_cases(cfg, val_files)
+    stream = PairStream(cfg, train_files, state["step"], voxel)
+    loader = torch.utils.data.DataLoader(
+        stream, batch_size=None, num_workers=cfg.loader_workers, prefetch_factor=4 if cfg.loader_workers else None
+    )
+    csv_path = out / "log.csv"
+    new_csv = not csv_path.exists()
+    columns = [
+        "step",
+        "elapsed_s",
+        "lr",
+        "loss",
+        "match",
+        "overlap",
+        "val_learned_mm",
+        "val_learned_p2p_mm",
+        "val_success20",
+        "val_low_vis_p2p_mm",
+    ]
+    t0 = time.perf_counter() - state["elapsed_s"]
+    model.train()
+    with (
+        open(csv_path, "a", newline="") as fh,
+        tqdm(total=cfg.steps, initial=state["step"], desc="train", unit="step", disable=not progress) as bar,
+    ):
+        writer = csv.DictWriter(fh, fieldnames=columns)
+        if new_csv:
+            writer.writeheader()
+        running: dict[str, float] = {}
+        for pair in loader:
+            step = state["step"]
+            if step >= cfg.steps:
+                break
+            pair = {k: v.to(device) for k, v in pair.items()}
+            for g in opt.param_groups:
+                g["lr"] = _lr(cfg, step)
+            loss, parts = pair_loss(model, pair, cfg.temperature, cfg.overlap_weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            running = {k: 0.98 * running.get(k, v) + 0.02 * v for k, v in parts.items()}
+            state["step"] = step + 1
+            state["elapsed_s"] = time.perf_counter() - t0
+            bar.update(1)
+            bar.set_postfix(loss=f"{running['loss']:.3f}")
+            over_time = cfg.max_minutes > 0 and state["elapsed_s"] > 60 * cfg.max_minutes
+            row = {"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), "lr": _lr(cfg, step), **parts}
+            if state["step"] % cfg.val_every == 0 or state["step"] == cfg.steps or over_time:
+                metrics = validate(model, val_cases, device)
+                row.update(metrics)
+                log.info("step %d: %s", state["step"], json.dumps(metrics))
+                if state["best_val_mm"] is None or metrics["val_learned_p2p_mm"] < state["best_val_mm"]:
+                    state["best_val_mm"] = metrics["val_learned_p2p_mm"]
+                    state["best_step"] = state["step"]
+                    state["best_metrics"] = metrics
+                    save_weights(
+                        model, out / "best.safetensors", {"step": str(state["step"]), "val": json.dumps(metrics)}
+                    )
+            if state["step"] % 10 == 0 or "val_learned_mm" in row:
+                writer.writerow(row)
+                fh.flush()
+            if state["step"] % cfg.checkpoint_every == 0 or over_time or state["step"] == cfg.steps:
+                _save_checkpoint(out, model, opt, state)
+            if over_time:
+                log.info("wall-clock limit of %.1f min reached at step %d", cfg.max_minutes, state["step"])
+                break
+    _save_checkpoint(out, model, opt, state)
+    return state
