@@ -34,6 +34,8 @@ from liver_p2p_reg.ros.replay import ReplayRow, replay_bags
 ROOT = Path(__file__).resolve().parents[1]
 MAX_BAG_BYTES = 3_000_000
 MAX_TOTAL_BYTES = 25_000_000
+MAX_PREOP_POINTS = 20_000
+MAX_INTRAOP_POINTS = 20_000
 PHANTOM_SEED = 950  # liver ids 9_500_000 + i: reserved range, never used for training
 PHANTOM_MARKERS = 8
 # (test set, liver index, deformation, target, extra noise mm): visibility bins 0.2-1.0, both crops
@@ -254,7 +256,16 @@ def main(argv: list[str] | None = None) -> int:
         cases = insilico_cases() + [phantom_case(i, share) for i, share in PHANTOMS]
         for name, case in cases:
             path = make_case_bag(
-                args.out / name, case.pop("source_mm"), case.pop("target_mm"), overwrite=True, seed=len(name), **case
+                args.out / name,
+                case.pop("source_mm"),
+                case.pop("target_mm"),
+                overwrite=True,
+                seed=len(name),
+                # full resolution of the generator's clouds: the same point density in source and target
+                # keeps the visibility estimate (M/N after voxelization) honest
+                max_preop_points=MAX_PREOP_POINTS,
+                max_intraop_points=MAX_INTRAOP_POINTS,
+                **case,
             )
             size = bag_size_bytes(path)
             print(f"{name}: {size / 1e6:.2f} MB {case['info']}", file=sys.stderr)
