@@ -45,3 +45,18 @@ def test_smoke_testset_generates_once_and_is_balanced(tmp_path, monkeypatch, cap
 def test_unknown_testset_is_input_error(tmp_path) -> None:
     with pytest.raises(InputError, match="unknown test set"):
         ensure_testset("insilico-test-v0", root=tmp_path)
+
+
+def test_a_set_from_another_generator_version_is_rebuilt(tmp_path) -> None:
+    import json
+
+    path = ensure_testset("insilico-smoke", root=tmp_path, progress=False)
+    meta = json.loads((path / "dataset.json").read_text())
+    first = read_case(testset.testset_cases(path)[0])
+    meta["generator_version"] = 0
+    (path / "dataset.json").write_text(json.dumps(meta))
+    (path / "case_L0000000_D00_T000.npz").write_bytes(b"stale")
+    assert ensure_testset("insilico-smoke", root=tmp_path, progress=False) == path
+    assert not (path / "case_L0000000_D00_T000.npz").exists()
+    again = read_case(testset.testset_cases(path)[0])
+    assert np.array_equal(first["tgt_pcd"], again["tgt_pcd"])  # rebuilt identically

@@ -26,7 +26,7 @@ from .simulate import SimulatedLiver, simulate_liver
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # bump whenever generated data would change (stale sets are then rebuilt)
 VISIBILITY_BINS = tuple((round(0.2 + 0.1 * i, 1), round(0.3 + 0.1 * i, 1)) for i in range(8))
 # A full resampled target occupies a few percent fewer voxels than the source (its own grid
 # offset, sampling gaps), so the top bin is drawn from [0.9, 0.97].

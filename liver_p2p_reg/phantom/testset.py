@@ -12,6 +12,7 @@ on top of these clean targets (or with `--noise` when generating other sets).
 from __future__ import annotations
 
 import json
+import logging
 import os
 from dataclasses import asdict
 from pathlib import Path
@@ -25,6 +26,7 @@ TESTSETS: dict[str, DatasetSpec] = {
     "insilico-smoke": DatasetSpec(livers=2, deformations=1, targets=8, crop="random", seed=901, split="test"),
 }
 ENV_DATA_ROOT = "LIVER_P2P_DATA"
+log = logging.getLogger(__name__)
 
 
 def default_root() -> Path:
@@ -56,8 +58,28 @@ def ensure_testset(
     spec = testset_spec(name)
     path = Path(root) / name if root is not None else default_root() / name
     if not is_complete(path, spec):
+        _remove_stale(path, spec)
         generate_dataset(path, spec, workers=workers, progress=progress, allow_reserved_seed=True)
     return path
+
+
+def _remove_stale(path: Path, spec: DatasetSpec) -> None:
+    """Delete a set made by another generator version (only the files the generator writes)."""
+    spec_path = path / "dataset.json"
+    if not spec_path.is_file():
+        return
+    old = json.loads(spec_path.read_text())
+    if old.get("generator_version") == spec.generator_version:
+        return  # same generator: an unfinished run, resumed by generate_dataset
+    log.warning(
+        "%s was made by generator v%s; regenerating with v%s",
+        path,
+        old.get("generator_version"),
+        spec.generator_version,
+    )
+    for pattern in ("case_*.npz", "*.tmp.npz", "manifest.csv", COMPLETE_MARKER, "stats.png", "dataset.json"):
+        for file in path.glob(pattern):
+            file.unlink()
 
 
 def testset_cases(path: str | Path) -> list[Path]:
