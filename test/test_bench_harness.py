@@ -219,6 +219,10 @@ def test_resume_skips_done_rows_and_reruns_missing_ones(dataset: Path, tmp_path:
     assert _bench(dataset, out, "probe-test-p2p,identity-test", "--limit", "4") == 0
     final = read_rows(path)
     assert len(final) == 8
+    # Noise levels only add (noisy copies of) cases: allowed into the same OUT, old rows kept.
+    assert _bench(dataset, out, "probe-test-p2p,identity-test", "--limit", "4", "--noise-levels", "2") == 0
+    final = read_rows(path)
+    assert len(final) == 8 + 2 * 2  # the 4 first cases hold 2 from [0.2,0.3): one noisy copy each, 2 methods
     assert [r["rms_tre_mm"] for r in final if r["method"] == "probe-test-p2p"][0] == 12345.0
 
 

@@ -22,7 +22,7 @@ BIN_LABELS = tuple(
 # Keys every case NPZ must carry (the phantom generator's format, close to the public P2P dataset).
 REQUIRED_KEYS = ("src_pcd", "tgt_pcd", "src_marker", "tgt_marker")
 PRESETS = ("smoke", "full")
-SMOKE_CASES_PER_BIN = 3  # --preset smoke: this many cases per visibility bin
+SMOKE_CASES_PER_BIN = 3  # --preset smoke: this many cases per visibility bin (spread over livers)
 
 
 @dataclass(frozen=True)
@@ -169,15 +169,21 @@ def select_cases(infos: list[CaseInfo], preset: str, limit: int | None) -> list[
 
 
 def first_per_bin(infos: list[CaseInfo], per_bin: int) -> list[CaseInfo]:
-    """The first `per_bin` cases (by case id) of every visibility bin, in case-id order."""
-    counts: dict[int | None, int] = {}
-    chosen = []
+    """`per_bin` cases of every visibility bin, evenly spread over the bin's cases in case-id order.
+
+    Spreading (rather than taking the first ones) mixes livers and deformations into small presets.
+    """
+    groups: dict[int | None, list[CaseInfo]] = {}
     for info in sorted(infos, key=lambda c: c.case_id):
-        b = visibility_bin(info.visibility)
-        if counts.get(b, 0) < per_bin:
-            counts[b] = counts.get(b, 0) + 1
-            chosen.append(info)
-    return chosen
+        groups.setdefault(visibility_bin(info.visibility), []).append(info)
+    chosen = []
+    for group in groups.values():
+        if len(group) <= per_bin:
+            chosen += group
+        else:
+            picks = np.unique(np.round(np.linspace(0, len(group) - 1, per_bin)).astype(int))
+            chosen += [group[i] for i in picks]
+    return sorted(chosen, key=lambda c: c.case_id)
 
 
 def fingerprint(infos: list[CaseInfo]) -> str:

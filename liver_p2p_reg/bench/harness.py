@@ -72,6 +72,8 @@ INT_COLUMNS = {"n_candidates", "n_matches", "seed"}
 BOOL_COLUMNS = {"failed", "ambiguous"}
 ABLATION_K = tuple(range(1, 9))  # the paper's Fig. 8: K = 1 ... 8
 ABLATION_CASES_PER_BIN = 10
+# Settings that may differ between runs into one OUT: they add rows and never change existing ones.
+ADDITIVE_SETTINGS = ("noise_levels_mm", "ablation_cases_per_bin")
 
 
 @dataclass(frozen=True)
@@ -112,10 +114,11 @@ class BenchmarkSpec:
         """The settings recorded in OUT/settings.json; a rerun must match them."""
         from .cases import fingerprint
 
+        clean = [c for c in self.cases if c.added_noise_mm == 0]  # noisy copies are additive
         return {
             "dataset": self.dataset_id,
-            "cases_fingerprint": fingerprint(self.cases),
-            "n_cases": len(self.cases),
+            "cases_fingerprint": fingerprint(clean),
+            "n_cases": len(clean),
             "preset": self.preset,
             "limit": self.limit,
             "ablation_cases_per_bin": self.ablation_cases_per_bin,
@@ -312,6 +315,12 @@ def check_settings(out: Path, settings: dict[str, Any]) -> None:
             raise InputError(
                 f"{out} holds a run with other settings ({'; '.join(diffs[:3])}); use a new --out or delete it"
             )
+        for key in ADDITIVE_SETTINGS:  # record what was added (union of noise levels, largest ablation set)
+            if key == "noise_levels_mm":
+                settings[key] = sorted(set(old.get(key, [])) | set(settings[key]))
+            else:
+                settings[key] = max(old.get(key, 0), settings[key])
+        path.write_text(json.dumps(settings, indent=2, sort_keys=True) + "\n")
         return
     if (out / CASES_CSV).exists():
         raise InputError(f"{out / CASES_CSV} exists without {SETTINGS_JSON}; use a new --out")
@@ -325,6 +334,8 @@ def _diff(old: Any, new: Any, prefix: str = "") -> list[str]:
         for key in sorted(set(old) | set(new)):
             if prefix == "config." and (key not in old or key not in new):
                 continue  # a Config field added or removed since: the rows' settings did not change
+            if not prefix and key in ADDITIVE_SETTINGS:
+                continue  # these only add rows (noisy copies, ablation cases); existing rows stay valid
             out += _diff(old.get(key), new.get(key), f"{prefix}{key}.")
         return out
     return [] if old == new else [f"{prefix.rstrip('.')}: {old!r} then, {new!r} now"]

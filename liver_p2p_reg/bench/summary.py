@@ -246,7 +246,8 @@ class Summary:
         lines = [
             "## P2P ablations (Fig. 8, Table VI form)",
             "",
-            f"On the first {self.settings['ablation_cases_per_bin']} cases of each visibility bin; "
+            f"On {len(set().union(*(self.ablation_cases(m) for m in curves)))} noise-free cases "
+            f"(up to {self.settings.get('ablation_cases_per_bin', '?')} per visibility bin, spread over livers); "
             f"every other setting as in the main run (K={cfg['k']}, selection {cfg['selection']}, "
             f"candidate proposal {cfg['candidate_proposal']}). Mean RMS-TRE (mm): lowest bin / all ablation cases.",
             "",
