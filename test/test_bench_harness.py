@@ -300,3 +300,16 @@ def test_readme_option_regenerates_the_benchmark_block(dataset: Path, tmp_path: 
     )
     assert "| probe-test-p2p |" in text and "[docs/benchmark/summary.md](docs/benchmark/summary.md)" in text
     assert "--readme" in text  # the command that regenerates it is quoted
+    # --summary-only rewrites the reports from cases.csv, running nothing, with the recorded command.
+    readme.write_text("<!-- BENCHMARK:START -->\n<!-- BENCHMARK:END -->\n")
+    (out / "summary.md").unlink()
+    assert (
+        main(["-q", "benchmark", "--dataset", "unused", "--out", str(out), "--summary-only", "--readme", str(readme)])
+        == 0
+    )
+    assert (
+        (out / "summary.md").is_file()
+        and "--limit 3" in readme.read_text()
+        and "| probe-test-p2p |" in readme.read_text()
+    )
+    assert main(["-q", "benchmark", "--dataset", "x", "--out", str(tmp_path / "none"), "--summary-only"]) == 2

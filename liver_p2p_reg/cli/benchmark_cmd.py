@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
-import sys
 from pathlib import Path
 
 from ..config import DEVICES, Config
@@ -42,6 +41,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--data-root", help="where named test sets live (default: $LIVER_P2P_DATA or ./data)")
     p.add_argument("--readme", help="replace the README's BENCHMARK block with the main tables")
+    p.add_argument(
+        "--summary-only", action="store_true", help="run nothing: rewrite summary.md (and --readme) from OUT/cases.csv"
+    )
     p.set_defaults(func=run)
 
 
@@ -89,11 +91,12 @@ def _noise_levels(text: str | None) -> list[float]:
 
 def run(args: argparse.Namespace) -> int:
     from ..bench.cases import case_info, list_case_paths, resolve_dataset, select_cases, with_noise
-    from ..bench.harness import SETTINGS_JSON, BenchmarkSpec, run_benchmark
-    from ..bench.summary import relative_link, replace_readme_block, write_summary
+    from ..bench.harness import BenchmarkSpec, run_benchmark
     from ..bench.sysinfo import machine_info
     from ..registrar import available_methods
 
+    if args.summary_only:
+        return _summary_only(args)
     config = Config.from_yaml(args.config) if args.config else Config()
     overrides = {
         k: v for k, v in (("device", args.device), ("seed", args.seed), ("num_threads", args.threads)) if v is not None
@@ -129,20 +132,40 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
         noise_levels_mm=tuple(noise_levels),
     )
-    quiet = getattr(args, "quiet", False)
-    rows = run_benchmark(spec, progress=not quiet)
+    rows = run_benchmark(spec, progress=not getattr(args, "quiet", False))
     machine = machine_info(config.device)
     machine["workers"] = args.workers
-    (out / "machine.json").write_text(json.dumps(machine, indent=2) + "\n")
+    command = _command_line(args, methods)
+    (out / "machine.json").write_text(json.dumps({**machine, "command": command}, indent=2) + "\n")
+    _write_reports(args, out, rows, machine, command)
+    return 0
+
+
+def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dict, command: str) -> None:
+    from ..bench.harness import SETTINGS_JSON
+    from ..bench.summary import relative_link, replace_readme_block, write_summary
+
     settings = json.loads((out / SETTINGS_JSON).read_text())
-    summary = write_summary(out, rows, settings, machine, _command_line(args, methods))
+    summary = write_summary(out, rows, settings, machine, command)
     if args.readme:
         readme = Path(args.readme)
         replace_readme_block(readme, summary.readme_block(relative_link(out / "summary.md", readme.parent)))
-    if not quiet:
+    if not getattr(args, "quiet", False):
         n_failed = sum(r["failed"] for r in rows)
-        print(
-            f"{len(rows)} rows ({n_failed} failed) in {out / 'cases.csv'}; summary: {out / 'summary.md'}",
-            file=sys.stdout,
-        )
+        print(f"{len(rows)} rows ({n_failed} failed) in {out / 'cases.csv'}; summary: {out / 'summary.md'}")
+
+
+def _summary_only(args: argparse.Namespace) -> int:
+    """Rewrite the reports of an existing OUT; machine and command are those recorded by its last run."""
+    from ..bench.harness import CASES_CSV, SETTINGS_JSON, read_rows
+
+    out = Path(args.out)
+    if not (out / CASES_CSV).is_file() or not (out / SETTINGS_JSON).is_file():
+        raise InputError(f"--summary-only: {out} holds no benchmark run ({CASES_CSV}, {SETTINGS_JSON})")
+    if args.readme and not Path(args.readme).is_file():
+        raise InputError(f"README {args.readme} does not exist")
+    machine_path = out / "machine.json"
+    machine = json.loads(machine_path.read_text()) if machine_path.is_file() else {}
+    command = machine.pop("command", "")
+    _write_reports(args, out, read_rows(out / CASES_CSV), machine, command)
     return 0
