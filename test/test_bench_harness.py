@@ -313,3 +313,11 @@ def test_readme_option_regenerates_the_benchmark_block(dataset: Path, tmp_path: 
         and "| probe-test-p2p |" in readme.read_text()
     )
     assert main(["-q", "benchmark", "--dataset", "x", "--out", str(tmp_path / "none"), "--summary-only"]) == 2
+
+
+def test_two_workers_give_the_same_rows_as_one(dataset: Path, tmp_path: Path) -> None:
+    if "procrustes" not in available_methods():
+        pytest.skip("the procrustes method is not part of this build yet")
+    for workers in ("1", "2"):
+        assert _bench(dataset, tmp_path / workers, "procrustes", "--limit", "3", "--workers", workers) == 0
+    assert _numbers(tmp_path / "1" / "cases.csv") == _numbers(tmp_path / "2" / "cases.csv")
