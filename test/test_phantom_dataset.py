@@ -109,6 +109,10 @@ def test_pair_sampler_draws_valid_pairs(tmp_path) -> None:
         assert pair["tgt_marker"].shape == pair["src_marker"].shape
     again = PairSampler(store, seed=0, visibility_range=(0.3, 0.6), noise_levels_mm=(0.0, 2.0)).sample()
     assert np.array_equal(again["tgt_pcd"], pairs[0]["tgt_pcd"])
+    sampler.reseed(0)
+    assert np.array_equal(next(iter(sampler))["tgt_pcd"], pairs[0]["tgt_pcd"])
+    sampler.reseed(1)
+    assert not np.array_equal(sampler.sample()["tgt_pcd"][:10], pairs[0]["tgt_pcd"][:10])
     with pytest.raises(InputError):
         PairSampler(tmp_path / "nowhere", seed=0)
 

@@ -25,7 +25,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--livers", type=int, default=10)
     g.add_argument("--deformations", type=int, default=5, help="FEM deformations per liver")
     g.add_argument(
-        "--targets", type=int, default=8, help="targets per deformation (target t -> visibility bin t mod 8)"
+        "--targets",
+        type=int,
+        default=8,
+        help="targets per deformation; target t gets visibility bin t mod #bins (8 random, 2 camera)",
     )
     g.add_argument("--crop", default="random", help="random (geodesic patch) or camera (anterior laparoscope view)")
     g.add_argument("--noise", type=float, default=0.0, help="noise level L: uniform [-L/2, L/2] mm per coordinate")

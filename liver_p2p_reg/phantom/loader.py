@@ -135,6 +135,17 @@ class PairSampler:
     def __len__(self) -> int:
         return len(self.files)
 
+    def reseed(self, seed: int) -> None:
+        """Restart the random stream (e.g. one distinct seed per DataLoader worker process)."""
+        self.rng = np.random.default_rng([int(seed), 6])
+        self.seed = int(seed)
+        self.count = 0
+
+    def __iter__(self):
+        """Endless stream of fresh pairs."""
+        while True:
+            yield self.sample()
+
     def _liver(self, path: Path) -> dict:
         if path in self._cache:
             self._cache.move_to_end(path)
