@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--readme-only", action="store_true", help="do not regenerate the bags")
     parser.add_argument("--method", help="registration method for the expected results (default: Config's)")
     parser.add_argument("--bags-only", action="store_true", help="write the bags, skip the replay and README")
-    parser.add_argument("--test-frames", type=int, default=2, help="frames the bundled-bag test replays")
+    parser.add_argument("--test-frames", type=int, default=1, help="frames the bundled-bag test replays")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     config = Config() if not args.method else Config(method=args.method)
