@@ -17,3 +17,9 @@ def o3d_module() -> ModuleType:
             "(needs the system's libusb-1.0-0)"
         ) from None
     return open3d
+
+
+def quiet_open3d() -> None:
+    """Silence Open3D's C++ warnings, which go to stdout and would corrupt JSON printed there."""
+    o3d = o3d_module()
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)

@@ -11,6 +11,7 @@ import numpy as np
 from ..cloud_io import load_points
 from ..config import SELECTION_RULES, Config
 from ..errors import InputError
+from ..o3d import quiet_open3d
 from ..registrar import Registrar
 
 
@@ -56,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     if (args.source_fiducials is None) != (args.target_fiducials is None):
         raise InputError("give both --source-fiducials and --target-fiducials, or neither")
     config = _config(args)
+    quiet_open3d()  # stdout carries the JSON result only
     source = load_points(args.source, seed=config.seed)
     target = load_points(args.target, seed=config.seed)
     fid_s = fid_t = None
