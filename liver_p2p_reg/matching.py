@@ -23,12 +23,17 @@ def log_dual_softmax(scores: torch.Tensor, temperature: float) -> torch.Tensor:
     score range over the temperature is moderate, which L2-normalized features guarantee.
     """
     scaled = scores / temperature
-    top = scaled.amax(dim=(-2, -1), keepdim=True)
-    low = scaled.amin(dim=(-2, -1), keepdim=True)
+    # The shift cancels mathematically, so it carries no gradient (and scaled may change in place).
+    top = scaled.detach().amax(dim=(-2, -1), keepdim=True)
+    low = scaled.detach().amin(dim=(-2, -1), keepdim=True)
     if bool(((top - low) < _EXP_SAFE_RANGE).all()):
-        shifted = scaled - top
+        # In place on the one (N, M) buffer: fresh large tensors cost page faults on CPU, more
+        # than the arithmetic. Autograd-safe: exp() keeps its output, not its input.
+        shifted = scaled.sub_(top)
         e = shifted.exp()
-        return 2 * shifted - e.sum(dim=-1, keepdim=True).log() - e.sum(dim=-2, keepdim=True).log()
+        row = e.sum(dim=-1, keepdim=True).log_()
+        col = e.sum(dim=-2, keepdim=True).log_()
+        return shifted.mul_(2).sub_(row).sub_(col)
     return 2 * scaled - scaled.logsumexp(dim=-1, keepdim=True) - scaled.logsumexp(dim=-2, keepdim=True)
 
 
@@ -51,9 +56,12 @@ def matches_per_row(log_confidence: torch.Tensor, threshold: float = 0.0) -> tup
     Returns (target_index (..., N) long, weight (..., N)); a row has at most one mutual match,
     so this dense form carries every mutual-NN correspondence and batches over patches.
     """
-    best_log, index = log_confidence.max(dim=-1)  # (..., N)
-    col_best = log_confidence.argmax(dim=-2)  # (..., M): best row of each column
-    mutual = torch.gather(col_best, -1, index) == torch.arange(index.shape[-1], device=index.device)
+    index = log_confidence.argmax(dim=-1)  # (..., N)
+    best_log = torch.gather(log_confidence, -1, index[..., None])[..., 0]
+    # Mutual when the row's best entry is also its column's maximum. amax over rows is a
+    # contiguous reduction, ~20x faster on CPU than argmax along dim -2.
+    col_max = log_confidence.detach().amax(dim=-2)  # (..., M)
+    mutual = best_log.detach() >= torch.gather(col_max, -1, index)
     weight = best_log.exp()
     weight = torch.where(mutual & (weight > threshold), weight, torch.zeros_like(weight))
     return index, weight

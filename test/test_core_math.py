@@ -147,3 +147,14 @@ def test_matching_batches_over_patches(rng: np.random.Generator) -> None:
         ik, wk = matches_per_row(log_dual_softmax(S[k], 0.1))
         assert torch.equal(index[k], ik)
         np.testing.assert_allclose(weight[k].numpy(), wk.numpy(), rtol=1e-12)
+
+
+def test_dual_softmax_gradient_equals_the_plain_formula(rng: np.random.Generator) -> None:
+    S = torch.tensor(rng.uniform(-1, 1, size=(2, 12, 9)), requires_grad=True)
+    g = torch.as_tensor(rng.normal(size=(2, 12, 9)))
+    (log_dual_softmax(S, 0.2) * g).sum().backward()
+    fast = S.grad.clone()
+    S.grad = None
+    plain = torch.log(torch.softmax(S / 0.2, dim=-1) * torch.softmax(S / 0.2, dim=-2))
+    (plain * g).sum().backward()
+    np.testing.assert_allclose(fast.numpy(), S.grad.numpy(), rtol=1e-9, atol=1e-12)
