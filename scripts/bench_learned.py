@@ -12,6 +12,7 @@ import statistics
 import tempfile
 import time
 
+import numpy as np
 import torch
 
 from liver_p2p_reg.config import Config
@@ -21,6 +22,18 @@ from liver_p2p_reg.pipelines import prepare
 from liver_p2p_reg.registrar import Registrar
 
 
+def write_reference(path: str, weights: str) -> None:
+    """A small fixed input and the descriptors the weights give for it (test_learned_weights.py)."""
+    rng = np.random.default_rng(2024)
+    d = rng.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    source = (d * np.array([0.9, 0.6, 0.45]) * (1 + 0.1 * np.sin(4 * d[:, :1]))).astype(np.float32)
+    target = (source[source[:, 0] > 0.25] @ np.diag([1.0, -1.0, -1.0]).astype(np.float32)).astype(np.float32)
+    xs, xt = LearnedProvider(weights_path=weights).describe(torch.as_tensor(source), torch.as_tensor(target), {})
+    np.savez_compressed(path, source=source, target=target, x_source=xs.numpy(), x_target=xt.numpy())
+    print(f"wrote {path}: source {source.shape}, target {target.shape}, d={xs.shape[1]}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default="")
@@ -28,8 +41,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--visibility", type=float, default=0.3)
+    ap.add_argument("--write-reference", metavar="NPZ", help="only write the weights test's reference output here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.write_reference:
+        write_reference(args.write_reference, args.weights)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         store = build_store(tmp, livers=1, deformations=1, seed=3, target_tets=1500, progress=False)
         case = PairSampler(store, seed=0, visibility_range=(args.visibility, args.visibility)).sample()

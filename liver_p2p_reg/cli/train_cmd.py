@@ -16,6 +16,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.safetensors + OUT/state.json")
     p.add_argument("--out", default="train_out", help="output directory (default: %(default)s)")
     p.add_argument("--steps", type=int, help="override the number of steps in the config")
+    p.add_argument("--export", metavar="PATH", help="no training: copy OUT's best checkpoint to PATH with a model card")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -24,8 +25,15 @@ def run(args: argparse.Namespace) -> int:
     """Train; print where the best weights are."""
     import torch
 
-    from ..learned.train import TrainConfig, train
+    from ..learned.train import TrainConfig, export_weights, train
 
+    if args.export:
+        import subprocess
+
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+        dest = export_weights(args.out, args.export, commit=commit)
+        print(f"exported {dest} (+ {dest.with_suffix('.json').name}, {dest.with_suffix('.md').name})")
+        return 0
     cfg = TrainConfig.from_yaml(args.config)
     if args.steps is not None:
         if args.steps < 1:

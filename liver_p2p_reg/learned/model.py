@@ -119,11 +119,11 @@ class MatcherNet(nn.Module):
         pos = (dist / cfg.distance_max_norm * cfg.distance_bins).clamp(0, cfg.distance_bins - 1e-4)
         lo = pos.floor().long()
         frac = (pos - lo)[..., None]
-        out = []
-        for table in self.distance_bias:
-            bias = table[lo] * (1 - frac) + table[lo + 1] * frac
-            out.append(bias.permute(2, 0, 1).contiguous())
-        return out
+        # One gather for all layers and heads: (bins + 1, layers * heads).
+        table = self.distance_bias.permute(1, 0, 2).reshape(cfg.distance_bins + 1, -1)
+        bias = table[lo] * (1 - frac) + table[lo + 1] * frac  # (n, n, layers * heads)
+        bias = bias.view(*dist.shape, cfg.layers, cfg.heads).permute(2, 3, 0, 1)
+        return [b.contiguous() for b in bias]
 
     def _to_points(self, d_point_node: torch.Tensor, node_feat: torch.Tensor) -> torch.Tensor:
         """Inverse-distance interpolation of node context from the 3 nearest nodes."""

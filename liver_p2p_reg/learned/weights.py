@@ -24,6 +24,7 @@ def save_weights(model: MatcherNet, path: str | Path, extra: dict[str, str] | No
     meta = {"format": FORMAT, "model_config": json.dumps(model.cfg.to_dict()), **(extra or {})}
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata=meta)
+    tmp.chmod(0o644)  # package data: readable by everyone (the temp file is created private)
     tmp.replace(path)
     return path
 
