@@ -113,3 +113,16 @@ def test_readme_block_holds_the_main_tables() -> None:
     assert "| procrustes (oracle) | 3.00 ± 0.82 | 3.00 ± 0.82 |" in block
     assert "Success rate" in block and "median total (ms)" in block
     assert "[docs/benchmark/summary.md](docs/benchmark/summary.md)" in block and "test cpu" in block
+
+
+def test_tables_cover_only_cases_every_method_ran_on() -> None:
+    rows = [_row(i, m, 0.25, 2.0 + i) for i in range(4) for m in ("procrustes", "x")]
+    rows.append(_row(9, "procrustes", 0.25, 50.0))  # an interrupted run: case 9 lacks "x"
+    s = _summary(rows)
+    assert s.n_cases() == 4 and s.incomplete == 1
+    assert "| procrustes (oracle) | 3.50 ± 1.12 | 3.50 ± 1.12 |" in "\n".join(s.table_tre())
+    assert "cover the 4 cases that every method ran on, of the ? selected" in "\n".join(s.header_lines())
+    s.settings["n_cases"] = 10
+    assert "**Partial run:** the tables cover the 4 cases that every method ran on, of the 10 selected (1 more" in (
+        "\n".join(s.header_lines())
+    )

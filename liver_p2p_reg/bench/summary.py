@@ -65,12 +65,25 @@ def _in_bin(index: int):
     return lambda r: lo <= r["visibility"] < hi or (last and r["visibility"] == hi)
 
 
+def complete_cases(rows: list[Row]) -> tuple[list[Row], int]:
+    """Rows of the cases that every method ran on (a fair comparison), and how many cases were left out.
+
+    An interrupted or extended run can hold some cases for only some methods; those are left out.
+    """
+    methods = {r["method"] for r in rows}
+    by_case: dict[str, set[str]] = {}
+    for r in rows:
+        by_case.setdefault(r["case_id"], set()).add(r["method"])
+    done = {c for c, ms in by_case.items() if ms == methods}
+    return [r for r in rows if r["case_id"] in done], len(by_case) - len(done)
+
+
 class Summary:
     """Computes every table of the report from the rows of cases.csv."""
 
     def __init__(self, rows: list[Row], settings: dict[str, Any], machine: dict[str, Any], command: str = "") -> None:
         self.rows = rows
-        self.main = main_rows(rows)
+        self.main, self.incomplete = complete_cases(main_rows(rows))
         self.settings = settings
         self.machine = machine
         self.command = command
@@ -314,6 +327,14 @@ class Summary:
             + (f", limit {s['limit']}" if s.get("limit") else "")
             + f"), methods: {', '.join(f'`{m}`' for m in self.methods)}; generated {stamp}.",
         ]
+        selected = s.get("n_cases")
+        if self.incomplete or (isinstance(selected, int) and self.n_cases() < selected):
+            lines += [
+                "",
+                f"**Partial run:** the tables cover the {self.n_cases()} cases that every method ran on, of the "
+                f"{selected if isinstance(selected, int) else '?'} selected ({self.incomplete} more ran for some methods only); rerun the same command to "
+                "finish: it resumes.",
+            ]
         if self.command:
             lines += ["", f"Command: `{self.command}`"]
         return lines

@@ -91,7 +91,7 @@ def _noise_levels(text: str | None) -> list[float]:
 
 def run(args: argparse.Namespace) -> int:
     from ..bench.cases import case_info, list_case_paths, resolve_dataset, select_cases, with_noise
-    from ..bench.harness import BenchmarkSpec, run_benchmark
+    from ..bench.harness import BenchmarkSpec, check_settings, run_benchmark
     from ..bench.sysinfo import machine_info
     from ..registrar import available_methods
 
@@ -132,11 +132,13 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
         noise_levels_mm=tuple(noise_levels),
     )
-    rows = run_benchmark(spec, progress=not getattr(args, "quiet", False))
+    check_settings(out, spec.settings())  # refuse a mismatching OUT before touching it
     machine = machine_info(config.device)
     machine["workers"] = args.workers
     command = _command_line(args, methods)
+    # Written before the run, so an interrupted run can still be summarized with --summary-only.
     (out / "machine.json").write_text(json.dumps({**machine, "command": command}, indent=2) + "\n")
+    rows = run_benchmark(spec, progress=not getattr(args, "quiet", False))
     _write_reports(args, out, rows, machine, command)
     return 0
 
@@ -165,7 +167,13 @@ def _summary_only(args: argparse.Namespace) -> int:
     if args.readme and not Path(args.readme).is_file():
         raise InputError(f"README {args.readme} does not exist")
     machine_path = out / "machine.json"
-    machine = json.loads(machine_path.read_text()) if machine_path.is_file() else {}
+    if machine_path.is_file():
+        machine = json.loads(machine_path.read_text())
+    else:  # a run from before machine.json existed: describe this machine, as the run likely used it
+        from ..bench.sysinfo import machine_info
+
+        settings = json.loads((out / SETTINGS_JSON).read_text())
+        machine = {**machine_info(settings.get("config", {}).get("device", "cpu")), "note": "recorded at summary time"}
     command = machine.pop("command", "")
     _write_reports(args, out, read_rows(out / CASES_CSV), machine, command)
     return 0
