@@ -60,6 +60,11 @@ def tre_vs_visibility(rows: list[Row], path: Path) -> Path:
         means = [float(np.mean(g)) if g.size else np.nan for g in groups]
         ax.plot(centres, means, marker="o", label=m, linestyle="--" if m == "procrustes" else "-")
     ax.set_yscale("log")
+    # Plain millimetre tick labels (2, 5, 10, 50) read better than 10^x on a log axis.
+    from matplotlib.ticker import FormatStrFormatter
+
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
     ax.set_xlabel("visibility ratio (bin centre)")
     ax.set_ylabel("mean RMS-TRE (mm)")
     ax.grid(alpha=0.3, which="both")
