@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import Config
+from .errors import RegistrationError
 from .features.fpfh import FPFHProvider, outward_normals
 from .o3d import o3d_module
 
@@ -19,6 +20,16 @@ def kabsch_np(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, ct - R @ cs
     return T
+
+
+def _checked(result, name: str) -> np.ndarray:
+    """The transform of an Open3D registration result; no inlier at all means it failed.
+
+    Open3D then hands back its initial guess (identity), which must not pass as an answer.
+    """
+    if result.fitness <= 0:
+        raise RegistrationError(f"{name}: no correspondence within the distance threshold (no estimate)")
+    return np.asarray(result.transformation)
 
 
 def _cloud(points: np.ndarray, normal_radius: float | None = None):
@@ -41,7 +52,7 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, T_init: np.ndarra
         reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(max_iteration=config.icp_max_iterations),
     )
-    return np.asarray(result.transformation)
+    return _checked(result, "ICP")
 
 
 def _fpfh_features(source: np.ndarray, target: np.ndarray, config: Config, cache: dict):
@@ -74,7 +85,7 @@ def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: d
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
         reg.RANSACConvergenceCriteria(config.ransac_max_iterations, config.ransac_confidence),
     )
-    return np.asarray(result.transformation)
+    return _checked(result, "FPFH + RANSAC")
 
 
 def fast_global_registration(source: np.ndarray, target: np.ndarray, config: Config, cache: dict) -> np.ndarray:
@@ -84,4 +95,8 @@ def fast_global_registration(source: np.ndarray, target: np.ndarray, config: Con
     f_src, f_tgt = _fpfh_features(source, target, config, cache)
     option = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=config.ransac_max_corr_norm)
     result = reg.registration_fgr_based_on_feature_matching(_cloud(source), _cloud(target), f_src, f_tgt, option)
-    return np.asarray(result.transformation)
+    # FGR reports no fitness of its own: measure it at the same distance threshold.
+    evaluation = reg.evaluate_registration(
+        _cloud(source), _cloud(target), config.ransac_max_corr_norm, result.transformation
+    )
+    return _checked(evaluation, "FGR")

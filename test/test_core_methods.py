@@ -116,3 +116,12 @@ def test_all_candidates_failing_raises_instead_of_identity(case) -> None:
     # No dual-softmax confidence can exceed 1, so every match is rejected.
     with pytest.raises(RegistrationError, match="no candidate"):
         Registrar(Config(confidence_threshold=1.0)).register(source, target, method="fpfh-p2p")
+
+
+def test_global_baselines_without_inliers_raise_instead_of_identity(case) -> None:
+    source, target, *_ = case
+    # A gate no pair can pass: Open3D finds no inlier and would hand back its identity guess.
+    with pytest.raises(RegistrationError, match="no correspondence"):
+        Registrar(Config(ransac_max_corr_norm=1e-9, ransac_max_iterations=1000)).register(
+            source, target, method="fpfh-ransac"
+        )
