@@ -37,6 +37,32 @@ def log_dual_softmax(scores: torch.Tensor, temperature: float) -> torch.Tensor:
     return 2 * scaled - scaled.logsumexp(dim=-1, keepdim=True) - scaled.logsumexp(dim=-2, keepdim=True)
 
 
+def log_dual_softmax_with_patches(
+    scores: torch.Tensor, patch_rows: torch.Tensor, temperature: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Log dual-softmax of the whole (N, M) score matrix and of each patch's rows at once.
+
+    patch_rows (K, P) indexes rows of `scores`; the patch result (K, P, M) equals
+    log_dual_softmax(scores[patch_rows]). A patch's row normalizers are the whole matrix's
+    (same rows, same columns); only its column sums differ, and those come from one
+    (K, N) x (N, M) product with the patch-membership matrix, so the patches reuse the
+    whole matrix's exponentials instead of computing K * P * M new ones.
+    """
+    scaled = scores / temperature
+    top = scaled.detach().amax()
+    if float(top - scaled.detach().amin()) >= _EXP_SAFE_RANGE:
+        return log_dual_softmax(scores, temperature), log_dual_softmax(scores[patch_rows], temperature)
+    shifted = scaled.sub_(top)
+    e = shifted.exp()
+    row = e.sum(dim=-1, keepdim=True).log_()  # (N, 1)
+    col = e.sum(dim=-2, keepdim=True).log_()  # (1, M)
+    member = torch.zeros(patch_rows.shape[0], scores.shape[0], dtype=e.dtype, device=e.device)
+    member.scatter_(1, patch_rows, 1.0)  # (K, N)
+    patch_col = (member @ e).log_()  # (K, M)
+    patches = shifted[patch_rows].mul_(2).sub_(row[patch_rows]).sub_(patch_col[:, None, :])  # (K, P, M)
+    return shifted.mul_(2).sub_(row).sub_(col), patches
+
+
 def dual_softmax(scores: torch.Tensor, temperature: float) -> torch.Tensor:
     """Confidence softmax_row(S / T) * softmax_col(S / T) over the last two dims."""
     return log_dual_softmax(scores, temperature).exp()

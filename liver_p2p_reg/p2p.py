@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .matching import log_dual_softmax, matches_per_row, score_matrix
+from .matching import log_dual_softmax, log_dual_softmax_with_patches, matches_per_row, score_matrix
 from .procrustes import weighted_procrustes
 
 
@@ -89,37 +89,39 @@ def p2p_register(
     n, m = source.shape[0], target.shape[0]
     scores = score_matrix(x_source, x_target)  # (N, M)
 
+    nodes = torch.empty(0, dtype=torch.long, device=source.device)
+    patch_idx = None
+    if settings.use_p2p and settings.k > 0:
+        # 1. Visible source point estimation: score summed over targets, keep the top M.
+        visibility_score = scores.sum(dim=1)  # (N,)
+        n_visible = min(m, n)
+        visible = torch.topk(visibility_score.detach(), n_visible).indices
+        pool = visible if settings.candidate_proposal else torch.arange(n, device=source.device)
+        # 2. Patch nodes by FPS, starting from the most visible point of the pool.
+        start = int(torch.argmax(visibility_score[pool]))
+        nodes = pool[farthest_point_sampling(source[pool], settings.k, start=start)]
+        # 3. Patches: each node's min(M, N) nearest source points.
+        d_nodes = torch.cdist(source[nodes], source)  # (K, N)
+        patch_idx = torch.topk(d_nodes, min(m, n), dim=1, largest=False).indices  # (K, P)
+
     # Complete-to-partial candidate: dual-softmax + mutual NN on the whole source.
-    log_conf = log_dual_softmax(scores, settings.temperature)
-    tgt_idx, weight = matches_per_row(log_conf, settings.confidence_threshold)
-    del log_conf  # (N,), (N,)
+    if patch_idx is None:
+        log_conf, patch_log_conf = log_dual_softmax(scores, settings.temperature), None
+    else:
+        log_conf, patch_log_conf = log_dual_softmax_with_patches(scores, patch_idx, settings.temperature)
+    tgt_idx, weight = matches_per_row(log_conf, settings.confidence_threshold)  # (N,), (N,)
+    del log_conf
     R0, t0_vec, ok0 = weighted_procrustes(source, target[tgt_idx], weight)
     R_list, t_list, ok_list = [R0[None]], [t0_vec[None]], [ok0[None]]
     matched_src = [source]
     matched_tgt = [target[tgt_idx]]
     matched_w = [weight]
     names = ["complete-to-partial"]
-    nodes = torch.empty(0, dtype=torch.long, device=source.device)
 
-    if settings.use_p2p and settings.k > 0:
-        # 1. Visible source point estimation: score summed over targets, keep the top M.
-        visibility_score = scores.sum(dim=1)  # (N,)
-        n_visible = min(m, n)
-        visible = torch.topk(visibility_score, n_visible).indices
-        pool = visible if settings.candidate_proposal else torch.arange(n, device=source.device)
-        # 2. Patch nodes by FPS, starting from the most visible point of the pool.
-        start = int(torch.argmax(visibility_score[pool]))
-        nodes = pool[farthest_point_sampling(source[pool], settings.k, start=start)]
-        k = nodes.shape[0]
-        # 3. Patches: each node's min(M, N) nearest source points.
-        patch_size = min(m, n)
-        d_nodes = torch.cdist(source[nodes], source)  # (K, N)
-        patch_idx = torch.topk(d_nodes, patch_size, dim=1, largest=False).indices  # (K, P)
-        # 4. Patch-to-target matching, all K patches at once.
-        patch_scores = scores[patch_idx]  # (K, P, M)
-        patch_log_conf = log_dual_softmax(patch_scores, settings.temperature)
+    if patch_idx is not None:
+        # 4. Patch-to-target matching + weighted Procrustes, all K patches at once.
         p_tgt_idx, p_weight = matches_per_row(patch_log_conf, settings.confidence_threshold)  # (K, P)
-        del patch_scores, patch_log_conf
+        del patch_log_conf
         patch_src = source[patch_idx]  # (K, P, 3)
         patch_tgt = target[p_tgt_idx]  # (K, P, 3)
         Rk, tk, okk = weighted_procrustes(patch_src, patch_tgt, p_weight)
@@ -129,7 +131,7 @@ def p2p_register(
         matched_src.extend(patch_src.unbind(0))
         matched_tgt.extend(patch_tgt.unbind(0))
         matched_w.extend(p_weight.unbind(0))
-        names += [f"patch-{i}" for i in range(k)]
+        names += [f"patch-{i}" for i in range(len(nodes))]
     R = torch.cat(R_list)
     t = torch.cat(t_list)
     ok = torch.cat(ok_list)

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from liver_p2p_reg.matching import dual_softmax, log_dual_softmax, matches_per_row, mutual_nearest, score_matrix
+from liver_p2p_reg.matching import (
+    dual_softmax,
+    log_dual_softmax,
+    log_dual_softmax_with_patches,
+    matches_per_row,
+    mutual_nearest,
+    score_matrix,
+)
 from liver_p2p_reg.procrustes import to_homogeneous, weighted_procrustes
 
 
@@ -158,3 +165,14 @@ def test_dual_softmax_gradient_equals_the_plain_formula(rng: np.random.Generator
     plain = torch.log(torch.softmax(S / 0.2, dim=-1) * torch.softmax(S / 0.2, dim=-2))
     (plain * g).sum().backward()
     np.testing.assert_allclose(fast.numpy(), S.grad.numpy(), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("temperature", [0.1, 0.005])  # shared-exponential path and its fallback
+def test_patch_dual_softmax_equals_per_patch_computation(rng: np.random.Generator, temperature: float) -> None:
+    S = score_matrix(_normalized(rng, 50, 6), _normalized(rng, 12, 6))
+    patch_rows = torch.as_tensor(np.stack([rng.choice(50, 12, replace=False) for _ in range(4)]))
+    full, patches = log_dual_softmax_with_patches(S.clone(), patch_rows, temperature)
+    np.testing.assert_allclose(full.numpy(), log_dual_softmax(S, temperature).numpy(), rtol=1e-10, atol=1e-9)
+    for k in range(4):
+        expected = log_dual_softmax(S[patch_rows[k]], temperature)
+        np.testing.assert_allclose(patches[k].numpy(), expected.numpy(), rtol=1e-10, atol=1e-9)
