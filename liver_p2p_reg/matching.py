@@ -59,7 +59,10 @@ def log_dual_softmax_with_patches(
     member = torch.zeros(patch_rows.shape[0], scores.shape[0], dtype=e.dtype, device=e.device)
     member.scatter_(1, patch_rows, 1.0)  # (K, N)
     patch_col = (member @ e).log_()  # (K, M)
-    patches = shifted[patch_rows].mul_(2).sub_(row[patch_rows]).sub_(patch_col[:, None, :])  # (K, P, M)
+    k, p = patch_rows.shape
+    flat = patch_rows.reshape(-1)
+    patches = shifted.index_select(0, flat).view(k, p, -1)  # (K, P, M); faster than fancy indexing
+    patches = patches.mul_(2).sub_(row.index_select(0, flat).view(k, p, 1)).sub_(patch_col[:, None, :])
     return shifted.mul_(2).sub_(row).sub_(col), patches
 
 

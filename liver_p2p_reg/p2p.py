@@ -67,9 +67,12 @@ def closest_point_residuals(
     tree = cKDTree(source.detach().cpu().double().numpy())
     R_np, t_np, tgt = R.cpu().double().numpy(), t.cpu().double().numpy(), target.cpu().double().numpy()
     out = np.full(len(R_np), np.inf)
-    for c in np.flatnonzero(ok.cpu().numpy()):
-        dist, _ = tree.query((tgt - t_np[c]) @ R_np[c], k=1)
-        out[c] = dist.mean()
+    good = np.flatnonzero(ok.cpu().numpy())
+    if len(good):
+        # All candidates' queries in one call: y_s = R^T (y - t), as row vectors (y - t) @ R.
+        queries = np.einsum("cmi,cij->cmj", tgt[None] - t_np[good][:, None], R_np[good])
+        dist, _ = tree.query(queries.reshape(-1, 3), k=1)
+        out[good] = dist.reshape(len(good), -1).mean(axis=1)
     return torch.as_tensor(out, dtype=target.dtype, device=target.device)
 
 
