@@ -109,6 +109,8 @@ def run_feature_pipeline(
     times: dict[str, float] = {}
     t = time.perf_counter()
     prep = prepare(source_mm, target_mm, config)
+    if config.device == "cuda" and not torch.cuda.is_available():
+        raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
     device = torch.device(config.device)
     src = torch.as_tensor(prep.source, dtype=torch.float32, device=device)
     tgt = torch.as_tensor(prep.target, dtype=torch.float32, device=device)

@@ -121,3 +121,9 @@ def test_console_entry_point_exit_status(files: dict, tmp_path: Path) -> None:
     assert proc.stdout == ""
     assert proc.stderr.strip().startswith("liver-p2p: error: file not found")
     assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="checks the no-CUDA message")
+def test_cuda_without_a_gpu_is_a_clear_error(files: dict, capsys: pytest.CaptureFixture) -> None:
+    argv = ["register", files["source.ply"], files["target.xyz"], "--method", "fpfh-p2p", "--device", "cuda"]
+    assert "no CUDA device" in _error(argv, capsys)
