@@ -25,17 +25,19 @@ def local_features(points: np.ndarray, scales: tuple[float, ...] = SCALES_NORM) 
     dist, idx = cKDTree(pts).query(pts, k=k, workers=-1)
     dist = dist.reshape(n, k)
     idx = idx.reshape(n, k)
-    nb = pts[idx]  # (N, k, 3)
+    offs = pts[idx] - pts[:, None, :]  # (N, k, 3) neighbour offsets
+    # Second moments once for all scales: each scale is then one weighted sum (a matmul).
+    outer = (offs[:, :, :, None] * offs[:, :, None, :]).reshape(n, k, 9)
     outward = pts - pts.mean(axis=0)
     feats = []
     normals = []
     for sigma in scales:
         w = np.exp(-0.5 * (dist / sigma) ** 2)
         wsum = w.sum(axis=1, keepdims=True)
-        wn = w / wsum
-        centroid = np.einsum("nk,nkc->nc", wn, nb)
-        diff = nb - centroid[:, None, :]
-        cov = np.einsum("nk,nki,nkj->nij", wn, diff, diff)
+        wn = (w / wsum)[:, None, :]  # (N, 1, k)
+        mean_off = np.matmul(wn, offs)[:, 0]  # centroid - point
+        second = np.matmul(wn, outer)[:, 0].reshape(n, 3, 3)
+        cov = second - mean_off[:, :, None] * mean_off[:, None, :]
         evals, evecs = np.linalg.eigh(cov)  # ascending
         evals = np.clip(evals, 0.0, None)
         total = evals.sum(axis=1) + 1e-12
@@ -43,7 +45,7 @@ def local_features(points: np.ndarray, scales: tuple[float, ...] = SCALES_NORM) 
         sign = np.where(np.einsum("nc,nc->n", normal, outward) < 0, -1.0, 1.0)
         normal = normal * sign[:, None]
         normals.append(normal)
-        offset = pts - centroid
+        offset = -mean_off  # point - centroid
         feats += [
             evals[:, 2] / total,
             evals[:, 1] / total,
