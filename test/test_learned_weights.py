@@ -1,0 +1,102 @@
+"""Shipped matcher weights: safetensors without pickle, reference output, clear errors when broken."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from liver_p2p_reg.errors import WeightsError
+from liver_p2p_reg.learned.model import MatcherNet, ModelConfig
+from liver_p2p_reg.learned.provider import LearnedProvider
+from liver_p2p_reg.learned.weights import BUNDLED_WEIGHTS, load_weights, save_weights, weights_metadata
+
+REFERENCE = Path(__file__).parent / "data" / "learned_reference.npz"
+
+
+def test_bundled_weights_are_small_safetensors_with_a_model_card() -> None:
+    assert BUNDLED_WEIGHTS.is_file()
+    assert BUNDLED_WEIGHTS.stat().st_size <= 20 * 1024 * 1024
+    assert BUNDLED_WEIGHTS.read_bytes()[:8] != b"\x80\x02\x8a\nl\xfc\x9c"  # not a torch pickle
+    meta = weights_metadata(BUNDLED_WEIGHTS)
+    assert json.loads(meta["model_config"])["out_dim"] > 0
+    card = json.loads(BUNDLED_WEIGHTS.with_suffix(".json").read_text())
+    assert {"training_config", "data", "commit", "validation", "wall_clock_min"} <= set(card)
+
+
+def test_bundled_weights_reproduce_the_reference_output() -> None:
+    ref = np.load(REFERENCE, allow_pickle=False)
+    provider = LearnedProvider()  # the bundled weights
+    xs, xt = provider.describe(torch.as_tensor(ref["source"]), torch.as_tensor(ref["target"]), {})
+    np.testing.assert_allclose(xs.numpy(), ref["x_source"], atol=1e-4)
+    np.testing.assert_allclose(xt.numpy(), ref["x_target"], atol=1e-4)
+
+
+def test_save_load_roundtrip_loads_without_pickle(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    torch.manual_seed(3)
+    net = MatcherNet(ModelConfig(width=32, layers=1, out_dim=16))
+    path = save_weights(net, tmp_path / "m.safetensors")
+
+    def no_pickle(*args: object, **kwargs: object) -> None:
+        raise AssertionError("pickle used")
+
+    monkeypatch.setattr("pickle.load", no_pickle)
+    monkeypatch.setattr("pickle.loads", no_pickle)
+    loaded = load_weights(path)
+    for (k, a), (_, b) in zip(net.state_dict().items(), loaded.state_dict().items(), strict=True):
+        assert torch.equal(a, b), k
+
+
+def test_missing_corrupt_and_incompatible_weights_raise_weights_error(tmp_path: Path) -> None:
+    with pytest.raises(WeightsError, match="not found"):
+        load_weights(tmp_path / "nope.safetensors")
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"this is not a safetensors file at all")
+    with pytest.raises(WeightsError, match="unreadable"):
+        load_weights(bad)
+    truncated = tmp_path / "trunc.safetensors"
+    truncated.write_bytes(BUNDLED_WEIGHTS.read_bytes()[:5000])
+    with pytest.raises(WeightsError):
+        load_weights(truncated)
+    from safetensors.torch import save_file
+
+    foreign = tmp_path / "foreign.safetensors"
+    save_file({"w": torch.zeros(3)}, str(foreign), metadata={"format": "something-else"})
+    with pytest.raises(WeightsError, match="format"):
+        load_weights(foreign)
+    net = MatcherNet(ModelConfig(width=32, layers=1, out_dim=16))
+    path = save_weights(net, tmp_path / "m.safetensors")
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        meta, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    tensors.pop("embed.0.weight")
+    save_file(tensors, str(path), metadata=meta)
+    with pytest.raises(WeightsError, match="do not fit"):
+        load_weights(path)
+
+
+def test_cli_reports_bad_weights_in_one_line(tmp_path: Path) -> None:
+    from liver_p2p_reg.cloud_io import save_points
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(3000, 3))
+    src = 80 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    save_points(tmp_path / "s.npy", src)
+    save_points(tmp_path / "t.npy", src[src[:, 0] > 20])
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"weights_path: {tmp_path / 'missing.safetensors'}\nmethod: learned-p2p\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "liver_p2p_reg", "register", str(tmp_path / "s.npy"), str(tmp_path / "t.npy"),
+         "--config", str(cfg)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "weights not found" in lines[0], proc.stderr
