@@ -46,7 +46,7 @@ def test_few_iterations_reduce_the_loss(store: Path) -> None:
             return sum(pair_loss(net, p, 0.1, 0.5)[1]["loss"] for p in pairs)
 
     before = total()
-    for _ in range(15):
+    for _ in range(30):
         for p in pairs:
             loss, _ = pair_loss(net, p, 0.1, 0.5)
             opt.zero_grad()
