@@ -256,11 +256,14 @@ class Summary:
         if not curves:
             return []
         cfg = self.settings["config"]
+        ids = set().union(*(self.ablation_cases(m) for m in curves))
+        counts = by_bin([r for r in self.main if r["case_id"] in ids and r["method"] == self.methods[0]])
+        sizes = sorted({g.size for g in counts if g.size})
+        per_bin = str(sizes[0]) if len(sizes) == 1 else f"{sizes[0]}–{sizes[-1]}" if sizes else "0"
         lines = [
             "## P2P ablations (Fig. 8, Table VI form)",
             "",
-            f"On {len(set().union(*(self.ablation_cases(m) for m in curves)))} noise-free cases "
-            f"(up to {self.settings.get('ablation_cases_per_bin', '?')} per visibility bin, spread over livers); "
+            f"On {len(ids)} noise-free cases ({per_bin} per visibility bin, spread over livers); "
             f"every other setting as in the main run (K={cfg['k']}, selection {cfg['selection']}, "
             f"candidate proposal {cfg['candidate_proposal']}). Mean RMS-TRE (mm): lowest bin / all ablation cases.",
             "",

@@ -63,7 +63,7 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
         if value is not None:
             parts += [flag, str(value)]
     if args.ablations:
-        parts.append("--ablations")
+        parts += ["--ablations", "--ablation-cases-per-bin", str(args.ablation_cases_per_bin)]
     if args.readme:
         parts += ["--readme", args.readme]
     return " ".join(shlex.quote(p) for p in parts)
