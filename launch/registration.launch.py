@@ -2,6 +2,7 @@
 
 import os
 
+import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument, ExecuteProcess
 from launch.conditions import IfCondition
@@ -15,6 +16,8 @@ def generate_launch_description():
     share = get_package_share_directory("liver_p2p_reg")
     params = os.path.join(share, "config", "registration.yaml")
     rviz_config = os.path.join(share, "config", "registration.rviz")
+    with open(params) as f:  # the method's default comes from the one parameter file
+        default_method = yaml.safe_load(f)["/**"]["ros__parameters"]["method"]
     model_path = LaunchConfiguration("model_path")
     fiducials_path = LaunchConfiguration("fiducials_path")
     bag = LaunchConfiguration("bag")
@@ -29,7 +32,7 @@ def generate_launch_description():
             DeclareLaunchArgument("units", default_value="mm", description="units of model_path: mm or m"),
             DeclareLaunchArgument("bag", default_value="", description="optional rosbag2 directory to play"),
             DeclareLaunchArgument("rviz", default_value="false", description="open RViz with config/registration.rviz"),
-            DeclareLaunchArgument("method", default_value="fpfh-p2p", description="registration method"),
+            DeclareLaunchArgument("method", default_value=default_method, description="registration method"),
             Node(
                 package="liver_p2p_reg",
                 executable="preop_loader_node",

@@ -26,7 +26,8 @@ class Config:
     """Every tunable of the registration pipeline and of the node logic, with defaults."""
 
     # --- registration pipeline -------------------------------------------------------
-    method: str = "fpfh-p2p"
+    # Default = the most accurate method of the latest full benchmark (README "Benchmark").
+    method: str = "fpfh-ransac-icp"
     k: int = 5  # number of P2P patch candidates
     voxel_size_norm: float = 0.04  # voxel edge in normalized (unit-sphere) units
     temperature: float = 0.1  # dual-softmax temperature applied to the score matrix
