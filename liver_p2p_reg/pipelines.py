@@ -25,8 +25,8 @@ from .preprocess import (
     target_normalization,
     voxel_downsample,
 )
-from .refine import trimmed_icp
-from .registrar import MethodContext, method
+from .refine import source_search_index, trimmed_icp
+from .registrar import MethodContext, method, remember_latest
 from .result import Candidate, RegistrationResult
 
 
@@ -70,7 +70,15 @@ def residual_norm(T_norm: np.ndarray, prep: Prepared) -> float:
     return float(dist.mean())
 
 
-def _refine(T_norm: np.ndarray, prep: Prepared, config: Config) -> np.ndarray:
+def _refine(T_norm: np.ndarray, prep: Prepared, config: Config, cache: dict[str, Any]) -> np.ndarray:
+    # The preoperative source is the same frame after frame: reuse its k-d tree and normals.
+    index = remember_latest(
+        cache,
+        "icp-source-index",
+        prep.source_full,
+        (config.normal_radius_norm,),
+        lambda: source_search_index(prep.source_full, config.normal_radius_norm),
+    )
     return trimmed_icp(
         T_norm,
         prep.source_full,
@@ -79,6 +87,7 @@ def _refine(T_norm: np.ndarray, prep: Prepared, config: Config) -> np.ndarray:
         max_corr=config.icp_max_corr_norm,
         trim_ratio=config.icp_trim_ratio,
         normal_radius=config.normal_radius_norm,
+        source_index=index,
     )
 
 
@@ -147,7 +156,7 @@ def run_feature_pipeline(
     residual = float(out.residual[chosen])
     if refine:
         t = time.perf_counter()
-        T_norm = _refine(T_norm, prep, config)
+        T_norm = _refine(T_norm, prep, config, ctx.cache)
         residual = residual_norm(T_norm, prep)
         times["refine"] = _lap(t)
     return RegistrationResult(
@@ -185,7 +194,7 @@ def run_global_pipeline(
         raise RegistrationError("the estimator returned a non-finite transform")
     if refine:
         t = time.perf_counter()
-        T_norm = _refine(T_norm, prep, config)
+        T_norm = _refine(T_norm, prep, config, ctx.cache)
         times["refine"] = _lap(t)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
     T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)

@@ -18,6 +18,11 @@ def _rotation(omega: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
+def source_search_index(source: np.ndarray, normal_radius: float) -> tuple[cKDTree, np.ndarray]:
+    """The k-d tree and outward normals of the source: built once per preoperative model."""
+    return cKDTree(source), outward_normals(source, normal_radius)
+
+
 def trimmed_icp(
     T_init: np.ndarray,
     source: np.ndarray,
@@ -29,6 +34,7 @@ def trimmed_icp(
     normal_radius: float = 0.1,
     max_target_points: int = 4000,
     tol: float = 1e-6,
+    source_index: tuple[cKDTree, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Refine T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.
 
@@ -40,8 +46,7 @@ def trimmed_icp(
     T = np.asarray(T_init, dtype=np.float64).copy()
     if len(target) > max_target_points:  # even subsample keeps the cost bounded
         target = target[:: int(np.ceil(len(target) / max_target_points))]
-    tree = cKDTree(source)
-    normals = outward_normals(source, normal_radius)
+    tree, normals = source_index if source_index is not None else source_search_index(source, normal_radius)
     T_inv = np.linalg.inv(T)
     for _ in range(max_iterations):
         q = target @ T_inv[:3, :3].T + T_inv[:3, 3]  # target in the source frame

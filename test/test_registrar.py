@@ -84,3 +84,16 @@ def test_result_json_is_serializable() -> None:
 def test_available_methods_is_a_sorted_list() -> None:
     names = available_methods()
     assert names == sorted(names)
+
+
+def test_remember_latest_reuses_one_entry_per_kind(rng: np.random.Generator) -> None:
+    from liver_p2p_reg.registrar import remember_latest
+
+    cache: dict = {}
+    calls: list[int] = []
+    a, b = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    assert remember_latest(cache, "k", a, (1,), lambda: calls.append(1) or "A") == "A"
+    assert remember_latest(cache, "k", a.copy(), (1,), lambda: calls.append(1) or "X") == "A"  # same content: hit
+    assert remember_latest(cache, "k", b, (1,), lambda: calls.append(1) or "B") == "B"
+    assert remember_latest(cache, "other", a, (1,), lambda: "O") == "O"
+    assert len(calls) == 2 and len(cache) == 2  # only the latest entry of each kind is kept

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import hashlib
 from typing import Any
 
 import numpy as np
 import torch
 
 from ..o3d import o3d_module
+from ..registrar import remember_latest
 
 
 def outward_normals(points: np.ndarray, radius: float, max_nn: int = 30) -> np.ndarray:
@@ -56,16 +56,10 @@ class FPFHProvider:
 
     def raw(self, points: np.ndarray, cache: dict[str, Any] | None = None) -> np.ndarray:
         """(N, 33) FPFH, cached by content (the preoperative source is described once)."""
-        key = None
-        if cache is not None:
-            digest = hashlib.blake2b(np.ascontiguousarray(points).tobytes(), digest_size=16).hexdigest()
-            key = ("fpfh", digest, self.normal_radius, self.feature_radius)
-            if key in cache:
-                return cache[key]
-        value = fpfh(points, self.normal_radius, self.feature_radius)
-        if key is not None:
-            cache[key] = value
-        return value
+        if cache is None:
+            return fpfh(points, self.normal_radius, self.feature_radius)
+        params = (self.normal_radius, self.feature_radius)
+        return remember_latest(cache, "fpfh", points, params, lambda: fpfh(points, *params))
 
     def describe(
         self, source_norm: torch.Tensor, target_norm: torch.Tensor, cache: dict[str, Any]

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import hashlib
 from typing import Any
 
 import numpy as np
 import torch
 
+from ..registrar import remember_latest
 from .descriptors import local_features
 from .model import MatcherNet
 from .weights import load_weights
@@ -28,12 +28,9 @@ class LearnedProvider:
         """source (N,3), target (M,3) normalized -> L2-normalized descriptors (N,d), (M,d)."""
         src = source_norm.detach().to("cpu", torch.float64).numpy()
         # The preoperative source is fixed across frames: compute its invariant inputs once.
-        key = f"learned_src_features:{src.shape[0]}:{hashlib.sha1(src.tobytes()).hexdigest()}"
-        f_src = cache.get(key)
-        if f_src is None:
-            for old in [k for k in cache if k.startswith("learned_src_features:")]:
-                del cache[old]  # one source at a time: bounded memory over a benchmark
-            f_src = cache[key] = torch.as_tensor(local_features(src), dtype=torch.float32)
+        f_src = remember_latest(
+            cache, "learned_src_features", src, (), lambda: torch.as_tensor(local_features(src), dtype=torch.float32)
+        )
         f_tgt = torch.as_tensor(
             local_features(target_norm.detach().to("cpu", torch.float64).numpy()), dtype=torch.float32
         )
