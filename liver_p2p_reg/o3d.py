@@ -13,7 +13,7 @@ def o3d_module() -> ModuleType:
         import open3d
     except ImportError as exc:
         raise LiverP2PError(
-            f"Open3D is not usable ({exc}); install `open3d-cpu` (headless) or `open3d` "
+            f"Open3D is not usable ({exc}); install `open3d-cpu<0.20` (headless) or `open3d` "
             "(needs the system's libusb-1.0-0)"
         ) from None
     return open3d

@@ -29,12 +29,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("demo", help="replay every bundled bag and print the per-case table")
     p.add_argument("--method", help="registration method (default: the configured default)")
     p.add_argument("--config", help="YAML configuration file")
-    p.add_argument("--out", default="out/demo", help="folder for the output bags (default: out/demo)")
+    p.add_argument(
+        "--out", default="out/demo", help="folder for the output bags, replaced on each demo run (default: out/demo)"
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..o3d import quiet_open3d
     from ..ros.replay import format_table, replay_bags
+
+    quiet_open3d()  # RANSAC's C++ warnings would interleave with the table on stdout
 
     config = Config.from_yaml(args.config) if args.config else Config()
     if args.method:
