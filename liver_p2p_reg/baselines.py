@@ -8,17 +8,13 @@ from .config import Config
 from .errors import RegistrationError
 from .features.fpfh import FPFHProvider, outward_normals
 from .o3d import o3d_module
+from .procrustes import rigid_fit_np
 
 
 def kabsch_np(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Least-squares rigid 4x4 transform source -> target from paired points (float64)."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    H = (source - cs).T @ (target - ct)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, ct - R @ cs
+    T[:3, :3], T[:3, 3] = rigid_fit_np(source, target)
     return T
 
 

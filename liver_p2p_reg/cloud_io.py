@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .o3d import o3d_module
 
 LOG = logging.getLogger("liver_p2p_reg")
 
@@ -55,7 +56,7 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> n
 
 def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Load vertices (V, 3) and triangles (F, 3) with Open3D; a point-cloud file gives F = 0."""
-    import open3d as o3d  # heavy import, only when reading such files
+    o3d = o3d_module()  # heavy import, only when reading such files
 
     path = Path(path)
     suffix = path.suffix.lower()
@@ -121,7 +122,7 @@ def save_points(path: str | Path, points: np.ndarray) -> None:
     elif suffix in (".xyz", ".pts"):
         np.savetxt(path, points, fmt="%.6f")
     elif suffix in (".ply", ".pcd"):
-        import open3d as o3d
+        o3d = o3d_module()
 
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         if not o3d.io.write_point_cloud(str(path), cloud):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 MIN_CORRESPONDENCES = 3
@@ -58,3 +59,17 @@ def to_homogeneous(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     T[..., :3, 3] = t
     T[..., 3, 3] = 1
     return T
+
+
+def rigid_fit_np(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unweighted float64 Kabsch on paired (N, 3) points: (R, t) with R @ s + t ~ target.
+
+    The NumPy counterpart of `weighted_procrustes` for ground-truth fits (the oracle, the
+    phantom generator's rigid-part removal), where no autograd or batching is wanted.
+    """
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    H = (source - cs).T @ (target - ct)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0  # reflection guard
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, ct - R @ cs

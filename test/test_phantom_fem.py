@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from liver_p2p_reg.phantom.anatomy import make_liver, winding_number
-from liver_p2p_reg.phantom.fem import RMS_RANGE_MM, assemble, procrustes, random_load_case, solve_displacement
+from liver_p2p_reg.phantom.fem import RMS_RANGE_MM, assemble, random_load_case, solve_displacement
 from liver_p2p_reg.phantom.simulate import simulate_liver
 from liver_p2p_reg.phantom.tetmesh import build_tetmesh
+from liver_p2p_reg.procrustes import rigid_fit_np as procrustes
 
 
 def test_embedding_interpolates_linear_fields_exactly() -> None:

@@ -21,6 +21,7 @@ from skfem import Basis, ElementTetP1, ElementVector, MeshTet, asm, condense
 from skfem.models.elasticity import lame_parameters, linear_elasticity
 
 from ..errors import InputError
+from ..procrustes import rigid_fit_np
 from .tetmesh import TetMesh
 
 POISSON_RATIO = 0.45
@@ -43,16 +44,6 @@ def assemble(mesh: TetMesh, youngs_modulus: float = 1.0, poisson_ratio: float = 
     basis = Basis(skmesh, ElementVector(ElementTetP1()))
     K = asm(linear_elasticity(*lame_parameters(youngs_modulus, poisson_ratio)), basis)
     return FemSystem(stiffness=K.tocsr(), nodal_dofs=np.asarray(basis.nodal_dofs))
-
-
-def procrustes(moving: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid (R, t) with R @ moving + t ~ fixed (Kabsch, no reflection)."""
-    cm, cf = moving.mean(axis=0), fixed.mean(axis=0)
-    H = (moving - cm).T @ (fixed - cf)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cf - R @ cm
 
 
 @dataclass
@@ -173,7 +164,7 @@ def calibrate(
 
     def residual_rms(scale: float) -> tuple[float, np.ndarray, np.ndarray]:
         moved = nodes_mm + scale * unit_disp
-        R, t = procrustes(moved, nodes_mm)
+        R, t = rigid_fit_np(moved, nodes_mm)
         d = (moved[fiducial_ids] @ R.T + t) - nodes_mm[fiducial_ids]
         return float(np.sqrt(np.mean(np.sum(d**2, axis=1)))), R, t
 
