@@ -35,6 +35,10 @@ class Config:
     selection: str = "closest-point"  # P2P candidate selection rule
     inlier_radius_norm: float = 0.05  # tau of the inlier-count rule (normalized units)
     candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
+    mutual_only: bool = False  # True: strict mutual-NN matches (the paper); False: each row's best, confidence-weighted
+    refit_iterations: int = 6  # robust re-fits of each candidate on its own consistent matches; 0: off (the paper)
+    refit_radius_start_norm: float = 0.3  # first re-fit radius (normalized units) ...
+    refit_radius_end_norm: float = 0.04  # ... shrinking geometrically to this one
     fpfh_radius_norm: float = 0.25  # FPFH feature radius (normalized units)
     normal_radius_norm: float = 0.1  # normal estimation radius (normalized units)
     ransac_max_corr_norm: float = 0.05  # FPFH+RANSAC max correspondence distance (paper)
@@ -75,6 +79,13 @@ class Config:
             raise InputError(f"device must be one of {DEVICES}, got {self.device!r}")
         if self.min_points < 3:
             raise InputError(f"min_points must be >= 3, got {self.min_points}")
+        if self.refit_iterations < 0:
+            raise InputError(f"refit_iterations must be >= 0, got {self.refit_iterations}")
+        if not 0 < self.refit_radius_end_norm <= self.refit_radius_start_norm:
+            raise InputError(
+                "need 0 < refit_radius_end_norm <= refit_radius_start_norm, got "
+                f"{self.refit_radius_end_norm} and {self.refit_radius_start_norm}"
+            )
         if not 0 < self.icp_trim_ratio <= 1:
             raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
         if not self.max_rate_hz > 0:

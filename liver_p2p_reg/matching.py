@@ -78,9 +78,14 @@ def mutual_nearest(confidence: torch.Tensor, threshold: float = 0.0) -> torch.Te
     return row_best & col_best & (confidence > threshold)
 
 
-def matches_per_row(log_confidence: torch.Tensor, threshold: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """For each source row: its best target column and a weight (confidence if mutual, else 0).
+def matches_per_row(
+    log_confidence: torch.Tensor, threshold: float = 0.0, mutual_only: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each source row: its best target column and a weight (its confidence).
 
+    With `mutual_only` the weight is 0 unless the pair is also its column's best (mutual NN);
+    otherwise every row keeps its best match, weighted by the dual-softmax confidence, which
+    is already low for rows whose column prefers another row.
     Takes the LOG confidence (log_dual_softmax) so no second (N, M) matrix is materialized.
     Returns (target_index (..., N) long, weight (..., N)); a row has at most one mutual match,
     so this dense form carries every mutual-NN correspondence and batches over patches.
@@ -92,5 +97,6 @@ def matches_per_row(log_confidence: torch.Tensor, threshold: float = 0.0) -> tup
     col_max = log_confidence.detach().amax(dim=-2)  # (..., M)
     mutual = best_log.detach() >= torch.gather(col_max, -1, index)
     weight = best_log.exp()
-    weight = torch.where(mutual & (weight > threshold), weight, torch.zeros_like(weight))
+    keep = (mutual & (weight > threshold)) if mutual_only else (weight > threshold)
+    weight = torch.where(keep, weight, torch.zeros_like(weight))
     return index, weight

@@ -13,6 +13,14 @@ from .matching import log_dual_softmax, log_dual_softmax_with_patches, matches_p
 from .procrustes import weighted_procrustes
 
 
+MIN_REFIT_MATCHES = 6  # a re-fit on fewer matches than this keeps the previous pose
+
+
+def geometric_radii(start: float, end: float, count: int) -> tuple[float, ...]:
+    """`count` radii shrinking geometrically from `start` to `end` (the robust re-fit schedule)."""
+    return tuple(float(r) for r in np.geomspace(start, end, count)) if count > 0 else ()
+
+
 @dataclass
 class P2PSettings:
     """The module's knobs (taken from Config by the pipelines)."""
@@ -24,6 +32,9 @@ class P2PSettings:
     inlier_radius: float = 0.05  # normalized units (the paper's tau)
     candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
     use_p2p: bool = True  # False: only the complete-to-partial candidate
+    mutual_only: bool = False  # True: strict mutual nearest neighbours (the paper); False: every row's best match
+    # robust re-fit radii (normalized), largest first; () = off (the paper's single fit)
+    refit_radii: tuple[float, ...] = geometric_radii(0.3, 0.04, 6)
 
 
 @dataclass
@@ -76,6 +87,37 @@ def closest_point_residuals(
     return torch.as_tensor(out, dtype=target.dtype, device=target.device)
 
 
+def robust_refit(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    weights: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    ok: torch.Tensor,
+    radii: tuple[float, ...],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Re-fit each candidate on the matches its own pose explains within shrinking radii.
+
+    Batched over candidates: source/target (B, P, 3) matched pairs, weights (B, P), R (B, 3, 3),
+    t (B, 3). One weighted Procrustes fit is pulled by every wrong match; keeping only the
+    matches within a radius of the current pose, and shrinking the radius, converges to the
+    pose of the consistent majority (a deterministic, RANSAC-free consensus). A candidate whose
+    re-fit degenerates (fewer than 3 matches left) keeps its previous pose.
+    """
+    for radius in radii:
+        moved = source @ R.transpose(-1, -2) + t[..., None, :]
+        inside = ((moved - target).norm(dim=-1) < radius) & (weights > 0)
+        # Too few matches left: re-fit on the previous set instead, so no degenerate SVD
+        # (whose backward pass is NaN) is ever evaluated; the result is then discarded.
+        enough = inside.sum(dim=-1) >= MIN_REFIT_MATCHES
+        kept = torch.where(inside, weights, 0.0)
+        R_new, t_new, ok_new = weighted_procrustes(source, target, torch.where(enough[..., None], kept, weights))
+        use = ok_new & ok & enough
+        R = torch.where(use[..., None, None], R_new, R)
+        t = torch.where(use[..., None], t_new, t)
+    return R, t
+
+
 def p2p_register(
     source: torch.Tensor,
     target: torch.Tensor,
@@ -107,14 +149,19 @@ def p2p_register(
         d_nodes = torch.cdist(source[nodes], source)  # (K, N)
         patch_idx = torch.topk(d_nodes, min(m, n), dim=1, largest=False).indices  # (K, P)
 
-    # Complete-to-partial candidate: dual-softmax + mutual NN on the whole source.
+    # Complete-to-partial candidate: dual-softmax + nearest neighbours on the whole source.
     if patch_idx is None:
         log_conf, patch_log_conf = log_dual_softmax(scores, settings.temperature), None
     else:
         log_conf, patch_log_conf = log_dual_softmax_with_patches(scores, patch_idx, settings.temperature)
-    tgt_idx, weight = matches_per_row(log_conf, settings.confidence_threshold)  # (N,), (N,)
+    tgt_idx, weight = matches_per_row(log_conf, settings.confidence_threshold, settings.mutual_only)  # (N,), (N,)
     del log_conf
     R0, t0_vec, ok0 = weighted_procrustes(source, target[tgt_idx], weight)
+    if settings.refit_radii:
+        R0, t0_vec = robust_refit(
+            source[None], target[tgt_idx][None], weight[None], R0[None], t0_vec[None], ok0[None], settings.refit_radii
+        )
+        R0, t0_vec = R0[0], t0_vec[0]
     R_list, t_list, ok_list = [R0[None]], [t0_vec[None]], [ok0[None]]
     matched_src = [source]
     matched_tgt = [target[tgt_idx]]
@@ -123,11 +170,15 @@ def p2p_register(
 
     if patch_idx is not None:
         # 4. Patch-to-target matching + weighted Procrustes, all K patches at once.
-        p_tgt_idx, p_weight = matches_per_row(patch_log_conf, settings.confidence_threshold)  # (K, P)
+        p_tgt_idx, p_weight = matches_per_row(
+            patch_log_conf, settings.confidence_threshold, settings.mutual_only
+        )  # (K, P)
         del patch_log_conf
         patch_src = source[patch_idx]  # (K, P, 3)
         patch_tgt = target[p_tgt_idx]  # (K, P, 3)
         Rk, tk, okk = weighted_procrustes(patch_src, patch_tgt, p_weight)
+        if settings.refit_radii:
+            Rk, tk = robust_refit(patch_src, patch_tgt, p_weight, Rk, tk, okk, settings.refit_radii)
         R_list.append(Rk)
         t_list.append(tk)
         ok_list.append(okk)

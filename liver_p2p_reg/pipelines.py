@@ -17,7 +17,7 @@ from .errors import InputError, RegistrationError
 from .features.base import FeatureProvider
 from .features.fpfh import FPFHProvider
 from .metrics import transform_points
-from .p2p import P2PSettings, p2p_register
+from .p2p import P2PSettings, geometric_radii, p2p_register
 from .preprocess import (
     Normalization,
     denormalize_transform,
@@ -101,6 +101,10 @@ def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
         inlier_radius=config.inlier_radius_norm,
         candidate_proposal=config.candidate_proposal,
         use_p2p=use_p2p,
+        mutual_only=config.mutual_only,
+        refit_radii=geometric_radii(
+            config.refit_radius_start_norm, config.refit_radius_end_norm, config.refit_iterations
+        ),
     )
 
 

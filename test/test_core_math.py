@@ -147,6 +147,17 @@ def test_mutual_nearest_matches_reference(rng: np.random.Generator, threshold: f
         assert float(weight[i]) == pytest.approx(float(conf[i, j]), rel=1e-9)
 
 
+def test_row_best_matching_keeps_every_row_with_its_confidence(rng: np.random.Generator) -> None:
+    S = score_matrix(_normalized(rng, 40, 6), _normalized(rng, 25, 6))
+    conf = dual_softmax(S, 0.1).numpy()
+    index, weight = matches_per_row(log_dual_softmax(S, 0.1), 0.0, mutual_only=False)
+    np.testing.assert_array_equal(index.numpy(), conf.argmax(axis=1))
+    np.testing.assert_allclose(weight.numpy(), conf.max(axis=1), rtol=1e-9)
+    # the mutual pairs are a strict subset: rows that are not mutual keep a (small) weight
+    _, mutual_weight = matches_per_row(log_dual_softmax(S, 0.1), 0.0, mutual_only=True)
+    assert int((mutual_weight > 0).sum()) < int((weight > 0).sum()) == 40
+
+
 def test_matching_batches_over_patches(rng: np.random.Generator) -> None:
     S = score_matrix(_normalized(rng, 3 * 20, 6), _normalized(rng, 15, 6)).reshape(3, 20, 15)
     index, weight = matches_per_row(log_dual_softmax(S, 0.1))

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from liver_p2p_reg.p2p import P2PSettings, farthest_point_sampling, p2p_register
+from liver_p2p_reg.p2p import P2PSettings, farthest_point_sampling, geometric_radii, p2p_register, robust_refit
 from liver_p2p_reg.preprocess import voxel_downsample
+from liver_p2p_reg.procrustes import weighted_procrustes
 
 
 def _surface(rng: np.random.Generator, n: int = 12000) -> np.ndarray:
@@ -164,3 +165,27 @@ def test_candidate_count_follows_k(rng: np.random.Generator, k: int) -> None:
     out = p2p_register(_t(source), _t(source[crop]), _t(x_source), _t(x_source[crop]), P2PSettings(k=k))
     assert len(out.names) == 1 + k and out.R.shape == (1 + k, 3, 3)
     assert out.n_matches.shape == (1 + k,) and int(out.n_matches[out.chosen]) >= 3
+
+
+def test_robust_refit_recovers_the_pose_despite_outlier_matches(rng: np.random.Generator) -> None:
+    source = _surface(rng)[:400]
+    R_true, t_true = _rigid(rng)
+    target = source @ R_true.T + t_true
+    bad = rng.random(len(source)) < 0.4  # 40 % of the matches point somewhere else on the surface
+    target[bad] = target[rng.permutation(np.flatnonzero(bad))]
+    src, tgt = _t(source)[None], _t(target)[None]
+    weights = torch.ones(1, len(source), dtype=torch.float64)
+    R0, t0, ok0 = weighted_procrustes(src, tgt, weights)
+    assert float((R0[0] - _t(R_true)).abs().max()) > 0.01  # one least-squares fit is pulled off
+    R, t = robust_refit(src, tgt, weights, R0, t0, ok0, geometric_radii(0.6, 0.02, 8))
+    np.testing.assert_allclose(R[0].numpy(), R_true, atol=1e-9)
+    np.testing.assert_allclose(t[0].numpy(), t_true, atol=1e-9)
+
+
+def test_robust_refit_keeps_the_pose_when_too_few_matches_remain(rng: np.random.Generator) -> None:
+    source = _t(_surface(rng)[:50])[None]
+    target = source + 1.0  # every match is 1.7 away from the identity pose: none is within the radii
+    weights = torch.ones(1, 50, dtype=torch.float64)
+    R0, t0 = torch.eye(3, dtype=torch.float64)[None], torch.zeros(1, 3, dtype=torch.float64)
+    R, t = robust_refit(source, target, weights, R0, t0, torch.tensor([True]), (0.5, 0.1))
+    assert torch.equal(R, R0) and torch.equal(t, t0)
