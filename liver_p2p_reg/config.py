@@ -58,6 +58,11 @@ class Config:
     min_points: int = 100  # fewer valid intraop points than this is an error
     max_input_points: int = 1_000_000  # clouds this large are voxelized before anything else (bounded memory)
     residual_warn_mm: float = 4.0  # mean closest-point residual above this -> WARN
+    # continuous mode: refine the last good pose by ICP on the next cloud (method `track`) and
+    # keep it if it fits as well as the last full registration; else run the full method
+    track_previous_pose: bool = True
+    track_residual_ratio: float = 1.2  # a tracked pose is kept if its residual <= this x the full registration's
+    track_max_frames: int = 10  # a full registration at least every this many frames
     ambiguity_residual_ratio: float = 1.15  # runner-up residual within this factor ...
     ambiguity_pose_mm: float = 15.0  # ... and pose differing by this much -> ambiguous
     expected_extent_min_mm: float = 20.0  # clouds smaller than this look like wrong units
@@ -90,6 +95,10 @@ class Config:
             raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
         if not self.max_rate_hz > 0:
             raise InputError(f"max_rate_hz must be > 0, got {self.max_rate_hz}")
+        if not self.track_residual_ratio >= 1:
+            raise InputError(f"track_residual_ratio must be >= 1, got {self.track_residual_ratio}")
+        if self.track_max_frames < 1:
+            raise InputError(f"track_max_frames must be >= 1, got {self.track_max_frames}")
         return self
 
     def to_dict(self) -> dict[str, Any]:

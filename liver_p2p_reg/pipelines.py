@@ -46,12 +46,25 @@ class Prepared:
         return len(self.target) / len(self.source)
 
 
-def prepare(source_mm: np.ndarray, target_mm: np.ndarray, config: Config) -> Prepared:
-    """The paper's preprocessing; refuses a target larger than the source after voxelization."""
-    ns = source_normalization(source_mm)
+def prepare(
+    source_mm: np.ndarray, target_mm: np.ndarray, config: Config, cache: dict[str, Any] | None = None
+) -> Prepared:
+    """The paper's preprocessing; refuses a target larger than the source after voxelization.
+
+    With a cache, the source's share (normalization, voxelization) is computed once per model.
+    """
+
+    def source_part() -> tuple[Normalization, np.ndarray, np.ndarray]:
+        norm = source_normalization(source_mm)
+        full = norm.apply(source_mm)
+        return norm, full, voxel_downsample(full, config.voxel_size_norm)
+
+    if cache is None:
+        ns, src_full, src = source_part()
+    else:
+        ns, src_full, src = remember_latest(cache, "prepared-source", source_mm, (config.voxel_size_norm,), source_part)
     nt = target_normalization(target_mm, ns)
-    src_full, tgt_full = ns.apply(source_mm), nt.apply(target_mm)
-    src = voxel_downsample(src_full, config.voxel_size_norm)
+    tgt_full = nt.apply(target_mm)
     tgt = voxel_downsample(tgt_full, config.voxel_size_norm)
     if len(src) < 3 or len(tgt) < 3:
         raise InputError(f"too few points after voxelization (source {len(src)}, target {len(tgt)}); need >= 3 each")
@@ -121,7 +134,7 @@ def run_feature_pipeline(
     """preprocess -> features -> dual-softmax matching [-> P2P] [-> refine] -> result in mm."""
     times: dict[str, float] = {}
     t = time.perf_counter()
-    prep = prepare(source_mm, target_mm, config)
+    prep = prepare(source_mm, target_mm, config, ctx.cache)
     if config.device == "cuda" and not torch.cuda.is_available():
         raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
     device = torch.device(config.device)
@@ -189,7 +202,7 @@ def run_global_pipeline(
     """preprocess -> one global estimate (RANSAC, FGR, ICP) [-> refine] -> result in mm."""
     times: dict[str, float] = {}
     t = time.perf_counter()
-    prep = prepare(source_mm, target_mm, config)
+    prep = prepare(source_mm, target_mm, config, ctx.cache)
     times["preprocess"] = _lap(t)
     t = time.perf_counter()
     T_norm = np.asarray(estimate(prep.source, prep.target, config, ctx.cache), dtype=np.float64)
@@ -269,6 +282,33 @@ def icp(source_mm, target_mm, config: Config, ctx: MethodContext) -> Registratio
     return run_global_pipeline(source_mm, target_mm, config, ctx, estimate, refine=False)
 
 
+@method("track")
+def track(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """Trimmed point-to-plane ICP from a prior pose (the previous frame's): no global search."""
+    if ctx.initial_T_mm is None:
+        raise InputError("method 'track' refines a prior pose and needs initial_T_mm (the previous registration)")
+    t = time.perf_counter()
+    prep = prepare(source_mm, target_mm, config, ctx.cache)
+    times = {"preprocess": _lap(t)}
+    t = time.perf_counter()
+    T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ _norm_to_mm(prep.source_norm)
+    T_norm = _refine(T_norm, prep, config, ctx.cache)
+    times["refine"] = _lap(t)
+    residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
+    T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
+    return RegistrationResult(
+        T_target_source=T_mm,
+        method="track",
+        residual_mm=residual,
+        runtime_ms=times,
+        candidates=[Candidate("tracked", T_mm, residual, 0)],
+        chosen=0,
+        visibility=prep.visibility,
+        n_source=len(prep.source),
+        n_target=len(prep.target),
+    )
+
+
 @method("procrustes")
 def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
     """Oracle: least-squares rigid fit of the ground-truth fiducials (lower bound of rigid error)."""
@@ -279,7 +319,7 @@ def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) 
     t = time.perf_counter()
     T = baselines.kabsch_np(ctx.source_fiducials_mm, ctx.target_fiducials_mm)
     times = {"estimate": _lap(t)}
-    prep = prepare(source_mm, target_mm, config)
+    prep = prepare(source_mm, target_mm, config, ctx.cache)
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ T @ _norm_to_mm(prep.source_norm)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
     return RegistrationResult(

@@ -33,7 +33,7 @@ def trimmed_icp(
     trim_ratio: float = 0.8,
     normal_radius: float = 0.1,
     max_target_points: int = 4000,
-    tol: float = 1e-6,
+    tol: float = 1e-4,
     source_index: tuple[cKDTree, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Refine T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.

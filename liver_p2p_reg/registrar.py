@@ -30,6 +30,7 @@ class MethodContext:
     target_fiducials_mm: np.ndarray | None = None
     # Lives as long as the Registrar: methods keep loaded models / source features here.
     cache: dict[str, Any] = field(default_factory=dict)
+    initial_T_mm: np.ndarray | None = None  # a prior T_target_source (method `track`)
 
 
 def remember_latest(
@@ -109,15 +110,19 @@ class Registrar:
         method: str | None = None,
         source_fiducials_mm: np.ndarray | None = None,
         target_fiducials_mm: np.ndarray | None = None,
+        initial_T_mm: np.ndarray | None = None,
     ) -> RegistrationResult:
-        """Estimate T_target_source (4x4, mm). Raises InputError / RegistrationError."""
+        """Estimate T_target_source (4x4, mm). Raises InputError / RegistrationError.
+
+        `initial_T_mm` is a prior pose, used by the `track` method (ICP from the prior).
+        """
         start = time.perf_counter()
         source = clean_points(source_mm, "source", min_points=self.config.min_points)
         target = clean_points(target_mm, "target", min_points=self.config.min_points)
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
         name = method or self.config.method
         fn = get_method(name)
-        ctx = MethodContext(fid_s, fid_t, self.cache)
+        ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm))
         result = fn(source, target, self.config, ctx)
         result.method = name
         result.ambiguous = result.ambiguous or is_ambiguous(result, source, self.config)
@@ -149,6 +154,18 @@ def is_ambiguous(result: RegistrationResult, source_mm: np.ndarray, config: Conf
     moved_b = transform_points(second.T_target_source, sample)
     pose_gap_mm = float(np.sqrt(np.mean(np.sum((moved_a - moved_b) ** 2, axis=1))))
     return pose_gap_mm > config.ambiguity_pose_mm
+
+
+def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
+    if T is None:
+        return None
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f"initial_T_mm must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InputError("initial_T_mm must be a rigid transform (its 3x3 block is not a rotation)")
+    return T
 
 
 def _check_fiducials(fid_s: np.ndarray | None, fid_t: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:

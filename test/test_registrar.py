@@ -97,3 +97,18 @@ def test_remember_latest_reuses_one_entry_per_kind(rng: np.random.Generator) -> 
     assert remember_latest(cache, "k", b, (1,), lambda: calls.append(1) or "B") == "B"
     assert remember_latest(cache, "other", a, (1,), lambda: "O") == "O"
     assert len(calls) == 2 and len(cache) == 2  # only the latest entry of each kind is kept
+
+
+def test_track_method_needs_a_rigid_prior_pose():
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(500, 3)) * [40.0, 30.0, 20.0]
+    registrar = Registrar(Config())
+    with pytest.raises(InputError, match="needs initial_T_mm"):
+        registrar.register(source, source[:200], method="track")
+    with pytest.raises(InputError, match="finite 4x4"):
+        registrar.register(source, source[:200], method="track", initial_T_mm=np.eye(3))
+    with pytest.raises(InputError, match="not a rotation"):
+        registrar.register(source, source[:200], method="track", initial_T_mm=np.diag([2.0, 1, 1, 1]))
+    result = registrar.register(source, source[:200], method="track", initial_T_mm=np.eye(4))
+    assert result.method == "track" and result.residual_mm < 1.0  # voxel means vs points
+    np.testing.assert_allclose(result.T_target_source, np.eye(4), atol=1e-6)

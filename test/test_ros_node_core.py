@@ -170,3 +170,77 @@ def test_registration_outputs_pose_cloud_and_tre():
     core.on_intraop_points(moved(T, preop[preop[:, 1] > 0]), "camera", 43)
     assert not core.due(100.0)
     assert core.reregister(100.0).pose is not None
+
+
+def tracking_core(**cfg):
+    """A core registering an asymmetric cap with the oracle, frames of it moving slightly."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(6000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    bumps = 1 + 0.25 * np.sin(3 * d[:, 0] + 1) * np.cos(2 * d[:, 1]) + 0.2 * d[:, 2] ** 3
+    preop = d * bumps[:, None] * [80.0, 55.0, 40.0]  # lumpy: ICP has one clear optimum
+    fid_ct = np.array([[10.0, 5, 0], [-20, 10, 5], [0, -15, -10], [30, 0, 8], [-5, 20, -12]])
+    core = NodeCore(Config(method="procrustes", max_rate_hz=100.0, **cfg))
+    core.set_preop(preop)
+    core.set_preop_fiducials(fid_ct)
+    return core, preop, fid_ct
+
+
+def send_frame(core, preop, fid_ct, T, stamp, now_s):
+    core.set_intraop_fiducials(moved(T, fid_ct), stamp)
+    core.on_intraop_points(moved(T, preop[preop[:, 0] > 10]), "camera", stamp)
+    return core.process_pending(now_s)
+
+
+def nudged(T, degrees=1.0, mm=2.0):
+    step = np.eye(4)
+    step[:3, :3] = Rotation.from_euler("z", degrees, degrees=True).as_matrix()
+    step[:3, 3] = [mm, -mm, 0.5 * mm]
+    return step @ T
+
+
+@needs_procrustes
+def test_continuous_mode_tracks_from_the_previous_pose():
+    core, preop, fid_ct = tracking_core()
+    T = ground_truth()
+    first = send_frame(core, preop, fid_ct, T, 1, 0.0)
+    assert first.result.method == "procrustes" and first.diagnostics[0].values["tracked"] == "false"
+    T2 = nudged(T)  # small sensor motion: ICP from the previous pose converges
+    second = send_frame(core, preop, fid_ct, T2, 2, 1.0)
+    assert second.result.method == "track" and second.diagnostics[0].values["tracked"] == "true"
+    assert second.level == OK and "tracked from the previous pose" in second.summary
+    assert float(second.diagnostics[0].values["rms_tre_mm"]) < 0.5
+    np.testing.assert_allclose(second.pose.T_sensor_ct_mm[:3, 3], T2[:3, 3], atol=0.5)
+    # the service always runs the full method, whatever the prior
+    assert core.reregister(2.0).result.method == "procrustes"
+
+
+@needs_procrustes
+def test_tracking_falls_back_to_the_full_method_after_a_jump():
+    core, preop, fid_ct = tracking_core()
+    send_frame(core, preop, fid_ct, ground_truth(), 1, 0.0)
+    jumped = nudged(ground_truth(), degrees=90.0, mm=60.0)  # ICP from the old pose cannot fit this
+    out = send_frame(core, preop, fid_ct, jumped, 2, 1.0)
+    assert out.result.method == "procrustes" and out.diagnostics[0].values["tracked"] == "false"
+    assert "track_rejected" in out.result.runtime_ms  # the failed attempt counts in the latency
+    np.testing.assert_allclose(out.pose.T_sensor_ct_mm, jumped, atol=1e-6)
+
+
+@needs_procrustes
+@pytest.mark.parametrize("cfg", [{"track_previous_pose": False}, {"track_max_frames": 1}, {"mode": "once"}])
+def test_no_tracking_when_disabled_due_or_not_continuous(cfg):
+    core, preop, fid_ct = tracking_core(**cfg)
+    T = ground_truth()
+    send_frame(core, preop, fid_ct, T, 1, 0.0)
+    send_frame(core, preop, fid_ct, nudged(T), 2, 1.0)  # tracked only with track_max_frames=1 (then due)
+    out = core.reregister(2.0) if cfg.get("mode") == "once" else send_frame(core, preop, fid_ct, nudged(T, 2), 3, 2.0)
+    assert out.result.method == "procrustes"
+
+
+@needs_procrustes
+def test_a_new_preop_model_clears_the_prior_pose():
+    core, preop, fid_ct = tracking_core()
+    send_frame(core, preop, fid_ct, ground_truth(), 1, 0.0)
+    core.set_preop(preop)
+    out = send_frame(core, preop, fid_ct, nudged(ground_truth()), 2, 1.0)
+    assert out.result.method == "procrustes"

@@ -97,6 +97,16 @@ class _Cloud:
     n_raw: int = 0
 
 
+@dataclass
+class _TrackState:
+    """The last good pose, to start the next frame's ICP from (continuous mode)."""
+
+    T_mm: np.ndarray  # T_sensor_ct of the last accepted registration
+    reference_residual_mm: float  # residual of the last full (global) registration
+    frame_id: str
+    frames: int = 0  # tracked frames since that full registration
+
+
 class NodeCore:
     """State machine of register_node; thread-safe (callbacks vs. one registration worker)."""
 
@@ -114,6 +124,7 @@ class NodeCore:
         self._latest: _Cloud | None = None
         self._last_start_s: float | None = None
         self._once_done = False
+        self._track: _TrackState | None = None
         self.last_output: CoreOutput | None = None
         self.received = 0
         self.processed = 0
@@ -137,6 +148,7 @@ class NodeCore:
             centre = points.mean(axis=0)
             self._preop_scale_mm = float(np.max(np.linalg.norm(points - centre, axis=1)))
             self._once_done = False
+            self._track = None  # a pose of another model is no prior
         values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": self.preop_frame}
         unit_warning = self._units_warning(extent, "preop model")
         if unit_warning:
@@ -260,6 +272,7 @@ class NodeCore:
     def _register(self, cloud: _Cloud, reason: str) -> CoreOutput:
         with self._register_lock:
             output = self._register_locked(cloud, reason)
+            self._remember_for_tracking(output, cloud.frame_id)
         self.last_output = output
         with self._lock:
             self.processed += 1
@@ -307,13 +320,19 @@ class NodeCore:
         if fid_s is not None and (fid_t is None or fid_t.shape != fid_s.shape):
             fid_s = fid_t = None  # ground truth absent or not matching: no TRE
         prep_ms = (time.perf_counter() - start) * 1e3
-        try:
-            result = self.registrar.register(preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t)
-        except LiverP2PError as exc:
-            return fail(ERROR, f"registration failed: {exc}")
-        except Exception as exc:  # the node must survive anything a method raises
-            LOG.exception("registration raised")
-            return fail(ERROR, f"registration crashed: {type(exc).__name__}: {exc}")
+        result, track_ms = self._try_tracking(preop, points, fid_s, fid_t, cloud.frame_id, reason)
+        values["tracked"] = str(result is not None).lower()
+        if result is None:
+            try:
+                result = self.registrar.register(preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t)
+            except LiverP2PError as exc:
+                return fail(ERROR, f"registration failed: {exc}")
+            except Exception as exc:  # the node must survive anything a method raises
+                LOG.exception("registration raised")
+                return fail(ERROR, f"registration crashed: {type(exc).__name__}: {exc}")
+            if track_ms is not None:  # a rejected tracking attempt is part of this frame's latency
+                result.runtime_ms["track_rejected"] = track_ms
+                result.runtime_ms["total"] = result.runtime_ms.get("total", 0.0) + track_ms
         result.runtime_ms.setdefault("node_prepare", prep_ms)
         values.update(result_values(result))
         if not result.ok or not np.all(np.isfinite(result.T_target_source)):
@@ -327,7 +346,8 @@ class NodeCore:
                 reason=reason,
             )
         level = OK
-        message = f"registered: residual {result.residual_mm:.2f} mm"
+        verb = "tracked from the previous pose" if result.method == "track" else "registered"
+        message = f"{verb}: residual {result.residual_mm:.2f} mm"
         if result.rms_tre_mm is not None:
             message += f", RMS-TRE {result.rms_tre_mm:.2f} mm"
         if result.residual_mm > self.config.residual_warn_mm:
@@ -343,6 +363,59 @@ class NodeCore:
         pose = PoseOutput(cloud.stamp_ns, cloud.frame_id, preop_frame, T)
         moved = transform_points(T, preop)
         return CoreOutput([Diagnostic(level, DIAG_NAME, message, values)], pose, moved, result, reason)
+
+    def _try_tracking(
+        self,
+        preop: np.ndarray,
+        points: np.ndarray,
+        fid_s: np.ndarray | None,
+        fid_t: np.ndarray | None,
+        frame_id: str,
+        reason: str,
+    ) -> tuple[RegistrationResult | None, float | None]:
+        """ICP from the last good pose; (result, None) if it fits as well as the last full registration.
+
+        Returns (None, ms spent) when the tracked pose is rejected and (None, None) when no
+        tracking was attempted: outside continuous mode, on a re-register request, without a
+        good previous pose, for another sensor frame, or when a full registration is due.
+        """
+        track = self._track
+        cfg = self.config
+        if (
+            not cfg.track_previous_pose
+            or reason != "continuous"
+            or track is None
+            or track.frame_id != frame_id
+            or track.frames >= cfg.track_max_frames
+        ):
+            return None, None
+        start = time.perf_counter()
+        try:
+            result = self.registrar.register(
+                preop,
+                points,
+                method="track",
+                initial_T_mm=track.T_mm,
+                source_fiducials_mm=fid_s,
+                target_fiducials_mm=fid_t,
+            )
+        except LiverP2PError:
+            return None, (time.perf_counter() - start) * 1e3
+        limit_mm = min(cfg.track_residual_ratio * track.reference_residual_mm, cfg.residual_warn_mm)
+        if not (result.residual_mm <= limit_mm and np.isfinite(result.T_target_source).all()):
+            return None, (time.perf_counter() - start) * 1e3
+        return result, None
+
+    def _remember_for_tracking(self, output: CoreOutput, frame_id: str) -> None:
+        """Keep an OK pose as the next frame's prior; anything else (WARN, ERROR) clears it."""
+        result = output.result
+        if output.pose is None or result is None or output.level != OK:
+            self._track = None
+        elif result.method == "track" and self._track is not None:
+            self._track.T_mm = np.asarray(result.T_target_source, dtype=np.float64)
+            self._track.frames += 1
+        else:
+            self._track = _TrackState(np.asarray(result.T_target_source, float), result.residual_mm, frame_id)
 
     def _decode(self, cloud: _Cloud) -> tuple[np.ndarray, int]:
         if cloud.points_mm is not None:
