@@ -36,6 +36,7 @@ class Config:
     inlier_radius_norm: float = 0.05  # tau of the inlier-count rule (normalized units)
     candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
     mutual_only: bool = False  # True: strict mutual-NN matches (the paper); False: each row's best, confidence-weighted
+    max_patch_rows: int = 1024  # P2P matches an even subsample of about this many rows per patch; 0: all (the paper)
     refit_iterations: int = 6  # robust re-fits of each candidate on its own consistent matches; 0: off (the paper)
     refit_radius_start_norm: float = 0.3  # first re-fit radius (normalized units) ...
     refit_radius_end_norm: float = 0.04  # ... shrinking geometrically to this one
@@ -84,6 +85,8 @@ class Config:
             raise InputError(f"device must be one of {DEVICES}, got {self.device!r}")
         if self.min_points < 3:
             raise InputError(f"min_points must be >= 3, got {self.min_points}")
+        if self.max_patch_rows < 0:
+            raise InputError(f"max_patch_rows must be >= 0, got {self.max_patch_rows}")
         if self.refit_iterations < 0:
             raise InputError(f"refit_iterations must be >= 0, got {self.refit_iterations}")
         if not 0 < self.refit_radius_end_norm <= self.refit_radius_start_norm:

@@ -38,7 +38,7 @@ def log_dual_softmax(scores: torch.Tensor, temperature: float) -> torch.Tensor:
 
 
 def log_dual_softmax_with_patches(
-    scores: torch.Tensor, patch_rows: torch.Tensor, temperature: float
+    scores: torch.Tensor, patch_rows: torch.Tensor, temperature: float, row_stride: int = 1
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Log dual-softmax of the whole (N, M) score matrix and of each patch's rows at once.
 
@@ -47,11 +47,14 @@ def log_dual_softmax_with_patches(
     (same rows, same columns); only its column sums differ, and those come from one
     (K, N) x (N, M) product with the patch-membership matrix, so the patches reuse the
     whole matrix's exponentials instead of computing K * P * M new ones.
+    With row_stride > 1 only every row_stride-th row of each patch is returned, (K, P', M):
+    those rows are exact (the column sums still cover the whole patch), at a fraction of the cost.
     """
     scaled = scores / temperature
     top = scaled.detach().amax()
     if float(top - scaled.detach().amin()) >= _EXP_SAFE_RANGE:
-        return log_dual_softmax(scores, temperature), log_dual_softmax(scores[patch_rows], temperature)
+        full_patches = log_dual_softmax(scores[patch_rows], temperature)
+        return log_dual_softmax(scores, temperature), full_patches[:, ::row_stride]
     shifted = scaled.sub_(top)
     e = shifted.exp()
     row = e.sum(dim=-1, keepdim=True).log_()  # (N, 1)
@@ -59,6 +62,7 @@ def log_dual_softmax_with_patches(
     member = torch.zeros(patch_rows.shape[0], scores.shape[0], dtype=e.dtype, device=e.device)
     member.scatter_(1, patch_rows, 1.0)  # (K, N)
     patch_col = (member @ e).log_()  # (K, M)
+    patch_rows = patch_rows[:, ::row_stride]
     k, p = patch_rows.shape
     flat = patch_rows.reshape(-1)
     patches = shifted.index_select(0, flat).view(k, p, -1)  # (K, P, M); faster than fancy indexing
@@ -92,11 +96,12 @@ def matches_per_row(
     """
     index = log_confidence.argmax(dim=-1)  # (..., N)
     best_log = torch.gather(log_confidence, -1, index[..., None])[..., 0]
-    # Mutual when the row's best entry is also its column's maximum. amax over rows is a
-    # contiguous reduction, ~20x faster on CPU than argmax along dim -2.
-    col_max = log_confidence.detach().amax(dim=-2)  # (..., M)
-    mutual = best_log.detach() >= torch.gather(col_max, -1, index)
     weight = best_log.exp()
-    keep = (mutual & (weight > threshold)) if mutual_only else (weight > threshold)
+    keep = weight > threshold
+    if mutual_only:
+        # Mutual when the row's best entry is also its column's maximum. amax over rows is a
+        # contiguous reduction, ~20x faster on CPU than argmax along dim -2.
+        col_max = log_confidence.detach().amax(dim=-2)  # (..., M)
+        keep = keep & (best_log.detach() >= torch.gather(col_max, -1, index))
     weight = torch.where(keep, weight, torch.zeros_like(weight))
     return index, weight

@@ -12,7 +12,6 @@ from scipy.spatial import cKDTree
 from .matching import log_dual_softmax, log_dual_softmax_with_patches, matches_per_row, score_matrix
 from .procrustes import weighted_procrustes
 
-
 MIN_REFIT_MATCHES = 6  # a re-fit on fewer matches than this keeps the previous pose
 
 
@@ -32,6 +31,7 @@ class P2PSettings:
     inlier_radius: float = 0.05  # normalized units (the paper's tau)
     candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
     use_p2p: bool = True  # False: only the complete-to-partial candidate
+    max_patch_rows: int = 0  # > 0: match only an even subsample of about this many rows per patch (speed)
     mutual_only: bool = False  # True: strict mutual nearest neighbours (the paper); False: every row's best match
     # robust re-fit radii (normalized), largest first; () = off (the paper's single fit)
     refit_radii: tuple[float, ...] = geometric_radii(0.3, 0.04, 6)
@@ -153,7 +153,11 @@ def p2p_register(
     if patch_idx is None:
         log_conf, patch_log_conf = log_dual_softmax(scores, settings.temperature), None
     else:
-        log_conf, patch_log_conf = log_dual_softmax_with_patches(scores, patch_idx, settings.temperature)
+        stride = 1
+        if settings.max_patch_rows > 0:
+            stride = max(1, -(-patch_idx.shape[1] // settings.max_patch_rows))  # ceil
+        log_conf, patch_log_conf = log_dual_softmax_with_patches(scores, patch_idx, settings.temperature, stride)
+        patch_idx = patch_idx[:, ::stride]  # the rows whose matches were computed
     tgt_idx, weight = matches_per_row(log_conf, settings.confidence_threshold, settings.mutual_only)  # (N,), (N,)
     del log_conf
     R0, t0_vec, ok0 = weighted_procrustes(source, target[tgt_idx], weight)

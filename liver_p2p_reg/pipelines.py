@@ -115,6 +115,7 @@ def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
         candidate_proposal=config.candidate_proposal,
         use_p2p=use_p2p,
         mutual_only=config.mutual_only,
+        max_patch_rows=config.max_patch_rows,
         refit_radii=geometric_radii(
             config.refit_radius_start_norm, config.refit_radius_end_norm, config.refit_iterations
         ),

@@ -187,3 +187,7 @@ def test_patch_dual_softmax_equals_per_patch_computation(rng: np.random.Generato
     for k in range(4):
         expected = log_dual_softmax(S[patch_rows[k]], temperature)
         np.testing.assert_allclose(patches[k].numpy(), expected.numpy(), rtol=1e-10, atol=1e-9)
+    # A row stride returns exactly those rows of each patch (column sums still over the whole patch).
+    _, strided = log_dual_softmax_with_patches(S.clone(), patch_rows, temperature, row_stride=5)
+    assert strided.shape == (4, 3, 12)
+    np.testing.assert_allclose(strided.numpy(), patches[:, ::5].numpy(), rtol=1e-10, atol=1e-9)

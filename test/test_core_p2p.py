@@ -58,14 +58,16 @@ def test_fps_spreads_points(rng: np.random.Generator) -> None:
     assert float(gaps.min()) > 0.5  # five nodes on a unit-size surface are far apart
 
 
-def test_p2p_recovers_the_transform_on_a_partial_crop(rng: np.random.Generator) -> None:
+@pytest.mark.parametrize("max_patch_rows", [0, 100])  # all patch rows, or an even subsample
+def test_p2p_recovers_the_transform_on_a_partial_crop(rng: np.random.Generator, max_patch_rows: int) -> None:
     source = _surface(rng)
     crop = _crop(source, source[np.argmax(source[:, 0])], 0.25)
     R_true, t_true = _rigid(rng)
     target = source[crop] @ R_true.T + t_true
     x_source = _features(rng, len(source))
     x_target = _noisy(x_source[crop], rng, 0.05)
-    out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), P2PSettings(k=5))
+    settings = P2PSettings(k=5, max_patch_rows=max_patch_rows)
+    out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), settings)
     assert len(out.names) == 6 and out.names[0] == "complete-to-partial"
     assert out.ok.all()
     R, t = _candidate(out, out.chosen)
