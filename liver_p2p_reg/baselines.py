@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .config import Config
 from .errors import RegistrationError
@@ -53,28 +54,54 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, T_init: np.ndarra
 
 def _fpfh_features(source: np.ndarray, target: np.ndarray, config: Config, cache: dict):
     o3d = o3d_module()
-    provider = FPFHProvider(config.normal_radius_norm, config.fpfh_radius_norm)
     feats = []
-    for points, c in ((source, cache), (target, None)):
+    for raw in _fpfh_raw(source, target, config, cache):
         f = o3d.pipelines.registration.Feature()
-        f.data = provider.raw(points, c).T.copy()
+        f.data = raw.T.copy()
         feats.append(f)
     return feats
 
 
+def _fpfh_raw(source: np.ndarray, target: np.ndarray, config: Config, cache: dict) -> tuple[np.ndarray, np.ndarray]:
+    provider = FPFHProvider(config.normal_radius_norm, config.fpfh_radius_norm)
+    return provider.raw(source, cache), provider.raw(target, None)
+
+
+# Fewer mutual feature matches than this: RANSAC draws from every target point's nearest match.
+MIN_MUTUAL_MATCHES = 30
+
+
+def feature_correspondences(f_source: np.ndarray, f_target: np.ndarray) -> np.ndarray:
+    """(C, 2) [source, target] index pairs: mutual nearest neighbours in feature space.
+
+    Falls back to each target point's nearest source feature when fewer than
+    MIN_MUTUAL_MATCHES pairs are mutual (as Open3D's own mutual filter does).
+    """
+    _, src_of_tgt = cKDTree(f_source).query(f_target, k=1)
+    _, tgt_of_src = cKDTree(f_target).query(f_source, k=1)
+    tgt_idx = np.arange(len(f_target))
+    mutual = tgt_of_src[src_of_tgt] == tgt_idx
+    if mutual.sum() < MIN_MUTUAL_MATCHES:
+        mutual[:] = True
+    return np.stack([src_of_tgt[mutual], tgt_idx[mutual]], axis=1).astype(np.int32)
+
+
 def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: dict) -> np.ndarray:
-    """FPFH + RANSAC (Open3D), max correspondence distance 0.05 normalized as in the paper."""
+    """FPFH + RANSAC (Open3D) on mutual feature matches, max correspondence distance 0.05 normalized (paper).
+
+    The matches are computed here (k-d trees over the 33-D histograms) and handed to Open3D's
+    correspondence RANSAC: the same hypotheses as its feature-matching variant, several
+    times faster on these cloud sizes.
+    """
     o3d = o3d_module()
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(config.seed)  # Open3D's RANSAC draws from its own generator
-    f_src, f_tgt = _fpfh_features(source, target, config, cache)
+    corres = feature_correspondences(*_fpfh_raw(source, target, config, cache))
     dist = config.ransac_max_corr_norm
-    result = reg.registration_ransac_based_on_feature_matching(
+    result = reg.registration_ransac_based_on_correspondence(
         _cloud(source),
         _cloud(target),
-        f_src,
-        f_tgt,
-        True,  # mutual filter
+        o3d.utility.Vector2iVector(corres),
         dist,
         reg.TransformationEstimationPointToPoint(False),
         3,
