@@ -232,9 +232,10 @@ def write_readme(rows: list[ReplayRow], config: Config, out_dir: Path, max_frame
     if len(runtimes):
         lines += [
             "",
-            f"Per-frame register latency over all bundled frames ({len(runtimes)} registrations): "
+            f"Per-frame register latency over all bundled frames ({len(runtimes)} registrations, "
+            f"{sum(row.tracked for row in rows)} of them tracked from the previous pose): "
             f"p50 {np.percentile(runtimes, 50):.0f} ms, p95 {np.percentile(runtimes, 95):.0f} ms "
-            "(`runtime_ms.total` of the core, this machine; see `scripts/bench_node.py`).",
+            "(`runtime_ms.total` of the core, this machine; `scripts/bench_node.py` also measures it without tracking).",
         ]
     lines.append("")
     path = out_dir / "README.md"

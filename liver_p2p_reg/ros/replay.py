@@ -53,6 +53,7 @@ class ReplayRow:
     residual_mm: float  # mean over registered frames
     runtime_ms_p50: float
     runtime_ms: list[float] = field(default_factory=list)  # per registration, total
+    tracked: int = 0  # registrations tracked from the previous pose (continuous mode)
     status: str = "OK"  # worst diagnostic level over the registrations
     message: str = ""
     output: str = ""  # output bag path ("" when not written)
@@ -164,6 +165,7 @@ def _summarize(path: Path, frames: int, outputs: list[CoreOutput], out: str, inf
         residual_mm=mean([r.residual_mm for r in results]),
         runtime_ms_p50=float(np.median(runtimes)) if runtimes else float("nan"),
         runtime_ms=runtimes,
+        tracked=sum(r.method == "track" for r in results),
         status=LEVEL_NAMES[worst] if results or worst != OK else "ERROR",
         message=messages[0] if messages else ("no intraop frames" if frames == 0 else ""),
         output=out,
