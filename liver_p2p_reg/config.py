@@ -29,6 +29,10 @@ class Config:
     # Default = the most accurate method of the latest full benchmark (README "Benchmark").
     method: str = "fpfh-ransac-icp"
     k: int = 5  # number of P2P patch candidates
+    # intraop cloud: drop points whose mean distance to their neighbours is above mean + this
+    # many std (flying pixels, specks); 0 disables
+    outlier_std_ratio: float = 2.0
+    outlier_neighbors: int = 20
     voxel_size_norm: float = 0.04  # voxel edge in normalized (unit-sphere) units
     temperature: float = 0.1  # dual-softmax temperature applied to the score matrix
     confidence_threshold: float = 0.0  # minimum dual-softmax confidence of a kept match
@@ -85,6 +89,10 @@ class Config:
             raise InputError(f"device must be one of {DEVICES}, got {self.device!r}")
         if self.min_points < 3:
             raise InputError(f"min_points must be >= 3, got {self.min_points}")
+        if self.outlier_std_ratio < 0:
+            raise InputError(f"outlier_std_ratio must be >= 0 (0 disables), got {self.outlier_std_ratio}")
+        if self.outlier_neighbors < 3:
+            raise InputError(f"outlier_neighbors must be >= 3, got {self.outlier_neighbors}")
         if self.max_patch_rows < 0:
             raise InputError(f"max_patch_rows must be >= 0, got {self.max_patch_rows}")
         if self.refit_iterations < 0:

@@ -22,6 +22,7 @@ from .preprocess import (
     Normalization,
     denormalize_transform,
     source_normalization,
+    statistical_inliers,
     target_normalization,
     voxel_downsample,
 )
@@ -63,6 +64,8 @@ def prepare(
         ns, src_full, src = source_part()
     else:
         ns, src_full, src = remember_latest(cache, "prepared-source", source_mm, (config.voxel_size_norm,), source_part)
+    if config.outlier_std_ratio > 0:
+        target_mm = target_mm[statistical_inliers(target_mm, config.outlier_neighbors, config.outlier_std_ratio)]
     nt = target_normalization(target_mm, ns)
     tgt_full = nt.apply(target_mm)
     tgt = voxel_downsample(tgt_full, config.voxel_size_norm)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .errors import InputError
 
@@ -64,3 +65,19 @@ def denormalize_transform(T_norm: np.ndarray, source: Normalization, target: Nor
     T[:3, :3] = R
     T[:3, 3] = source.scale_mm * t + target.centroid_mm - R @ source.centroid_mm
     return T
+
+
+def statistical_inliers(points: np.ndarray, neighbors: int, std_ratio: float) -> np.ndarray:
+    """Boolean mask of points whose mean distance to their k neighbours is within
+    mean + std_ratio * std over the cloud (drops depth-sensor flying pixels and specks).
+
+    Keeps everything when the cloud is too small to judge or the rule would drop most of it.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    k = min(neighbors, len(points) - 1)
+    if k < 3 or std_ratio <= 0:
+        return np.ones(len(points), dtype=bool)
+    dist, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+    mean_dist = dist[:, 1:].mean(axis=1)
+    keep = mean_dist <= mean_dist.mean() + std_ratio * mean_dist.std()
+    return keep if keep.sum() >= 0.5 * len(points) else np.ones(len(points), dtype=bool)

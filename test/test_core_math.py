@@ -191,3 +191,17 @@ def test_patch_dual_softmax_equals_per_patch_computation(rng: np.random.Generato
     _, strided = log_dual_softmax_with_patches(S.clone(), patch_rows, temperature, row_stride=5)
     assert strided.shape == (4, 3, 12)
     np.testing.assert_allclose(strided.numpy(), patches[:, ::5].numpy(), rtol=1e-10, atol=1e-9)
+
+
+def test_statistical_inliers_drop_flying_pixels_and_keep_the_surface(rng: np.random.Generator) -> None:
+    from liver_p2p_reg.preprocess import statistical_inliers
+
+    u, v = rng.uniform(0, 100, (2, 4000))
+    surface = np.stack([u, v, 0.002 * (u - 50) ** 2], axis=1)  # a gently curved 100 mm patch
+    off_mm = rng.uniform(10, 40, (100, 1)) * rng.choice([-1.0, 1.0], (100, 1))
+    flying = surface[:100] + off_mm * [0, 0, 1]  # 10-40 mm off the surface along the ray
+    keep = statistical_inliers(np.vstack([surface, flying]), neighbors=20, std_ratio=2.0)
+    assert keep[:4000].mean() > 0.95  # the surface stays
+    assert keep[4000:].mean() < 0.2  # most flying pixels go
+    assert statistical_inliers(surface[:3], 20, 2.0).all()  # too small to judge: keep all
+    assert statistical_inliers(surface, 20, 0.0).all()  # disabled
