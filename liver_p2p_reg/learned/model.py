@@ -133,15 +133,28 @@ class MatcherNet(nn.Module):
         w = w / w.sum(dim=1, keepdim=True)
         return (node_feat[ik] * w[..., None]).sum(dim=1)
 
+    def encode(self, points: torch.Tensor, features: torch.Tensor) -> tuple:
+        """One cloud's own part, before any attention: point embeddings, point->node
+        distances, node features and per-layer attention biases. Depends on that cloud only,
+        so a fixed source can be encoded once and passed to `forward` as `source_context`."""
+        h = self.embed(features)
+        d_point_node, nodes, d_nodes = self._nodes(points, h)
+        return h, d_point_node, nodes, self._biases(d_nodes)
+
     def forward(
-        self, src: torch.Tensor, tgt: torch.Tensor, f_src: torch.Tensor, f_tgt: torch.Tensor, with_overlap: bool = False
+        self,
+        src: torch.Tensor,
+        tgt: torch.Tensor,
+        f_src: torch.Tensor,
+        f_tgt: torch.Tensor,
+        with_overlap: bool = False,
+        source_context: tuple | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """src (N,3), tgt (M,3), invariant features -> x_S (N,d), x_T (M,d) normalized
-        [, overlap logits (N,), (M,) when `with_overlap` (training only)]."""
-        hs, ht = self.embed(f_src), self.embed(f_tgt)
-        pns, gs, ds = self._nodes(src, hs)
-        pnt, gt, dt = self._nodes(tgt, ht)
-        bs, bt = self._biases(ds), self._biases(dt)
+        [, overlap logits (N,), (M,) when `with_overlap` (training only)].
+        `source_context`: `encode(src, f_src)` computed earlier (inference on a fixed source)."""
+        hs, pns, gs, bs = source_context if source_context is not None else self.encode(src, f_src)
+        ht, pnt, gt, bt = self.encode(tgt, f_tgt)
         for i in range(self.cfg.layers):
             gs = self.self_att[i](gs, gs, bs[i])
             gt = self.self_att[i](gt, gt, bt[i])
