@@ -217,6 +217,11 @@ def run_global_pipeline(
         t = time.perf_counter()
         T_norm = _refine(T_norm, prep, config, ctx.cache)
         times["refine"] = _lap(t)
+    return _single_result(T_norm, prep, times, "estimate")
+
+
+def _single_result(T_norm: np.ndarray, prep: Prepared, times: dict[str, float], name: str) -> RegistrationResult:
+    """The result of a one-hypothesis method (no P2P candidates) from its normalized transform."""
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
     T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
     return RegistrationResult(
@@ -224,7 +229,7 @@ def run_global_pipeline(
         method="",
         residual_mm=residual,
         runtime_ms=times,
-        candidates=[Candidate("estimate", T_mm, residual, 0)],
+        candidates=[Candidate(name, T_mm, residual, 0)],
         chosen=0,
         visibility=prep.visibility,
         n_source=len(prep.source),
@@ -298,19 +303,7 @@ def track(source_mm, target_mm, config: Config, ctx: MethodContext) -> Registrat
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ _norm_to_mm(prep.source_norm)
     T_norm = _refine(T_norm, prep, config, ctx.cache)
     times["refine"] = _lap(t)
-    residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
-    T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
-    return RegistrationResult(
-        T_target_source=T_mm,
-        method="track",
-        residual_mm=residual,
-        runtime_ms=times,
-        candidates=[Candidate("tracked", T_mm, residual, 0)],
-        chosen=0,
-        visibility=prep.visibility,
-        n_source=len(prep.source),
-        n_target=len(prep.target),
-    )
+    return _single_result(T_norm, prep, times, "tracked")
 
 
 @method("procrustes")
