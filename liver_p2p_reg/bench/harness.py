@@ -145,6 +145,9 @@ def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
             other_rule = "inlier-count" if cfg.selection == "closest-point" else "closest-point"
             ablation.append(Variant(m, (("selection", other_rule),)))
             ablation.append(Variant(m, (("candidate_proposal", not cfg.candidate_proposal),)))
+            # this project's two additions to the paper's module: row-best matches and the robust re-fit
+            ablation.append(Variant(m, (("mutual_only", not cfg.mutual_only),)))
+            ablation.append(Variant(m, (("refit_iterations", 0 if cfg.refit_iterations else 6),)))
     clean = [c for c in spec.cases if c.added_noise_mm == 0]  # ablations run on the noise-free cases
     ablation_ids = {c.case_id for c in first_per_bin(clean, spec.ablation_cases_per_bin)}
     jobs = []

@@ -276,9 +276,12 @@ class Summary:
         lines += _table(header, rows)
         plots.k_ablation(curves, out / "ablation_k.png")
         lines += ["", "![mean RMS-TRE vs K](ablation_k.png)", ""]
+        refit_values = (cfg["refit_iterations"], 0) if cfg["refit_iterations"] else (0, 6)
         for field, values in (
             ("selection", ("closest-point", "inlier-count")),
             ("candidate_proposal", (True, False)),
+            ("mutual_only", (False, True)),  # True: the paper's strict mutual nearest neighbours
+            ("refit_iterations", refit_values),  # 0: the paper's single weighted Procrustes fit
         ):
             header = ["method"]
             for v in values:
