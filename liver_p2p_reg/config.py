@@ -26,8 +26,8 @@ class Config:
     """Every tunable of the registration pipeline and of the node logic, with defaults."""
 
     # --- registration pipeline -------------------------------------------------------
-    # Default = the most accurate method of the latest full benchmark (README "Benchmark").
-    method: str = "fpfh-ransac-icp"
+    # Default: the method the latest benchmarks favour (README "Default method" gives the numbers).
+    method: str = "learned-p2p-icp"
     k: int = 5  # number of P2P patch candidates
     # intraop cloud: drop points whose mean distance to their neighbours is above mean + this
     # many std (flying pixels, specks); 0 disables

@@ -112,3 +112,16 @@ def test_track_method_needs_a_rigid_prior_pose():
     result = registrar.register(source, source[:200], method="track", initial_T_mm=np.eye(4))
     assert result.method == "track" and result.residual_mm < 1.0  # voxel means vs points
     np.testing.assert_allclose(result.T_target_source, np.eye(4), atol=1e-6)
+
+
+def test_warm_up_fills_the_source_caches_and_never_raises():
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(3000, 3))
+    source = d / np.linalg.norm(d, axis=1, keepdims=True) * [80.0, 55.0, 40.0]
+    registrar = Registrar(Config(method="fpfh-p2p-icp"))
+    assert registrar.warm_up(source) > 0
+    kinds = {key.split(":")[0] for key in registrar.cache if isinstance(key, str)}
+    assert {"prepared-source", "fpfh", "icp-source-index"} <= kinds  # the model's share is done
+    # the oracle needs fiducials: its warm-up fails quietly, the real call reports the error
+    assert Registrar(Config(method="procrustes")).warm_up(source) >= 0
+    assert Registrar(Config()).warm_up(np.zeros((0, 3))) >= 0  # bad source: nothing to prepare

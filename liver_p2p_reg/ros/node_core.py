@@ -151,6 +151,11 @@ class NodeCore:
             self._track = None  # a pose of another model is no prior
         values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": self.preop_frame}
         unit_warning = self._units_warning(extent, "preop model")
+        if not unit_warning:
+            # The model's own share of the work (its features, ICP index, ...) is done now,
+            # once, instead of inside the first frame's latency.
+            with self._register_lock:
+                values["warm_up_ms"] = f"{self.registrar.warm_up(points):.1f}"
         if unit_warning:
             return Diagnostic(WARN, PREOP_DIAG_NAME, unit_warning, values)
         return Diagnostic(OK, PREOP_DIAG_NAME, f"preop model received ({len(points)} points)", values)
