@@ -52,6 +52,7 @@ class Config:
     icp_max_iterations: int = 50
     icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
     icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
+    icp_max_points: int = 2000  # ICP uses an even subsample of at most this many target points (speed)
     weights_path: str = ""  # empty: the weights bundled with the package
     device: str = "cpu"
     num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
@@ -102,6 +103,8 @@ class Config:
                 "need 0 < refit_radius_end_norm <= refit_radius_start_norm, got "
                 f"{self.refit_radius_end_norm} and {self.refit_radius_start_norm}"
             )
+        if self.icp_max_points < 100:
+            raise InputError(f"icp_max_points must be >= 100, got {self.icp_max_points}")
         if not 0 < self.icp_trim_ratio <= 1:
             raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
         if not self.max_rate_hz > 0:

@@ -102,6 +102,7 @@ def _refine(T_norm: np.ndarray, prep: Prepared, config: Config, cache: dict[str,
         max_iterations=config.icp_max_iterations,
         max_corr=config.icp_max_corr_norm,
         trim_ratio=config.icp_trim_ratio,
+        max_target_points=config.icp_max_points,
         normal_radius=config.normal_radius_norm,
         source_index=index,
     )
