@@ -81,3 +81,21 @@ def test_bad_training_config_is_an_input_error(tmp_path: Path) -> None:
         TrainConfig.from_yaml(bad)
     with pytest.raises(InputError, match="cannot read"):
         TrainConfig.from_yaml(tmp_path / "missing.yaml")
+
+
+def test_fine_tuning_starts_from_init_weights(store: Path, tmp_path: Path) -> None:
+    from liver_p2p_reg.learned.weights import save_weights
+
+    torch.manual_seed(3)
+    init = save_weights(MatcherNet(ModelConfig(**SMALL)), tmp_path / "init.safetensors")
+    cfg = TrainConfig(
+        store_dir=str(store), val_livers=1, val_pairs=1, steps=1, val_every=1, checkpoint_every=1,
+        loader_workers=0, warmup_steps=1, crop_modes=["random"], model=dict(SMALL), lr=0.0,
+        init_weights=str(init),
+    )  # fmt: skip
+    train(cfg, tmp_path / "run", progress=False)
+    before, after = load_weights(init).state_dict(), load_weights(tmp_path / "run" / "last.safetensors").state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)  # lr 0: the init survives one step unchanged
+    cfg.model = {**SMALL, "width": 48}
+    with pytest.raises(InputError, match="architecture"):
+        train(cfg, tmp_path / "run2", progress=False)

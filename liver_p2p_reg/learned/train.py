@@ -60,6 +60,9 @@ class TrainConfig:
     loader_workers: int = 1  # processes drawing pairs while the main process trains
     max_minutes: float = 0.0  # 0: no wall-clock limit; else stop (and validate) after this long
     model: dict[str, Any] = field(default_factory=dict)  # ModelConfig overrides
+    # A second (fine-tuning) stage starts from these weights instead of a random init; its
+    # architecture must equal the one `model` describes. Empty: random init.
+    init_weights: str = ""
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrainConfig:
@@ -254,6 +257,17 @@ def _load_checkpoint(out: Path, model: MatcherNet, opt: torch.optim.Optimizer) -
     return json.loads((out / "state.json").read_text())
 
 
+def _init_from(model: MatcherNet, path: Path) -> None:
+    """Copy the weights at `path` into `model` (a fine-tuning stage); the architectures must agree."""
+    loaded = load_weights(path)
+    if loaded.cfg.to_dict() != model.cfg.to_dict():
+        raise InputError(
+            f"init_weights {path}: architecture {loaded.cfg.to_dict()} differs from the config's {model.cfg.to_dict()}"
+        )
+    model.load_state_dict(loaded.state_dict())
+    log.info("initialized from %s", path)
+
+
 def train(
     cfg: TrainConfig, out_dir: str | Path, device: str = "cpu", resume: bool = False, progress: bool = True
 ) -> dict:
@@ -273,6 +287,8 @@ def train(
     if resume and (out / "state.json").is_file():
         state = _load_checkpoint(out, model, opt)
         log.info("resumed at step %d", state["step"])
+    elif cfg.init_weights:
+        _init_from(model, Path(cfg.init_weights))
     (out / "train_config.json").write_text(json.dumps(asdict(cfg), indent=2))
     val_cases = validation_cases(cfg, val_files)
     stream = PairStream(cfg, train_files, state["step"], voxel)
