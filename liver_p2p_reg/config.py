@@ -53,6 +53,12 @@ class Config:
     icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
     icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
     icp_max_points: int = 2000  # ICP uses an even subsample of at most this many target points (speed)
+    # `-icp` feature pipelines: a short ICP screens up to this many distinct P2P candidates and the
+    # one that fits best after it is refined (small smooth views fit several poses almost equally
+    # well before ICP); 1: refine only the candidate P2P chose
+    refine_candidates: int = 6
+    screen_icp_points: int = 400  # screening ICP: intraop points ...
+    screen_icp_iterations: int = 15  # ... and iterations per candidate
     weights_path: str = ""  # empty: the weights bundled with the package
     device: str = "cpu"
     num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
@@ -105,6 +111,12 @@ class Config:
             )
         if self.icp_max_points < 100:
             raise InputError(f"icp_max_points must be >= 100, got {self.icp_max_points}")
+        if self.refine_candidates < 1:
+            raise InputError(f"refine_candidates must be >= 1, got {self.refine_candidates}")
+        if self.screen_icp_points < 100:
+            raise InputError(f"screen_icp_points must be >= 100, got {self.screen_icp_points}")
+        if self.screen_icp_iterations < 1:
+            raise InputError(f"screen_icp_iterations must be >= 1, got {self.screen_icp_iterations}")
         if not 0 < self.icp_trim_ratio <= 1:
             raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
         if not self.max_rate_hz > 0:

@@ -86,7 +86,15 @@ def residual_norm(T_norm: np.ndarray, prep: Prepared) -> float:
     return float(dist.mean())
 
 
-def _refine(T_norm: np.ndarray, prep: Prepared, config: Config, cache: dict[str, Any]) -> np.ndarray:
+def _refine(
+    T_norm: np.ndarray,
+    prep: Prepared,
+    config: Config,
+    cache: dict[str, Any],
+    *,
+    max_points: int | None = None,
+    max_iterations: int | None = None,
+) -> np.ndarray:
     # The preoperative source is the same frame after frame: reuse its k-d tree and normals.
     index = remember_latest(
         cache,
@@ -99,13 +107,42 @@ def _refine(T_norm: np.ndarray, prep: Prepared, config: Config, cache: dict[str,
         T_norm,
         prep.source_full,
         prep.target_full,
-        max_iterations=config.icp_max_iterations,
+        max_iterations=max_iterations or config.icp_max_iterations,
         max_corr=config.icp_max_corr_norm,
         trim_ratio=config.icp_trim_ratio,
-        max_target_points=config.icp_max_points,
+        max_target_points=max_points or config.icp_max_points,
         normal_radius=config.normal_radius_norm,
         source_index=index,
     )
+
+
+def _screen_candidates(
+    poses_norm: list[np.ndarray], order: list[int], prep: Prepared, config: Config, cache: dict[str, Any]
+) -> tuple[int, np.ndarray]:
+    """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins.
+
+    Returns the winner's index and its screened pose, from which the full refinement continues.
+    """
+    best: tuple[float, int, np.ndarray] | None = None
+    tried: list[np.ndarray] = []
+    for i in order:
+        T = poses_norm[i]
+        # near-duplicates (< ~5 deg and 0.05 normalized apart) would converge to the same pose
+        if any(
+            np.linalg.norm(T[:3, :3] - P[:3, :3]) < 0.1 and np.linalg.norm(T[:3, 3] - P[:3, 3]) < 0.05 for P in tried
+        ):
+            continue
+        tried.append(T)
+        T_s = _refine(
+            T, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
+        )
+        residual = residual_norm(T_s, prep)
+        if best is None or residual < best[0]:
+            best = (residual, i, T_s)
+        if len(tried) >= config.refine_candidates:
+            break
+    assert best is not None  # order holds at least the chosen candidate
+    return best[1], best[2]
 
 
 def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
@@ -154,10 +191,11 @@ def run_feature_pipeline(
     times.update(out.runtime_ms)
     scale = prep.source_norm.scale_mm
     R, tr = out.R.double().cpu().numpy(), out.t.double().cpu().numpy()
-    candidates = []
+    candidates, poses_norm = [], []
     for i, name in enumerate(out.names):
         T_norm = np.eye(4)
         T_norm[:3, :3], T_norm[:3, 3] = R[i], tr[i]
+        poses_norm.append(T_norm)
         candidates.append(
             Candidate(
                 name=name,
@@ -173,9 +211,13 @@ def run_feature_pipeline(
         raise RegistrationError(
             f"{provider.name}: no candidate had >= 3 non-degenerate matches (visibility {prep.visibility:.2f})"
         )
-    T_norm = np.eye(4)
-    T_norm[:3, :3], T_norm[:3, 3] = R[chosen], tr[chosen]
+    T_norm = poses_norm[chosen]
     residual = float(out.residual[chosen])
+    if refine and config.refine_candidates > 1:
+        t = time.perf_counter()
+        others = sorted((i for i, c in enumerate(candidates) if c.ok and i != chosen), key=lambda i: out.residual[i])
+        chosen, T_norm = _screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache)
+        times["screen"] = _lap(t)
     if refine:
         t = time.perf_counter()
         T_norm = _refine(T_norm, prep, config, ctx.cache)

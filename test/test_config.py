@@ -43,6 +43,9 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"no_such_key": 1}, "unknown configuration key"),
         ({"voxel_size_norm": -1}, "voxel_size_norm must be > 0"),
         ({"candidate_proposal": "maybe"}, "must be true or false"),
+        ({"refine_candidates": 0}, "refine_candidates must be >= 1"),
+        ({"screen_icp_points": 10}, "screen_icp_points must be >= 100"),
+        ({"screen_icp_iterations": 0}, "screen_icp_iterations must be >= 1"),
     ],
 )
 def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:

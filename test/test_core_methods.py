@@ -125,3 +125,32 @@ def test_global_baselines_without_inliers_raise_instead_of_identity(case) -> Non
         Registrar(Config(ransac_max_corr_norm=1e-9, ransac_max_iterations=1000)).register(
             source, target, method="fpfh-ransac"
         )
+
+
+def test_icp_screening_picks_the_candidate_that_fits_after_icp(case) -> None:
+    from liver_p2p_reg.pipelines import _screen_candidates, prepare, residual_norm
+
+    source, target, T, _, _ = case
+    config = Config()
+    prep = prepare(source, target, config)
+    s, cs, ct = prep.source_norm.scale_mm, prep.source_norm.centroid_mm, prep.target_norm.centroid_mm
+    right = np.eye(4)
+    right[:3, :3], right[:3, 3] = T[:3, :3], (T[:3, :3] @ cs + T[:3, 3] - ct) / s
+    slightly_off = right.copy()
+    slightly_off[:3, 3] += 0.03  # ICP pulls this one back in
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # 180 deg about the source's z: a wrong pose ICP cannot fix
+    wrong = right @ flip
+    poses = [wrong, wrong.copy(), slightly_off]
+    chosen, T_screened = _screen_candidates(poses, [0, 1, 2], prep, config, {})
+    assert chosen == 2  # ranked last, fits best after the short ICP
+    assert residual_norm(T_screened, prep) < residual_norm(slightly_off, prep)
+    # only the first candidate is screened when refine_candidates is 1
+    assert _screen_candidates(poses, [0, 1, 2], prep, config.replace(refine_candidates=1), {})[0] == 0
+
+
+def test_icp_methods_report_the_screening_stage(case) -> None:
+    source, target, _, fid_s, fid_t = case
+    kw = dict(method="fpfh-p2p-icp", source_fiducials_mm=fid_s, target_fiducials_mm=fid_t)
+    screened = Registrar(Config(k=2)).register(source, target, **kw)
+    assert "screen" in screened.runtime_ms and screened.candidates[screened.chosen].ok
+    assert "screen" not in Registrar(Config(k=2, refine_candidates=1)).register(source, target, **kw).runtime_ms

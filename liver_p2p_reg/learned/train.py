@@ -414,7 +414,12 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
         f"- Loss: dual-softmax matching loss at GT pairs (NN within 0.04 after GT alignment), T={cfg['temperature']}, "
         f"+ {cfg['overlap_weight']} x overlap BCE.",
         f"- Trained {state['step']} steps (best at step {state.get('best_step')}) in "
-        f"{card['wall_clock_min']} min wall clock on a shared 2-core CPU.",
+        f"{card['wall_clock_min']} min wall clock on a shared 2-core CPU"
+        + (
+            f", starting from {cfg['init_weights']} (a second stage; see that file's card)."
+            if cfg.get("init_weights")
+            else "."
+        ),
         f"- Validation ({cfg['val_pairs']} pairs, held-out livers, random crops, visibility 0.2-1.0, no noise): "
         f"learned {val.get('val_learned_mm', float('nan')):.2f} mm, "
         f"learned-p2p {val.get('val_learned_p2p_mm', float('nan')):.2f} mm mean RMS-TRE, "
