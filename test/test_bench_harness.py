@@ -110,7 +110,19 @@ def _probe(source: np.ndarray, target: np.ndarray, config: Config, ctx: MethodCo
     return RegistrationResult(T, "probe-test-p2p", 0.0, runtime_ms={"match": 1.0, "select": 0.5})
 
 
-TEST_METHODS = {"identity-test": _identity, "raise-test": _raise, "probe-test-p2p": _probe}
+def _probe_icp(source: np.ndarray, target: np.ndarray, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """The probe 2 mm off with the ICP screening of candidates, 10 mm off without it."""
+    result = _probe(source, target, config.replace(k=2 if config.refine_candidates > 1 else 10), ctx)
+    result.method = "probe-test-p2p-icp"
+    return result
+
+
+TEST_METHODS = {
+    "identity-test": _identity,
+    "raise-test": _raise,
+    "probe-test-p2p": _probe,
+    "probe-test-p2p-icp": _probe_icp,
+}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -324,3 +336,19 @@ def test_two_workers_give_the_same_rows_as_one(dataset: Path, tmp_path: Path) ->
     for workers in ("1", "2"):
         assert _bench(dataset, tmp_path / workers, "procrustes", "--limit", "3", "--workers", workers) == 0
     assert _numbers(tmp_path / "1" / "cases.csv") == _numbers(tmp_path / "2" / "cases.csv")
+
+
+def test_screening_ablation_reaches_the_icp_method(dataset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert _bench(dataset, out, "probe-test-p2p-icp", "--ablations", "--ablation-cases-per-bin", "1") == 0
+    rows = read_rows(out / "cases.csv")
+    assert {r["method"] for r in rows} == {"probe-test-p2p-icp", "probe-test-p2p-icp[refine_candidates=1]"}
+    off = [r["rms_tre_mm"] for r in rows if r["variant"] == "refine_candidates=1"]
+    on = [
+        r["rms_tre_mm"]
+        for r in rows
+        if r["variant"] == "" and r["case_id"] in {x["case_id"] for x in rows if x["variant"]}
+    ]
+    assert len(off) == len(on) == 8 and np.mean(off) > np.mean(on) + 5
+    summary = (out / "summary.md").read_text()
+    assert "refine_candidates=6" in summary and "refine_candidates=1" in summary

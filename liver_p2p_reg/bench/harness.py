@@ -139,6 +139,8 @@ def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
     if spec.ablations:
         cfg = spec.config
         for m in spec.methods:
+            if m.endswith("-p2p-icp"):  # the ICP screening of the candidates, on or off
+                ablation.append(Variant(m, (("refine_candidates", 1 if cfg.refine_candidates > 1 else 6),)))
             if not is_p2p(m):
                 continue
             ablation += [Variant(m, (("k", k),)) for k in ABLATION_K if k != cfg.k]

@@ -237,7 +237,7 @@ class Summary:
         k_default = int(self.settings["config"]["k"])
         curves: dict[str, dict[int, tuple[float, float]]] = {}
         for m in self.methods:
-            if not self.ablation_cases(m):
+            if not m.endswith("-p2p") or not self.ablation_cases(m):
                 continue
             per_k = {}
             for k in ABLATION_K:
@@ -253,10 +253,11 @@ class Summary:
 
     def ablation_section(self, out: Path) -> list[str]:
         curves = self.k_curves()
-        if not curves:
+        screened = [m for m in self.methods if m.endswith("-p2p-icp") and self.ablation_cases(m)]
+        if not curves and not screened:
             return []
         cfg = self.settings["config"]
-        ids = set().union(*(self.ablation_cases(m) for m in curves))
+        ids = set().union(*(self.ablation_cases(m) for m in [*curves, *screened]))
         counts = by_bin([r for r in self.main if r["case_id"] in ids and r["method"] == self.methods[0]])
         sizes = sorted({g.size for g in counts if g.size})
         per_bin = str(sizes[0]) if len(sizes) == 1 else f"{sizes[0]}–{sizes[-1]}" if sizes else "0"
@@ -268,26 +269,31 @@ class Summary:
             f"candidate proposal {cfg['candidate_proposal']}). Mean RMS-TRE (mm): lowest bin / all ablation cases.",
             "",
         ]
-        header = ["method", *(f"K={k}" for k in ABLATION_K)]
-        rows = [
-            [m, *(f"{_fmt(per_k[k][0])} / {_fmt(per_k[k][1])}" if k in per_k else DASH for k in ABLATION_K)]
-            for m, per_k in curves.items()
-        ]
-        lines += _table(header, rows)
-        plots.k_ablation(curves, out / "ablation_k.png")
-        lines += ["", "![mean RMS-TRE vs K](ablation_k.png)", ""]
+        if curves:
+            header = ["method", *(f"K={k}" for k in ABLATION_K)]
+            rows = [
+                [m, *(f"{_fmt(per_k[k][0])} / {_fmt(per_k[k][1])}" if k in per_k else DASH for k in ABLATION_K)]
+                for m, per_k in curves.items()
+            ]
+            lines += _table(header, rows)
+            plots.k_ablation(curves, out / "ablation_k.png")
+            lines += ["", "![mean RMS-TRE vs K](ablation_k.png)", ""]
         refit_values = (cfg["refit_iterations"], 0) if cfg["refit_iterations"] else (0, 6)
-        for field, values in (
-            ("selection", ("closest-point", "inlier-count")),
-            ("candidate_proposal", (True, False)),
-            ("mutual_only", (False, True)),  # True: the paper's strict mutual nearest neighbours
-            ("refit_iterations", refit_values),  # 0: the paper's single weighted Procrustes fit
+        screen_values = (cfg.get("refine_candidates", 1), 1) if cfg.get("refine_candidates", 1) > 1 else (1, 6)
+        for field, values, methods in (
+            ("selection", ("closest-point", "inlier-count"), list(curves)),
+            ("candidate_proposal", (True, False), list(curves)),
+            ("mutual_only", (False, True), list(curves)),  # True: the paper's strict mutual nearest neighbours
+            ("refit_iterations", refit_values, list(curves)),  # 0: the paper's single weighted Procrustes fit
+            ("refine_candidates", screen_values, screened),  # 1: ICP refines only P2P's choice
         ):
+            if not methods:
+                continue
             header = ["method"]
             for v in values:
                 header += [f"{field}={v} {BIN_LABELS[0]}", f"{field}={v} all", f"success {field}={v}"]
             rows = []
-            for m in curves:
+            for m in methods:
                 cells = []
                 for v in values:
                     variant = "" if str(cfg[field]) == str(v) else f"{field}={v}"
