@@ -118,12 +118,13 @@ def _refine(
 
 def _screen_candidates(
     poses_norm: list[np.ndarray], order: list[int], prep: Prepared, config: Config, cache: dict[str, Any]
-) -> tuple[int, np.ndarray]:
+) -> int:
     """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins.
 
-    Returns the winner's index and its screened pose, from which the full refinement continues.
+    Returns the winner's index; the full refinement then starts from the winner's own pose (not
+    from the screened one), so that a winner P2P also chose gets exactly the unscreened result.
     """
-    best: tuple[float, int, np.ndarray] | None = None
+    best: tuple[float, int] | None = None
     tried: list[np.ndarray] = []
     for i in order:
         T = poses_norm[i]
@@ -138,11 +139,11 @@ def _screen_candidates(
         )
         residual = residual_norm(T_s, prep)
         if best is None or residual < best[0]:
-            best = (residual, i, T_s)
+            best = (residual, i)
         if len(tried) >= config.refine_candidates:
             break
     assert best is not None  # order holds at least the chosen candidate
-    return best[1], best[2]
+    return best[1]
 
 
 def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
@@ -216,7 +217,8 @@ def run_feature_pipeline(
     if refine and config.refine_candidates > 1:
         t = time.perf_counter()
         others = sorted((i for i, c in enumerate(candidates) if c.ok and i != chosen), key=lambda i: out.residual[i])
-        chosen, T_norm = _screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache)
+        chosen = _screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache)
+        T_norm = poses_norm[chosen]
         times["screen"] = _lap(t)
     if refine:
         t = time.perf_counter()
