@@ -21,6 +21,22 @@ NODE_MODES = ("continuous", "once", "on_demand")
 DEVICES = ("cpu", "cuda")
 
 
+# Lower bounds of the numeric fields that have nothing but a lower bound.
+MINIMUMS: dict[str, float] = {
+    "k": 1,
+    "min_points": 3,
+    "outlier_neighbors": 3,
+    "max_patch_rows": 0,
+    "refit_iterations": 0,
+    "icp_max_points": 100,
+    "refine_candidates": 1,
+    "screen_icp_points": 100,
+    "screen_icp_iterations": 1,
+    "track_residual_ratio": 1,
+    "track_max_frames": 1,
+}
+
+
 @dataclass
 class Config:
     """Every tunable of the registration pipeline and of the node logic, with defaults."""
@@ -82,8 +98,10 @@ class Config:
 
     def validate(self) -> Config:
         """Check ranges and choices; raise InputError with a one-line message if bad."""
-        if self.k < 1:
-            raise InputError(f"k must be >= 1, got {self.k}")
+        for name, minimum in MINIMUMS.items():
+            value = getattr(self, name)
+            if not value >= minimum:  # `not >=` also catches NaN
+                raise InputError(f"{name} must be >= {minimum}, got {value}")
         if not self.voxel_size_norm > 0:
             raise InputError(f"voxel_size_norm must be > 0, got {self.voxel_size_norm}")
         if not self.temperature > 0:
@@ -94,37 +112,17 @@ class Config:
             raise InputError(f"mode must be one of {NODE_MODES}, got {self.mode!r}")
         if self.device not in DEVICES:
             raise InputError(f"device must be one of {DEVICES}, got {self.device!r}")
-        if self.min_points < 3:
-            raise InputError(f"min_points must be >= 3, got {self.min_points}")
         if self.outlier_std_ratio < 0:
             raise InputError(f"outlier_std_ratio must be >= 0 (0 disables), got {self.outlier_std_ratio}")
-        if self.outlier_neighbors < 3:
-            raise InputError(f"outlier_neighbors must be >= 3, got {self.outlier_neighbors}")
-        if self.max_patch_rows < 0:
-            raise InputError(f"max_patch_rows must be >= 0, got {self.max_patch_rows}")
-        if self.refit_iterations < 0:
-            raise InputError(f"refit_iterations must be >= 0, got {self.refit_iterations}")
         if not 0 < self.refit_radius_end_norm <= self.refit_radius_start_norm:
             raise InputError(
                 "need 0 < refit_radius_end_norm <= refit_radius_start_norm, got "
                 f"{self.refit_radius_end_norm} and {self.refit_radius_start_norm}"
             )
-        if self.icp_max_points < 100:
-            raise InputError(f"icp_max_points must be >= 100, got {self.icp_max_points}")
-        if self.refine_candidates < 1:
-            raise InputError(f"refine_candidates must be >= 1, got {self.refine_candidates}")
-        if self.screen_icp_points < 100:
-            raise InputError(f"screen_icp_points must be >= 100, got {self.screen_icp_points}")
-        if self.screen_icp_iterations < 1:
-            raise InputError(f"screen_icp_iterations must be >= 1, got {self.screen_icp_iterations}")
         if not 0 < self.icp_trim_ratio <= 1:
             raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
         if not self.max_rate_hz > 0:
             raise InputError(f"max_rate_hz must be > 0, got {self.max_rate_hz}")
-        if not self.track_residual_ratio >= 1:
-            raise InputError(f"track_residual_ratio must be >= 1, got {self.track_residual_ratio}")
-        if self.track_max_frames < 1:
-            raise InputError(f"track_max_frames must be >= 1, got {self.track_max_frames}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
