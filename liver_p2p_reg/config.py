@@ -34,6 +34,8 @@ MINIMUMS: dict[str, float] = {
     "screen_icp_iterations": 1,
     "track_residual_ratio": 1,
     "track_max_frames": 1,
+    "residual_warn_mm": 0,
+    "uncertainty_warn_mm": 0,
 }
 
 
@@ -86,13 +88,19 @@ class Config:
     min_points: int = 100  # fewer valid intraop points than this is an error
     max_input_points: int = 1_000_000  # clouds this large are voxelized before anything else (bounded memory)
     residual_warn_mm: float = 4.0  # mean closest-point residual above this -> WARN
+    # pose uncertainty (expected organ-point displacement under the fit's misfit, confidence.py)
+    # above this -> WARN; chosen on the training store's validation livers, never the test set
+    # (scripts/calibrate_confidence.py; README "Confidence" has the test-set effect)
+    uncertainty_warn_mm: float = 15.0
     # continuous mode: refine the last good pose by ICP on the next cloud (method `track`) and
     # keep it if it fits as well as the last full registration; else run the full method
     track_previous_pose: bool = True
     track_residual_ratio: float = 1.2  # a tracked pose is kept if its residual <= this x the full registration's
     track_max_frames: int = 10  # a full registration at least every this many frames
-    ambiguity_residual_ratio: float = 1.15  # runner-up residual within this factor ...
-    ambiguity_pose_mm: float = 15.0  # ... and pose differing by this much -> ambiguous
+    # a rival hypothesis (after ICP screening if the method screens) with a residual within this
+    # factor of the best ...
+    ambiguity_residual_ratio: float = 1.2
+    ambiguity_pose_mm: float = 15.0  # ... and a pose differing by this much -> ambiguous
     expected_extent_min_mm: float = 20.0  # clouds smaller than this look like wrong units
     expected_extent_max_mm: float = 600.0  # clouds larger than this look like wrong units
 

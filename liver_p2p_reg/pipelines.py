@@ -12,6 +12,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from . import baselines
+from .confidence import pose_uncertainty
 from .config import Config
 from .errors import InputError, RegistrationError
 from .features.base import FeatureProvider
@@ -116,16 +117,26 @@ def _refine(
     )
 
 
+def uncertainty_mm(T_norm: np.ndarray, prep: Prepared, config: Config) -> float:
+    """`confidence.pose_uncertainty` of a final pose on the voxelized clouds (ICP's gate and trim), in mm."""
+    value = pose_uncertainty(
+        T_norm, prep.source, prep.target, max_corr=config.icp_max_corr_norm, trim_ratio=config.icp_trim_ratio
+    )
+    return value * prep.source_norm.scale_mm
+
+
 def _screen_candidates(
     poses_norm: list[np.ndarray], order: list[int], prep: Prepared, config: Config, cache: dict[str, Any]
-) -> int:
+) -> tuple[int, list[tuple[int, np.ndarray, float]]]:
     """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins.
 
-    Returns the winner's index; the full refinement then starts from the winner's own pose (not
-    from the screened one), so that a winner P2P also chose gets exactly the unscreened result.
+    Returns the winner's index and every screened (index, pose, residual), normalized units; the
+    full refinement then starts from the winner's own pose (not from the screened one), so that
+    a winner P2P also chose gets exactly the unscreened result.
     """
     best: tuple[float, int] | None = None
     tried: list[np.ndarray] = []
+    screened: list[tuple[int, np.ndarray, float]] = []
     for i in order:
         T = poses_norm[i]
         # near-duplicates (< ~5 deg and 0.05 normalized apart) would converge to the same pose
@@ -138,12 +149,13 @@ def _screen_candidates(
             T, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
         )
         residual = residual_norm(T_s, prep)
+        screened.append((i, T_s, residual))
         if best is None or residual < best[0]:
             best = (residual, i)
         if len(tried) >= config.refine_candidates:
             break
     assert best is not None  # order holds at least the chosen candidate
-    return best[1]
+    return best[1], screened
 
 
 def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
@@ -214,10 +226,21 @@ def run_feature_pipeline(
         )
     T_norm = poses_norm[chosen]
     residual = float(out.residual[chosen])
+    screened: list[Candidate] = []
     if refine and config.refine_candidates > 1:
         t = time.perf_counter()
         others = sorted((i for i, c in enumerate(candidates) if c.ok and i != chosen), key=lambda i: out.residual[i])
-        chosen = _screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache)
+        chosen, tried = _screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache)
+        screened = [
+            Candidate(
+                name=candidates[i].name,
+                T_target_source=denormalize_transform(T_s, prep.source_norm, prep.target_norm),
+                residual_mm=res * scale,
+                n_matches=candidates[i].n_matches,
+                inliers=candidates[i].inliers,
+            )
+            for i, T_s, res in tried
+        ]
         T_norm = poses_norm[chosen]
         times["screen"] = _lap(t)
     if refine:
@@ -225,12 +248,17 @@ def run_feature_pipeline(
         T_norm = _refine(T_norm, prep, config, ctx.cache)
         residual = residual_norm(T_norm, prep)
         times["refine"] = _lap(t)
+    t = time.perf_counter()
+    uncertainty = uncertainty_mm(T_norm, prep, config)
+    times["confidence"] = _lap(t)
     return RegistrationResult(
         T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
         method=provider.name,
         residual_mm=residual * scale,
         runtime_ms=times,
         candidates=candidates,
+        screened=screened,
+        uncertainty_mm=uncertainty,
         chosen=chosen,
         n_matches=candidates[chosen].n_matches,
         visibility=prep.visibility,
@@ -262,11 +290,16 @@ def run_global_pipeline(
         t = time.perf_counter()
         T_norm = _refine(T_norm, prep, config, ctx.cache)
         times["refine"] = _lap(t)
-    return _single_result(T_norm, prep, times, "estimate")
+    return _single_result(T_norm, prep, times, "estimate", config)
 
 
-def _single_result(T_norm: np.ndarray, prep: Prepared, times: dict[str, float], name: str) -> RegistrationResult:
+def _single_result(
+    T_norm: np.ndarray, prep: Prepared, times: dict[str, float], name: str, config: Config
+) -> RegistrationResult:
     """The result of a one-hypothesis method (no P2P candidates) from its normalized transform."""
+    t = time.perf_counter()
+    uncertainty = uncertainty_mm(T_norm, prep, config)
+    times["confidence"] = _lap(t)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
     T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
     return RegistrationResult(
@@ -276,6 +309,7 @@ def _single_result(T_norm: np.ndarray, prep: Prepared, times: dict[str, float], 
         runtime_ms=times,
         candidates=[Candidate(name, T_mm, residual, 0)],
         chosen=0,
+        uncertainty_mm=uncertainty,
         visibility=prep.visibility,
         n_source=len(prep.source),
         n_target=len(prep.target),
@@ -348,7 +382,7 @@ def track(source_mm, target_mm, config: Config, ctx: MethodContext) -> Registrat
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ _norm_to_mm(prep.source_norm)
     T_norm = _refine(T_norm, prep, config, ctx.cache)
     times["refine"] = _lap(t)
-    return _single_result(T_norm, prep, times, "tracked")
+    return _single_result(T_norm, prep, times, "tracked", config)
 
 
 @method("procrustes")
@@ -364,6 +398,9 @@ def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) 
     prep = prepare(source_mm, target_mm, config, ctx.cache)
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ T @ _norm_to_mm(prep.source_norm)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
+    t = time.perf_counter()
+    uncertainty = uncertainty_mm(T_norm, prep, config)
+    times["confidence"] = _lap(t)
     return RegistrationResult(
         T_target_source=T,
         method="procrustes",
@@ -371,6 +408,7 @@ def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) 
         runtime_ms=times,
         candidates=[Candidate("fiducials", T, residual, len(ctx.source_fiducials_mm))],
         chosen=0,
+        uncertainty_mm=uncertainty,
         n_matches=len(ctx.source_fiducials_mm),
         visibility=prep.visibility,
         n_source=len(prep.source),

@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 
 from .cloud_io import clean_points
+from .confidence import is_ambiguous
 from .config import Config
 from .errors import InputError, LiverP2PError
-from .metrics import rms_tre_mm, transform_points, tre_mm
+from .metrics import rms_tre_mm, tre_mm
 from .result import RegistrationResult
 
 
@@ -125,7 +126,10 @@ class Registrar:
         ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm))
         result = fn(source, target, self.config, ctx)
         result.method = name
-        result.ambiguous = result.ambiguous or is_ambiguous(result, source, self.config)
+        # After an ICP screening its refined hypotheses are the better evidence of a rival pose.
+        cfg = self.config
+        hypotheses = result.screened or result.candidates
+        result.ambiguous = is_ambiguous(hypotheses, source, cfg.ambiguity_residual_ratio, cfg.ambiguity_pose_mm)
         if fid_s is not None and fid_t is not None:
             result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
             result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
@@ -157,21 +161,6 @@ def register(
     """One-call convenience: `register(source_mm, target_mm, method="fpfh-p2p", k=5)`."""
     fiducials = {k: kwargs.pop(k) for k in ("source_fiducials_mm", "target_fiducials_mm") if k in kwargs}
     return Registrar(**kwargs).register(source_mm, target_mm, method=method, **fiducials)
-
-
-def is_ambiguous(result: RegistrationResult, source_mm: np.ndarray, config: Config) -> bool:
-    """True when the runner-up candidate fits almost as well with a clearly different pose."""
-    ok = sorted((c for c in result.candidates if c.ok and np.isfinite(c.residual_mm)), key=lambda c: c.residual_mm)
-    if len(ok) < 2:
-        return False
-    best, second = ok[0], ok[1]
-    if second.residual_mm > config.ambiguity_residual_ratio * max(best.residual_mm, 1e-6):
-        return False
-    sample = source_mm[:: max(1, len(source_mm) // 500)]
-    moved_a = transform_points(best.T_target_source, sample)
-    moved_b = transform_points(second.T_target_source, sample)
-    pose_gap_mm = float(np.sqrt(np.mean(np.sum((moved_a - moved_b) ** 2, axis=1))))
-    return pose_gap_mm > config.ambiguity_pose_mm
 
 
 def _check_pose(T: np.ndarray | None) -> np.ndarray | None:

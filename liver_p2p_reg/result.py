@@ -45,6 +45,11 @@ class RegistrationResult:
     n_source: int = 0  # points after preprocessing
     n_target: int = 0
     ambiguous: bool = False  # two candidates fit nearly equally well with different poses
+    # expected organ-point displacement given the final fit's misfit and the view's shape (mm):
+    # large when the visible surface leaves the pose poorly constrained (confidence.py)
+    uncertainty_mm: float = float("nan")
+    # `-icp` feature methods: each screened candidate after its short ICP (the ambiguity test uses these)
+    screened: list[Candidate] = field(default_factory=list)
     ok: bool = True
     message: str = ""
     rms_tre_mm: float | None = None  # filled when ground-truth fiducials are given
@@ -72,8 +77,10 @@ class RegistrationResult:
             "n_source": int(self.n_source),
             "n_target": int(self.n_target),
             "ambiguous": bool(self.ambiguous),
+            "uncertainty_mm": _finite_or_none(self.uncertainty_mm),
             "chosen_candidate": self.chosen,
             "candidates": [c.to_json_dict() for c in self.candidates],
+            "screened": [c.to_json_dict() for c in self.screened],
         }
         if self.rms_tre_mm is not None:
             out["rms_tre_mm"] = _finite_or_none(self.rms_tre_mm)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -126,3 +127,20 @@ def test_tables_cover_only_cases_every_method_ran_on() -> None:
     assert "**Partial run:** the tables cover the 4 cases that every method ran on, of the 10 selected (1 more" in (
         "\n".join(s.header_lines())
     )
+
+
+def test_confidence_table_counts_the_warnings_on_bad_and_good_poses() -> None:
+    rows = [_row(i, "procrustes", 0.25, 3.0) for i in range(5)]
+    mine = [_row(i, "x", 0.25, tre) for i, tre in enumerate((3.0, 4.0, 30.0, 50.0, 60.0))]
+    mine[1]["uncertainty_mm"] = Config().uncertainty_warn_mm + 1  # a false alarm on a good pose
+    mine[2]["uncertainty_mm"] = math.inf  # nothing constrained the pose
+    mine[3]["residual_mm"] = Config().residual_warn_mm + 1
+    mine[4]["ambiguous"] = True
+    mine[0]["uncertainty_mm"] = 1.0
+    summary = _summary(rows + mine)
+    table = "\n".join(summary.table_confidence(summary.main))
+    assert "| x | 3 | 3 | 1 / 2 | 4 / 5 | 1 / 1 / 2 |" in table
+    assert "procrustes" not in table  # the oracle is never warned about
+    mine[4]["ambiguous"] = False  # a bad pose nothing flags is counted as missed
+    table = "\n".join(summary.table_confidence(summary.main))
+    assert "| x | 3 | 2 | 1 / 2 | 3 / 5 | 1 / 0 / 2 |" in table

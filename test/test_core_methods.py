@@ -141,9 +141,9 @@ def test_icp_screening_picks_the_candidate_that_fits_after_icp(case) -> None:
     flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # 180 deg about the source's z: a wrong pose ICP cannot fix
     wrong = right @ flip
     poses = [wrong, wrong.copy(), slightly_off]
-    assert _screen_candidates(poses, [0, 1, 2], prep, config, {}) == 2  # ranked last, fits best after ICP
+    assert _screen_candidates(poses, [0, 1, 2], prep, config, {})[0] == 2  # ranked last, fits best after ICP
     # only the first candidate is screened when refine_candidates is 1
-    assert _screen_candidates(poses, [0, 1, 2], prep, config.replace(refine_candidates=1), {}) == 0
+    assert _screen_candidates(poses, [0, 1, 2], prep, config.replace(refine_candidates=1), {})[0] == 0
 
 
 def test_icp_methods_report_the_screening_stage(case) -> None:

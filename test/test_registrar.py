@@ -1,4 +1,4 @@
-"""Public API behaviour that does not depend on a particular method: registry, errors, ambiguity."""
+"""Public API behaviour that does not depend on a particular method: registry, errors, metrics, JSON."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import pytest
 
 from liver_p2p_reg import Config, InputError, Registrar, available_methods
 from liver_p2p_reg.metrics import rms_tre_mm, rotation_angle_deg, transform_points
-from liver_p2p_reg.registrar import is_ambiguous
 from liver_p2p_reg.result import Candidate, RegistrationResult
 
 
@@ -46,29 +45,6 @@ def test_metrics_on_a_known_transform(rng: np.random.Generator) -> None:
     shifted = moved + np.array([3.0, 4.0, 0.0])
     assert rms_tre_mm(T, fid, shifted) == pytest.approx(5.0)
     assert rotation_angle_deg(T[:3, :3], T[:3, :3]) == pytest.approx(0.0, abs=1e-5)
-
-
-def _result_with(candidates: list[Candidate]) -> RegistrationResult:
-    return RegistrationResult(np.eye(4), "x", candidates[0].residual_mm, candidates=candidates, chosen=0)
-
-
-def test_ambiguity_needs_close_residuals_and_different_poses(rng: np.random.Generator) -> None:
-    source = rng.normal(size=(1000, 3)) * 60
-    cfg = Config()
-    far = np.eye(4)
-    far[:3, 3] = [40.0, 0, 0]
-    near = np.eye(4)
-    near[:3, 3] = [1.0, 0, 0]
-    assert is_ambiguous(_result_with([Candidate("a", np.eye(4), 2.0, 50), Candidate("b", far, 2.1, 50)]), source, cfg)
-    # Same pose twice is not ambiguous, nor is a clearly worse runner-up, nor a failed one.
-    assert not is_ambiguous(
-        _result_with([Candidate("a", np.eye(4), 2.0, 50), Candidate("b", near, 2.1, 50)]), source, cfg
-    )
-    assert not is_ambiguous(
-        _result_with([Candidate("a", np.eye(4), 2.0, 50), Candidate("b", far, 4.0, 50)]), source, cfg
-    )
-    failed = Candidate("b", far, 2.0, 2, ok=False)
-    assert not is_ambiguous(_result_with([Candidate("a", np.eye(4), 2.0, 50), failed]), source, cfg)
 
 
 def test_result_json_is_serializable() -> None:

@@ -244,3 +244,21 @@ def test_a_new_preop_model_clears_the_prior_pose():
     core.set_preop(preop)
     out = send_frame(core, preop, fid_ct, nudged(ground_truth()), 2, 1.0)
     assert out.result.method == "procrustes"
+
+
+@pytest.mark.parametrize("limit_mm, level", [(15.0, OK), (0.05, WARN)])
+def test_a_poorly_constrained_pose_is_published_with_a_warning(limit_mm, level):
+    T = ground_truth()
+    preop = liver_like(6000)
+    fid_ct = np.array([[10.0, 5, 0], [-20, 10, 5], [0, -15, -10], [30, 0, 8], [-5, 20, -12]])
+    core = NodeCore(Config(method="procrustes", mode="once", uncertainty_warn_mm=limit_mm))
+    core.set_preop(preop)
+    core.set_preop_fiducials(fid_ct)
+    core.set_intraop_fiducials(moved(T, fid_ct), 7)
+    view = preop[preop[:, 0] > 30]
+    noisy = view + np.random.default_rng(6).normal(scale=0.5, size=view.shape)  # 0.5 mm sensor noise
+    core.on_intraop_points(moved(T, noisy), "camera", 7)
+    out = core.process_pending(0.0)
+    uncertainty = float(out.diagnostics[0].values["uncertainty_mm"])
+    assert out.pose is not None and out.level == level and 0.05 < uncertainty < 15.0
+    assert ("poorly constrained" in out.summary) == (level == WARN)

@@ -54,6 +54,7 @@ TAIL_COLUMNS = (
     "failed",
     "reason",
     "ambiguous",
+    "uncertainty_mm",
     "seed",
 )
 FLOAT_COLUMNS = {
@@ -67,6 +68,7 @@ FLOAT_COLUMNS = {
     "residual_mm",
     "runtime_ms",
     "method_visibility",
+    "uncertainty_mm",
 }
 INT_COLUMNS = {"n_candidates", "n_matches", "seed"}
 BOOL_COLUMNS = {"failed", "ambiguous"}
@@ -221,6 +223,7 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
         failed=not result.ok,
         reason="" if result.ok else (result.message or "method reported failure"),
         ambiguous=bool(result.ambiguous),
+        uncertainty_mm=float(result.uncertainty_mm),
     )
     for stage, ms in result.runtime_ms.items():
         if stage != "total":
@@ -243,6 +246,7 @@ def _failed(initial_rms: float, initial_max: float, reason: str, start: float) -
         "failed": True,
         "reason": reason.splitlines()[0] if reason else "failed",
         "ambiguous": False,
+        "uncertainty_mm": math.nan,
     }
 
 

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from ..config import Config
 from ..errors import InputError
 from . import plots
 from .cases import BIN_EDGES, BIN_LABELS
@@ -38,6 +39,7 @@ SLOW_MEDIAN_MS = 5000.0  # methods slower than this per case (median) are marked
 LOW_DEFORMATION_MM = (0.0, 6.0)  # the paper's Table III deformation ranges (fiducial RMS, mm)
 HIGH_DEFORMATION_MM = (6.0, 12.0)
 DASH = "–"
+GOOD_POSE_MM = 10.0  # the confidence table counts warnings on poses within this RMS-TRE as false alarms
 
 
 def _fmt(value: float, digits: int = 2) -> str:
@@ -154,6 +156,51 @@ class Summary:
                 [self.name(m), f"{len(failed)} / {len(mine)}", str(ambiguous), reason[0][0][:80] if reason else ""]
             )
         return _table(["method", "failed", "flagged ambiguous", "most common failure"], rows)
+
+    def warning_reasons(self, row: Row) -> set[str]:
+        """Why the node would not publish this pose as OK (its WARN/ERROR rules), from a benchmark row."""
+        cfg = Config.from_dict(self.settings.get("config", {}))
+        if row["failed"]:
+            return {"error"}
+        reasons = set()
+        if row["ambiguous"]:
+            reasons.add("ambiguous")
+        if not row["residual_mm"] <= cfg.residual_warn_mm:
+            reasons.add("residual")
+        uncertainty = row.get("uncertainty_mm", math.nan)  # absent from runs before the column existed
+        if not math.isnan(uncertainty) and not uncertainty <= cfg.uncertainty_warn_mm:
+            reasons.add("uncertainty")
+        return reasons
+
+    def table_confidence(self, rows: list[Row]) -> list[str]:
+        header = [
+            "method",
+            f"poses off by > {SUCCESS_TAU_MM:g} mm",
+            "of them warned",
+            f"poses within {GOOD_POSE_MM:g} mm warned",
+            "warned in all",
+            "by residual / ambiguity / uncertainty",
+        ]
+        table = []
+        for m in self.methods:
+            if m == ORACLE:
+                continue
+            mine = select(rows, method=m)
+            reasons = [self.warning_reasons(r) for r in mine]
+            bad = [bool(w) for r, w in zip(mine, reasons, strict=True) if r["rms_tre_mm"] >= SUCCESS_TAU_MM]
+            good = [bool(w) for r, w in zip(mine, reasons, strict=True) if r["rms_tre_mm"] <= GOOD_POSE_MM]
+            counts = [sum(k in w for w in reasons) for k in ("residual", "ambiguous", "uncertainty")]
+            table.append(
+                [
+                    self.name(m),
+                    str(len(bad)),
+                    f"{sum(bad)}" if bad else DASH,
+                    f"{sum(good)} / {len(good)}",
+                    f"{sum(bool(w) for w in reasons)} / {len(mine)}",
+                    " / ".join(str(c) for c in counts),
+                ]
+            )
+        return _table(header, table)
 
     def table_wilcoxon(self) -> list[str]:
         pairs = p2p_pairs(self.methods)
@@ -366,6 +413,24 @@ class Summary:
         ]
         lines += ["## Failures and ambiguity flags", "", *self.table_failures(), ""]
         lines += [
+            "## Confidence: would the node have warned? (WARN or ERROR by the configured thresholds)",
+            "",
+            f"Random crops, no noise. A pose is warned when the method failed, or it is ambiguous, or its residual is above "
+            f"`residual_warn_mm`, or its uncertainty above `uncertainty_warn_mm`; a safe method warns on every pose off by "
+            f"more than {SUCCESS_TAU_MM:g} mm and on few within {GOOD_POSE_MM:g} mm.",
+            "",
+            *self.table_confidence(self.main),
+            "",
+        ]
+        noisy = [r for r in main_rows(self.rows, with_added_noise=True) if r.get("added_noise_mm", 0.0) > 0]
+        if noisy:
+            lines += [
+                "With benchmark-added sensor noise (the noise rows below):",
+                "",
+                *self.table_confidence(noisy),
+                "",
+            ]
+        lines += [
             f"## Wilcoxon rank-sum tests, with vs without P2P (two-sided; **\\*** = p < {ALPHA:g}; Δ = difference of means)",
             "",
             *self.table_wilcoxon(),
@@ -404,6 +469,13 @@ class Summary:
         lines = [*self.header_lines(), ""]
         lines += ["RMS-TRE (mm) per visibility bin, mean ± std:", "", *self.table_tre(), ""]
         lines += [f"Success rate (RMS-TRE < {SUCCESS_TAU_MM:g} mm):", "", *self.table_success(), ""]
+        lines += [
+            f"Would the node have warned (failed, ambiguous, residual or uncertainty above its threshold)? "
+            f"Poses off by > {SUCCESS_TAU_MM:g} mm should all be warned, few within {GOOD_POSE_MM:g} mm:",
+            "",
+            *self.table_confidence(self.main),
+            "",
+        ]
         lines += ["Runtime per case:", "", *self.table_runtime(), ""]
         cpu = self.machine.get("cpu", "")
         lines += [

@@ -361,6 +361,12 @@ class NodeCore:
         if result.ambiguous:
             level = WARN
             warnings.append("ambiguous: two candidates fit nearly equally well with different poses")
+        if not result.uncertainty_mm <= self.config.uncertainty_warn_mm:  # `not <=` also catches NaN / inf
+            level = WARN
+            warnings.append(
+                f"pose poorly constrained by the visible surface: uncertainty {result.uncertainty_mm:.1f} mm "
+                f"above {self.config.uncertainty_warn_mm} mm"
+            )
         if warnings:
             level = max(level, WARN)
             message += " (" + "; ".join(warnings) + ")"
@@ -462,6 +468,7 @@ def result_values(result: RegistrationResult) -> dict[str, str]:
         "n_source": str(result.n_source),
         "n_target": str(result.n_target),
         "ambiguous": str(bool(result.ambiguous)).lower(),
+        "uncertainty_mm": f"{result.uncertainty_mm:.3f}",
     }
     if result.chosen is not None and 0 <= result.chosen < len(result.candidates):
         values["chosen_candidate"] = result.candidates[result.chosen].name
