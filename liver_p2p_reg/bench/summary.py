@@ -415,7 +415,7 @@ class Summary:
         lines += [
             "## Confidence: would the node have warned? (WARN or ERROR by the configured thresholds)",
             "",
-            f"Random crops, no noise. A pose is warned when the method failed, or it is ambiguous, or its residual is above "
+            f"Cases as stored (no benchmark-added noise). A pose is warned when the method failed, or it is ambiguous, or its residual is above "
             f"`residual_warn_mm`, or its uncertainty above `uncertainty_warn_mm`; a safe method warns on every pose off by "
             f"more than {SUCCESS_TAU_MM:g} mm and on few within {GOOD_POSE_MM:g} mm.",
             "",
