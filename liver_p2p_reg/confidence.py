@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .config import Config
 from .metrics import transform_points
 from .result import Candidate
 
@@ -93,3 +94,21 @@ def is_ambiguous(hypotheses: Sequence[Candidate], source_mm: np.ndarray, residua
         for c in ok[1:]
         if c.residual_mm <= limit
     )
+
+
+def pose_warnings(residual_mm: float, ambiguous: bool, uncertainty_mm: float, config: Config) -> dict[str, str]:
+    """Why a registered pose should not be trusted as is (the node's WARN rules): reason -> message.
+
+    Reasons: "residual", "ambiguous", "uncertainty"; empty when the pose is OK. A NaN warns.
+    """
+    out: dict[str, str] = {}
+    if not residual_mm <= config.residual_warn_mm:
+        out["residual"] = f"residual {residual_mm:.2f} mm above {config.residual_warn_mm} mm"
+    if ambiguous:
+        out["ambiguous"] = "ambiguous: two candidates fit nearly equally well with different poses"
+    if not uncertainty_mm <= config.uncertainty_warn_mm:
+        out["uncertainty"] = (
+            f"pose poorly constrained by the visible surface: uncertainty {uncertainty_mm:.1f} mm "
+            f"above {config.uncertainty_warn_mm} mm"
+        )
+    return out

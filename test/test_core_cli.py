@@ -109,6 +109,21 @@ def test_nan_points_are_dropped_with_a_warning(
     assert json.loads(capsys.readouterr().out)["rms_tre_mm"] < 1e-6
 
 
+def test_the_nodes_warnings_go_to_stderr(
+    files: dict, tmp_path: Path, capsys: pytest.CaptureFixture, caplog: pytest.LogCaptureFixture
+) -> None:
+    argv = ["register", files["source.ply"], files["target.xyz"], "--method", "procrustes"]
+    argv += ["--source-fiducials", files["fid_s.npy"], "--target-fiducials", files["fid_t.npy"]]
+    assert main(argv) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert "poorly constrained" not in caplog.text and result["uncertainty_mm"] < 15.0
+    strict = tmp_path / "strict.yaml"
+    strict.write_text(f"uncertainty_warn_mm: {result['uncertainty_mm'] / 2}\nresidual_warn_mm: 0.0\n")
+    assert main([*argv, "--config", str(strict)]) == 0  # still a pose, now flagged
+    assert "poorly constrained by the visible surface" in caplog.text and "residual" in caplog.text
+    assert json.loads(capsys.readouterr().out)["transform"]
+
+
 def test_console_entry_point_exit_status(files: dict, tmp_path: Path) -> None:
     """The real process: non-zero exit and a single error line, no traceback."""
     proc = subprocess.run(

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from ..confidence import pose_warnings
 from ..config import Config
 from ..errors import InputError
 from . import plots
@@ -159,18 +160,11 @@ class Summary:
 
     def warning_reasons(self, row: Row) -> set[str]:
         """Why the node would not publish this pose as OK (its WARN/ERROR rules), from a benchmark row."""
-        cfg = Config.from_dict(self.settings.get("config", {}))
         if row["failed"]:
             return {"error"}
-        reasons = set()
-        if row["ambiguous"]:
-            reasons.add("ambiguous")
-        if not row["residual_mm"] <= cfg.residual_warn_mm:
-            reasons.add("residual")
-        uncertainty = row.get("uncertainty_mm", math.nan)  # absent from runs before the column existed
-        if not math.isnan(uncertainty) and not uncertainty <= cfg.uncertainty_warn_mm:
-            reasons.add("uncertainty")
-        return reasons
+        cfg = Config.from_dict(self.settings.get("config", {}))
+        uncertainty = row.get("uncertainty_mm", 0.0)  # absent from runs before the column existed
+        return set(pose_warnings(row["residual_mm"], row["ambiguous"], uncertainty, cfg))
 
     def table_confidence(self, rows: list[Row]) -> list[str]:
         header = [

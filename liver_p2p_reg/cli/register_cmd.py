@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from ..cloud_io import load_points
+from ..confidence import pose_warnings
 from ..config import SELECTION_RULES, Config
 from ..errors import InputError
 from ..o3d import quiet_open3d
@@ -20,7 +22,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "register",
         help="register a complete preoperative surface (SOURCE) to a partial view (TARGET)",
         description="Estimate the rigid transform mapping SOURCE (complete, mm) into TARGET (partial, mm). "
-        "Prints the result as JSON.",
+        "Prints the result as JSON; the node's warnings (residual, ambiguity, uncertainty above their "
+        "thresholds) go to stderr.",
     )
     p.add_argument("source", metavar="SOURCE", help="complete preoperative surface (PLY/PCD/XYZ/STL/OBJ/NPY/NPZ, mm)")
     p.add_argument("target", metavar="TARGET", help="partial intraoperative surface (same formats, mm)")
@@ -73,4 +76,7 @@ def run(args: argparse.Namespace) -> int:
     if output is not None:
         output.write_text(text + "\n")
     print(text)
+    # The node's WARN rules, on stderr: the pose is still returned (exit 0), but flagged.
+    for message in pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config).values():
+        logging.getLogger("liver_p2p_reg").warning(message)
     return 0

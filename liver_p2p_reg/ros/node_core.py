@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..confidence import pose_warnings
 from ..config import Config
 from ..errors import InputError, LiverP2PError
 from ..metrics import transform_points
@@ -355,18 +356,7 @@ class NodeCore:
         message = f"{verb}: residual {result.residual_mm:.2f} mm"
         if result.rms_tre_mm is not None:
             message += f", RMS-TRE {result.rms_tre_mm:.2f} mm"
-        if result.residual_mm > self.config.residual_warn_mm:
-            level = WARN
-            warnings.append(f"residual {result.residual_mm:.2f} mm above {self.config.residual_warn_mm} mm")
-        if result.ambiguous:
-            level = WARN
-            warnings.append("ambiguous: two candidates fit nearly equally well with different poses")
-        if not result.uncertainty_mm <= self.config.uncertainty_warn_mm:  # `not <=` also catches NaN / inf
-            level = WARN
-            warnings.append(
-                f"pose poorly constrained by the visible surface: uncertainty {result.uncertainty_mm:.1f} mm "
-                f"above {self.config.uncertainty_warn_mm} mm"
-            )
+        warnings += pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, self.config).values()
         if warnings:
             level = max(level, WARN)
             message += " (" + "; ".join(warnings) + ")"
