@@ -217,15 +217,15 @@ def write_readme(rows: list[ReplayRow], config: Config, out_dir: Path, max_frame
         "Measured on the development machine with the command above. `bound` is what `test/test_ros_bundled_bags.py`",
         f"asserts on the worst frame's RMS-TRE when replaying the first {max_frames} frames of each bag.",
         "",
-        "| bag | kind | visibility | deformation mean/max mm | frames | RMS-TRE mm (mean) | RMS-TRE mm (worst frame) | residual mm | runtime ms (p50) | status | bound mm | size MB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| bag | kind | visibility | deformation mean/max mm | frames | RMS-TRE mm (mean) | RMS-TRE mm (worst frame) | residual mm | uncertainty mm | runtime ms (p50) | status | bound mm | size MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         info = row.info
         dmean = info.get("deformation_mean_mm", info.get("deformation_rms_mm", float("nan")))
         lines.append(
             f"| {row.bag} | {info.get('kind', '?')} | {row.visibility:.2f} | {dmean:.1f}/{info.get('deformation_max_mm', float('nan')):.1f} "
-            f"| {row.registered}/{row.frames} | {row.rms_tre_mm:.2f} | {row.max_rms_tre_mm:.2f} | {row.residual_mm:.2f} "
+            f"| {row.registered}/{row.frames} | {row.rms_tre_mm:.2f} | {row.max_rms_tre_mm:.2f} | {row.residual_mm:.2f} | {row.uncertainty_mm:.1f} "
             f"| {row.runtime_ms_p50:.0f} | {row.status} | {bound_mm(row.max_rms_tre_mm):.0f} | {bag_size_bytes(out_dir / row.bag) / 1e6:.2f} |"
         )
     runtimes = np.array([ms for row in rows for ms in row.runtime_ms])
@@ -237,6 +237,10 @@ def write_readme(rows: list[ReplayRow], config: Config, out_dir: Path, max_frame
             f"p50 {np.percentile(runtimes, 50):.0f} ms, p95 {np.percentile(runtimes, 95):.0f} ms "
             "(`runtime_ms.total` of the core, this machine; `scripts/bench_node.py` also measures it without tracking).",
         ]
+    flagged = [row for row in rows if row.status != "OK"]
+    if flagged:
+        lines += ["", "Why a bag is not OK (the diagnostic message of its worst frame):", ""]
+        lines += [f"- `{row.bag}`: {row.status}: {row.message}" for row in flagged]
     lines.append("")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines))

@@ -128,6 +128,7 @@ def test_replay_writes_output_bag_with_registration_topics(tmp_path, case_bag):
     row = replay_bag(case_bag, Config(method="procrustes"), out_path=out)
     assert row.frames == 5 and row.registered == 5 and row.status in ("OK", "WARN")
     assert row.rms_tre_mm < 0.01  # oracle on exact fiducials (float32 metres in the bag)
+    assert 0 < row.uncertainty_mm < Config().uncertainty_warn_mm
     topics = bag_topics(out)
     for topic, msgtype in OUTPUT_TOPICS.items():
         assert topics[topic][0] == msgtype
@@ -139,6 +140,7 @@ def test_replay_writes_output_bag_with_registration_topics(tmp_path, case_bag):
     diags = [m.msg for m in read_messages(out, ["/diagnostics"])]
     keys = {kv.key for d in diags for s in d.status for kv in s.values}
     assert {"residual_mm", "rms_tre_mm", "max_tre_mm", "visibility", "matches", "runtime_ms.total"} <= keys
+    assert "uncertainty_mm" in keys
     with pytest.raises(InputError, match="exists"):
         replay_bag(case_bag, Config(method="procrustes"), out_path=out)
-    assert "case_bag" in format_table([row])
+    assert "case_bag" in format_table([row]) and "uncertainty mm" in format_table([row])

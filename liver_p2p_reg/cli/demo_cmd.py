@@ -51,5 +51,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"Replaying {len(paths)} bundled bags from {bags} with method {config.method} ...", flush=True)
     rows = replay_bags(paths, config, out_dir=Path(args.out), progress=True, overwrite=True)
     print(format_table(rows))
+    for row in rows:  # why a bag is not OK, in the node's own words (its worst frame's diagnostic)
+        if row.status != "OK":
+            print(f"{row.bag}: {row.status}: {row.message}")
     failed = [r for r in rows if str(getattr(r, "status", "OK")) not in ("OK", "WARN")]
     return 1 if failed else 0

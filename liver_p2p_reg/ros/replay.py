@@ -52,6 +52,7 @@ class ReplayRow:
     max_rms_tre_mm: float  # worst frame
     residual_mm: float  # mean over registered frames
     runtime_ms_p50: float
+    uncertainty_mm: float = float("nan")  # mean over registered frames
     runtime_ms: list[float] = field(default_factory=list)  # per registration, total
     tracked: int = 0  # registrations tracked from the previous pose (continuous mode)
     status: str = "OK"  # worst diagnostic level over the registrations
@@ -164,6 +165,7 @@ def _summarize(path: Path, frames: int, outputs: list[CoreOutput], out: str, inf
         max_rms_tre_mm=float(np.max(tres)) if tres else float("nan"),
         residual_mm=mean([r.residual_mm for r in results]),
         runtime_ms_p50=float(np.median(runtimes)) if runtimes else float("nan"),
+        uncertainty_mm=mean([r.uncertainty_mm for r in results]),
         runtime_ms=runtimes,
         tracked=sum(r.method == "track" for r in results),
         status=LEVEL_NAMES[worst] if results or worst != OK else "ERROR",
@@ -206,8 +208,17 @@ def _fmt(value: float, digits: int = 2) -> str:
 
 
 def format_table(rows: Sequence[ReplayRow]) -> str:
-    """Markdown-style table: bag, frames, visibility, RMS-TRE mm, residual mm, runtime ms (p50), status."""
-    header = ["bag", "frames", "visibility", "RMS-TRE mm", "residual mm", "runtime ms (p50)", "status"]
+    """Markdown-style table: bag, frames, visibility, RMS-TRE, residual, uncertainty, runtime (p50), status."""
+    header = [
+        "bag",
+        "frames",
+        "visibility",
+        "RMS-TRE mm",
+        "residual mm",
+        "uncertainty mm",
+        "runtime ms (p50)",
+        "status",
+    ]
     body = [
         [
             r.bag,
@@ -215,6 +226,7 @@ def format_table(rows: Sequence[ReplayRow]) -> str:
             _fmt(r.visibility),
             _fmt(r.rms_tre_mm),
             _fmt(r.residual_mm),
+            _fmt(r.uncertainty_mm, 1),
             _fmt(r.runtime_ms_p50, 0),
             r.status,
         ]
