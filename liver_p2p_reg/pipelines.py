@@ -117,11 +117,16 @@ def _refine(
     )
 
 
-def uncertainty_mm(T_norm: np.ndarray, prep: Prepared, config: Config) -> float:
-    """`confidence.pose_uncertainty` of a final pose on the voxelized clouds (ICP's gate and trim), in mm."""
+def uncertainty_mm(T_norm: np.ndarray, prep: Prepared, config: Config, times: dict[str, float]) -> float:
+    """`confidence.pose_uncertainty` of a final pose on the voxelized clouds (ICP's gate and trim), in mm.
+
+    Records its time as the "confidence" stage in `times`.
+    """
+    t = time.perf_counter()
     value = pose_uncertainty(
         T_norm, prep.source, prep.target, max_corr=config.icp_max_corr_norm, trim_ratio=config.icp_trim_ratio
     )
+    times["confidence"] = _lap(t)
     return value * prep.source_norm.scale_mm
 
 
@@ -248,9 +253,7 @@ def run_feature_pipeline(
         T_norm = _refine(T_norm, prep, config, ctx.cache)
         residual = residual_norm(T_norm, prep)
         times["refine"] = _lap(t)
-    t = time.perf_counter()
-    uncertainty = uncertainty_mm(T_norm, prep, config)
-    times["confidence"] = _lap(t)
+    uncertainty = uncertainty_mm(T_norm, prep, config, times)
     return RegistrationResult(
         T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
         method=provider.name,
@@ -297,9 +300,7 @@ def _single_result(
     T_norm: np.ndarray, prep: Prepared, times: dict[str, float], name: str, config: Config
 ) -> RegistrationResult:
     """The result of a one-hypothesis method (no P2P candidates) from its normalized transform."""
-    t = time.perf_counter()
-    uncertainty = uncertainty_mm(T_norm, prep, config)
-    times["confidence"] = _lap(t)
+    uncertainty = uncertainty_mm(T_norm, prep, config, times)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
     T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
     return RegistrationResult(
@@ -398,9 +399,7 @@ def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) 
     prep = prepare(source_mm, target_mm, config, ctx.cache)
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ T @ _norm_to_mm(prep.source_norm)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
-    t = time.perf_counter()
-    uncertainty = uncertainty_mm(T_norm, prep, config)
-    times["confidence"] = _lap(t)
+    uncertainty = uncertainty_mm(T_norm, prep, config, times)
     return RegistrationResult(
         T_target_source=T,
         method="procrustes",
