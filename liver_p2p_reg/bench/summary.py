@@ -158,18 +158,19 @@ class Summary:
             )
         return _table(["method", "failed", "flagged ambiguous", "most common failure"], rows)
 
-    def warning_reasons(self, row: Row) -> set[str]:
-        """Why the node would not publish this pose as OK (its WARN/ERROR rules), from a benchmark row."""
-        if row["failed"]:
-            return {"error"}
-        cfg = Config.from_dict(self.settings.get("config", {}))
-        uncertainty = row.get("uncertainty_mm", 0.0)  # absent from runs before the column existed
-        return set(pose_warnings(row["residual_mm"], row["ambiguous"], uncertainty, cfg))
-
     def table_confidence(self, rows: list[Row]) -> list[str]:
+        """Per method: how many bad poses the node's WARN/ERROR rules would have flagged, and good ones needlessly."""
+        cfg = Config.from_dict(self.settings.get("config", {}))
+
+        def reasons_for(row: Row) -> set[str]:
+            if row["failed"]:
+                return {"error"}
+            uncertainty = row.get("uncertainty_mm", 0.0)  # absent from runs before the column existed
+            return set(pose_warnings(row["residual_mm"], row["ambiguous"], uncertainty, cfg))
+
         header = [
             "method",
-            f"poses off by > {SUCCESS_TAU_MM:g} mm",
+            f"poses off by ≥ {SUCCESS_TAU_MM:g} mm",
             "of them warned",
             f"poses within {GOOD_POSE_MM:g} mm warned",
             "warned in all",
@@ -180,7 +181,7 @@ class Summary:
             if m == ORACLE:
                 continue
             mine = select(rows, method=m)
-            reasons = [self.warning_reasons(r) for r in mine]
+            reasons = [reasons_for(r) for r in mine]
             bad = [bool(w) for r, w in zip(mine, reasons, strict=True) if r["rms_tre_mm"] >= SUCCESS_TAU_MM]
             good = [bool(w) for r, w in zip(mine, reasons, strict=True) if r["rms_tre_mm"] <= GOOD_POSE_MM]
             counts = [sum(k in w for w in reasons) for k in ("residual", "ambiguous", "uncertainty")]
@@ -411,7 +412,7 @@ class Summary:
             "",
             f"Cases as stored (no benchmark-added noise). A pose is warned when the method failed, or it is ambiguous, or its residual is above "
             f"`residual_warn_mm`, or its uncertainty above `uncertainty_warn_mm`; a safe method warns on every pose off by "
-            f"more than {SUCCESS_TAU_MM:g} mm and on few within {GOOD_POSE_MM:g} mm.",
+            f"{SUCCESS_TAU_MM:g} mm or more and on few within {GOOD_POSE_MM:g} mm.",
             "",
             *self.table_confidence(self.main),
             "",
@@ -465,7 +466,7 @@ class Summary:
         lines += [f"Success rate (RMS-TRE < {SUCCESS_TAU_MM:g} mm):", "", *self.table_success(), ""]
         lines += [
             f"Would the node have warned (failed, ambiguous, residual or uncertainty above its threshold)? "
-            f"Poses off by > {SUCCESS_TAU_MM:g} mm should all be warned, few within {GOOD_POSE_MM:g} mm:",
+            f"Poses off by {SUCCESS_TAU_MM:g} mm or more should all be warned, few within {GOOD_POSE_MM:g} mm:",
             "",
             *self.table_confidence(self.main),
             "",
