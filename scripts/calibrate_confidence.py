@@ -20,6 +20,7 @@ import torch
 import yaml
 
 from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm
 from liver_p2p_reg.phantom.loader import PairSampler
 from liver_p2p_reg.registrar import Registrar
@@ -83,4 +84,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except LiverP2PError as exc:  # e.g. no store yet: one line, not a traceback
+        raise SystemExit(f"calibrate_confidence: {exc}") from None
