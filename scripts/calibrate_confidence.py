@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import yaml
 
+from liver_p2p_reg.confidence import pose_warnings
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm
@@ -57,7 +58,9 @@ def main() -> None:
             case = sampler.sample()
             result = registrar.register(case["src_pcd"], case["tgt_pcd"], method=args.method)
             tre = rms_tre_mm(result.T_target_source, case["src_marker"], case["tgt_marker"])
-            other = result.ambiguous or not result.residual_mm <= config.residual_warn_mm
+            # the node's other WARN rules (residual, ambiguity): the uncertainty rule is what is being chosen
+            reasons = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config)
+            other = bool(set(reasons) - {"uncertainty"})
             rows.append((tre, result.uncertainty_mm, other))
         print(f"{mode} [{lo}, {hi}) noise {noise:g} mm: {pairs} pairs", flush=True)
     tre = np.array([r[0] for r in rows])
