@@ -42,6 +42,7 @@ class Prepared:
     target_full: np.ndarray
     source: np.ndarray  # (N, 3) voxelized
     target: np.ndarray  # (M, 3) voxelized
+    source_tree: cKDTree  # of `source`, built once per model (residuals are measured against it)
 
     @property
     def visibility(self) -> float:
@@ -56,15 +57,18 @@ def prepare(
     With a cache, the source's share (normalization, voxelization) is computed once per model.
     """
 
-    def source_part() -> tuple[Normalization, np.ndarray, np.ndarray]:
+    def source_part() -> tuple[Normalization, np.ndarray, np.ndarray, cKDTree]:
         norm = source_normalization(source_mm)
         full = norm.apply(source_mm)
-        return norm, full, voxel_downsample(full, config.voxel_size_norm)
+        voxels = voxel_downsample(full, config.voxel_size_norm)
+        return norm, full, voxels, cKDTree(voxels)
 
     if cache is None:
-        ns, src_full, src = source_part()
+        ns, src_full, src, src_tree = source_part()
     else:
-        ns, src_full, src = remember_latest(cache, "prepared-source", source_mm, (config.voxel_size_norm,), source_part)
+        ns, src_full, src, src_tree = remember_latest(
+            cache, "prepared-source", source_mm, (config.voxel_size_norm,), source_part
+        )
     if config.outlier_std_ratio > 0:
         target_mm = target_mm[statistical_inliers(target_mm, config.outlier_neighbors, config.outlier_std_ratio)]
     nt = target_normalization(target_mm, ns)
@@ -77,13 +81,17 @@ def prepare(
             f"target ({len(tgt)} voxels) is larger than the source ({len(src)} voxels): "
             "expected the complete preoperative surface as SOURCE and the partial view as TARGET"
         )
-    return Prepared(ns, nt, src_full, tgt_full, src, tgt)
+    return Prepared(ns, nt, src_full, tgt_full, src, tgt, src_tree)
 
 
 def residual_norm(T_norm: np.ndarray, prep: Prepared) -> float:
-    """Mean closest-point distance target -> transformed voxelized source (normalized units)."""
-    moved = transform_points(T_norm, prep.source)
-    dist, _ = cKDTree(moved).query(prep.target, k=1)
+    """Mean closest-point distance target -> transformed voxelized source (normalized units).
+
+    Measured in the source frame (the target moved by the inverse; distances are the same), so
+    the source's k-d tree is built once per model, not once per evaluated pose.
+    """
+    T_inv = np.linalg.inv(T_norm)
+    dist, _ = prep.source_tree.query(transform_points(T_inv, prep.target), k=1)
     return float(dist.mean())
 
 

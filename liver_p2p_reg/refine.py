@@ -33,7 +33,7 @@ def trimmed_icp(
     trim_ratio: float = 0.8,
     normal_radius: float = 0.1,
     max_target_points: int = 4000,
-    tol: float = 1e-4,
+    tol: float = 1e-3,
     source_index: tuple[cKDTree, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Refine T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.
@@ -50,18 +50,22 @@ def trimmed_icp(
     T_inv = np.linalg.inv(T)
     for _ in range(max_iterations):
         q = target @ T_inv[:3, :3].T + T_inv[:3, 3]  # target in the source frame
-        dist, idx = tree.query(q, k=1)
-        keep = dist < max_corr
-        if keep.sum() < 6:
+        # The bound prunes the tree search; pairs beyond it are dropped anyway (dist = inf).
+        dist, idx = tree.query(q, k=1, distance_upper_bound=max_corr)
+        keep = np.flatnonzero(dist < max_corr)
+        if len(keep) < 6:
             break
         d_keep = dist[keep]
-        cutoff = np.quantile(d_keep, trim_ratio)
-        sel = np.flatnonzero(keep)[d_keep <= cutoff]
+        # The trim_ratio quantile's pairs: linear interpolation puts the quantile between the
+        # (lo)th and (lo+1)th smallest distance, so "<= quantile" keeps those up to the lo-th.
+        lo = int(np.floor((len(d_keep) - 1) * trim_ratio))
+        sel = keep[d_keep <= np.partition(d_keep, lo)[lo]]
         p, s, n = q[sel], source[idx[sel]], normals[idx[sel]]
-        # Linearized: find small (omega, dt) moving q onto the source planes.
+        # Linearized: find small (omega, dt) moving q onto the source planes; solved by its
+        # 6x6 normal equations (lstsq there too, so a degenerate fit cannot raise).
         A = np.hstack([np.cross(p, n), n])
         b = -np.einsum("ij,ij->i", p - s, n)
-        x, *_ = np.linalg.lstsq(A, b, rcond=None)
+        x, *_ = np.linalg.lstsq(A.T @ A, A.T @ b, rcond=None)
         step = np.eye(4)
         step[:3, :3] = _rotation(x[:3])
         step[:3, 3] = x[3:]
