@@ -60,3 +60,16 @@ def test_a_set_from_another_generator_version_is_rebuilt(tmp_path) -> None:
     assert not (path / "case_L0000000_D00_T000.npz").exists()
     again = read_case(testset.testset_cases(path)[0])
     assert np.array_equal(first["tgt_pcd"], again["tgt_pcd"])  # rebuilt identically
+
+
+def test_validation_sets_use_livers_no_test_set_or_training_store_can_have() -> None:
+    """Defaults are chosen on the val sets: their livers must be unseen by training and by the tests."""
+    val = {name: spec for name, spec in TESTSETS.items() if spec.split == "val"}
+    test_seeds = {spec.seed for spec in TESTSETS.values() if spec.split == "test"}
+    assert set(val) == {"insilico-val-v1", "insilico-val-camera-v1"}
+    for name, spec in val.items():
+        assert spec.seed not in test_seeds, name
+        # a reserved seed: `dataset generate --store/--seed` refuses it, so no training store holds these livers
+        with pytest.raises(InputError, match="reserved"):
+            testset.DatasetSpec(livers=1, deformations=1, targets=1, seed=spec.seed).validate()
+        assert testset.testset_spec(name).seed == spec.seed

@@ -20,7 +20,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--out", help="output directory for cases (or the data root with --testset)")
     g.add_argument("--store", help="build a training store of livers + deformations here (for PairSampler) instead")
     g.add_argument(
-        "--testset", help="generate the named test set (insilico-test-v1, insilico-camera-v1, insilico-smoke)"
+        "--testset",
+        help="generate a named set: insilico-test-v1, insilico-camera-v1, insilico-smoke (test); "
+        "insilico-val-v1, insilico-val-camera-v1 (validation, for tuning)",
     )
     g.add_argument("--livers", type=int, default=10)
     g.add_argument("--deformations", type=int, default=5, help="FEM deformations per liver")

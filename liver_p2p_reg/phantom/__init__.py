@@ -22,7 +22,8 @@ Pipeline (one liver = one integer seed, every random stream derived from indices
    80-150 mm on the anterior side, z-buffer hidden-point removal), a uniform SO(3) rotation, a
    translation in [-100, 100] mm per axis, and uniform noise [-0.5, 0.5] x level mm.
 5. dataset / testset / loader: case NPZs + manifest.csv (`liver-p2p dataset generate --out`),
-   named test sets (`--testset insilico-test-v1`, `insilico-camera-v1`, `insilico-smoke`; liver
-   seeds 900-999, never used for training), and a training store for PairSampler
+   named test sets (`--testset insilico-test-v1`, `insilico-camera-v1`, `insilico-smoke`) and
+   validation sets (`insilico-val-v1`, `insilico-val-camera-v1`: for choosing defaults, so the
+   test sets stay unseen) on liver seeds 900-999, never used for training, and a training store for PairSampler
    (`liver-p2p dataset generate --store DIR --livers N --deformations D --seed S`).
 """

@@ -3,7 +3,7 @@
 Every random stream is derived from indices only -- liver id, deformation index, target index
 -- never from worker order, so a dataset is identical for any number of workers and can be
 resumed (finished case files are skipped). Liver ids are `seed * 10000 + liver index`; seeds
-900-999 are reserved for the named test sets (testset.py), so training livers drawn with any
+900-999 are reserved for the named test and validation sets (testset.py), so training livers drawn with any
 other seed are disjoint from them by construction.
 """
 
@@ -208,7 +208,9 @@ class DatasetSpec:
         if self.seed < 0:
             raise InputError(f"--seed must be >= 0, got {self.seed}")
         if self.seed in RESERVED_SEEDS and not allow_reserved:
-            raise InputError(f"--seed {self.seed} is reserved for the named test sets (900-999); pick another")
+            raise InputError(
+                f"--seed {self.seed} is reserved for the named test and validation sets (900-999); pick another"
+            )
         if self.target_tets < 500:
             raise InputError(f"target_tets must be >= 500, got {self.target_tets}")
         if not self.visibility_bins:

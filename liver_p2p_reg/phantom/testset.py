@@ -5,7 +5,9 @@
 noise: 480 cases, 60 per bin (the paper's protocol). `insilico-camera-v1`: the same livers
 and deformations seen by an anterior laparoscope, 4 targets per deformation in the bins
 [0.2,0.3) and [0.3,0.4) (a camera rarely sees more): 240 cases, 120 per bin. `insilico-smoke`: 2 livers x 1
-deformation x 8 bins for fast tests and demo bags. Noise levels are applied by the benchmark
+deformation x 8 bins for fast tests and demo bags. `insilico-val-v1` / `insilico-val-camera-v1`:
+6 other livers (seed 990) in the same two forms (240 / 120 cases), the validation sets on which
+defaults and thresholds are chosen. Noise levels are applied by the benchmark
 on top of these clean targets (or with `--noise` when generating other sets).
 """
 
@@ -24,6 +26,10 @@ TESTSETS: dict[str, DatasetSpec] = {
     "insilico-test-v1": DatasetSpec(livers=12, deformations=5, targets=8, crop="random", seed=900, split="test"),
     "insilico-camera-v1": DatasetSpec(livers=12, deformations=5, targets=4, crop="camera", seed=900, split="test"),
     "insilico-smoke": DatasetSpec(livers=2, deformations=1, targets=8, crop="random", seed=901, split="test"),
+    # Validation: for choosing defaults and thresholds, so the test sets stay unseen. A reserved
+    # seed, so no training store can contain these livers either.
+    "insilico-val-v1": DatasetSpec(livers=6, deformations=5, targets=8, crop="random", seed=990, split="val"),
+    "insilico-val-camera-v1": DatasetSpec(livers=6, deformations=5, targets=4, crop="camera", seed=990, split="val"),
 }
 ENV_DATA_ROOT = "LIVER_P2P_DATA"
 log = logging.getLogger(__name__)
