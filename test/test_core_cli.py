@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from test_core_methods import partial_case
 
 from liver_p2p_reg.cli import main
-from liver_p2p_reg.cloud_io import save_points
+from liver_p2p_reg.cloud_io import load_points, save_points
 from liver_p2p_reg.metrics import rms_tre_mm
 
 
@@ -93,6 +94,32 @@ def test_bad_inputs_give_one_line_errors(files: dict, tmp_path: Path, capsys: py
     assert "give both" in _error(["register", src, tgt, "--source-fiducials", files["fid_s.npy"]], capsys)
     missing_dir = tmp_path / "no" / "out.json"
     assert "does not exist" in _error(["register", src, tgt, "--output", str(missing_dir)], capsys)
+
+
+def test_register_writes_the_moved_source_and_an_overlay_plot(
+    files: dict, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    import matplotlib.image
+
+    moved, plot = tmp_path / "moved.npy", tmp_path / "check.png"
+    argv = ["register", files["source.ply"], files["target.xyz"], "--method", "procrustes"]
+    argv += ["--source-fiducials", files["fid_s.npy"], "--target-fiducials", files["fid_t.npy"]]
+    assert main([*argv, "--moved", str(moved), "--plot", str(plot)]) == 0
+    T = np.array(json.loads(capsys.readouterr().out)["transform"])
+    source = load_points(files["source.ply"])
+    assert np.allclose(np.load(moved), source @ T[:3, :3].T + T[:3, 3], atol=1e-9)
+    # The moved preop lies on the intraop view (the oracle pose of a mildly deformed crop).
+    dist, _ = cKDTree(np.load(moved)).query(files["target"], k=1)
+    assert np.median(dist) < 1.0
+    image = matplotlib.image.imread(plot)
+    assert image.shape[1] > 1500 and image.shape[0] > 400 and image[..., :3].std() > 0.05
+    # Outputs are checked before any work: a wrong suffix or an existing file is a one-line error.
+    assert "--plot" in _error([*argv, "--plot", str(tmp_path / "check.jpg")], capsys)
+    assert "exists; pass --force" in _error([*argv, "--moved", str(moved)], capsys)
+    assert not (tmp_path / "check.jpg").exists()
+    before = plot.stat().st_mtime_ns
+    assert main([*argv, "--plot", str(plot), "--force"]) == 0
+    assert plot.stat().st_mtime_ns != before
 
 
 def test_nan_points_are_dropped_with_a_warning(

@@ -9,12 +9,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cloud_io import load_points
+from ..cloud_io import load_points, save_points
 from ..confidence import pose_warnings
 from ..config import SELECTION_RULES, Config
 from ..errors import InputError
+from ..metrics import transform_points
 from ..o3d import quiet_open3d
+from ..overlay import plot_registration
 from ..registrar import Registrar
+
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+MOVED_SUFFIXES = (".ply", ".pcd", ".xyz", ".npy")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -36,7 +41,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--source-fiducials", metavar="F", help="(F, 3) fiducials in the source frame (mm)")
     p.add_argument("--target-fiducials", metavar="F", help="the same fiducials in the target frame (mm)")
     p.add_argument("--output", "-o", metavar="PATH", help="also write the JSON result to PATH")
-    p.add_argument("--force", action="store_true", help="overwrite --output if it exists")
+    p.add_argument(
+        "--plot",
+        metavar="PNG",
+        help="also draw the moved SOURCE over TARGET (three views, distances, fiducial errors) to PNG/PDF/SVG",
+    )
+    p.add_argument("--moved", metavar="PATH", help="also write SOURCE moved into TARGET's frame (PLY/PCD/XYZ/NPY, mm)")
+    p.add_argument("--force", action="store_true", help="overwrite --output / --plot / --moved files that exist")
     p.set_defaults(func=run)
 
 
@@ -50,13 +61,24 @@ def _config(args: argparse.Namespace) -> Config:
     return config.replace(**overrides) if overrides else config
 
 
+def _output_path(value: str | None, force: bool, option: str, suffixes: tuple[str, ...] = ()) -> Path | None:
+    """Checked before registering, so a bad path costs nothing and nothing is half-written."""
+    if not value:
+        return None
+    path = Path(value)
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise InputError(f"{option} {path}: use one of {', '.join(suffixes)}")
+    if path.exists() and not force:
+        raise InputError(f"{path} exists; pass --force to overwrite it")
+    if not path.parent.exists():
+        raise InputError(f"output folder does not exist: {path.parent}")
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
-    output = Path(args.output) if args.output else None
-    if output is not None:
-        if output.exists() and not args.force:
-            raise InputError(f"{output} exists; pass --force to overwrite it")
-        if not output.parent.exists():
-            raise InputError(f"output folder does not exist: {output.parent}")
+    output = _output_path(args.output, args.force, "--output")
+    plot = _output_path(args.plot, args.force, "--plot", PLOT_SUFFIXES)
+    moved = _output_path(args.moved, args.force, "--moved", MOVED_SUFFIXES)
     if (args.source_fiducials is None) != (args.target_fiducials is None):
         raise InputError("give both --source-fiducials and --target-fiducials, or neither")
     config = _config(args)
@@ -77,6 +99,20 @@ def run(args: argparse.Namespace) -> int:
         output.write_text(text + "\n")
     print(text)
     # The node's WARN rules, on stderr: the pose is still returned (exit 0), but flagged.
-    for message in pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config).values():
+    warnings = list(pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config).values())
+    for message in warnings:
         logging.getLogger("liver_p2p_reg").warning(message)
+    if moved is not None:
+        save_points(moved, transform_points(result.T_target_source, source))
+    if plot is not None:
+        plot_registration(
+            source,
+            target,
+            result,
+            plot,
+            warnings=warnings,
+            residual_warn_mm=config.residual_warn_mm,
+            source_fiducials_mm=fid_s,
+            target_fiducials_mm=fid_t,
+        )
     return 0
