@@ -32,11 +32,13 @@ def plot_registration(
     residual_warn_mm: float | None = None,
     source_fiducials_mm: np.ndarray | None = None,
     target_fiducials_mm: np.ndarray | None = None,
+    title: str | None = None,
 ) -> Path:
     """Write three orthographic views of the moved source (grey) and the target (coloured by its
     distance to the moved source, mm) in the target's sensor frame, plus the distance histogram.
 
-    Fiducials, when given, are drawn as pairs (moved source fiducial -> target fiducial).
+    Fiducials, when given, are drawn as pairs (moved source fiducial -> target fiducial); `title`
+    (e.g. the bag's name) leads the headline.
     """
     import matplotlib
 
@@ -56,7 +58,7 @@ def plot_registration(
             transform_points(T, np.asarray(source_fiducials_mm, float)),
             np.asarray(target_fiducials_mm, float),
         )
-    for ax, ((h, v), title) in zip(axes[:3], VIEWS, strict=True):
+    for ax, ((h, v), view_title) in zip(axes[:3], VIEWS, strict=True):
         ax.scatter(shown_src[:, h], shown_src[:, v], s=0.3, c="0.75", label="preop (moved)", rasterized=True)
         sc = ax.scatter(
             shown_tgt[:, h],
@@ -75,7 +77,7 @@ def plot_registration(
                 ax.plot([a[h], b[h]], [a[v], b[v]], color="red", linewidth=0.8)
             ax.scatter(target_f[:, h], target_f[:, v], s=6, marker="x", color="red", label="fiducial errors")
         ax.set_aspect("equal", adjustable="datalim")
-        ax.set_title(title)
+        ax.set_title(view_title)
         ax.set_xlabel(f"{'xyz'[h]} (mm)")
         ax.set_ylabel(f"{'xyz'[v]} (mm)")
     axes[0].legend(loc="upper right", fontsize=7, markerscale=3)
@@ -88,7 +90,8 @@ def plot_registration(
     hist.set_xlabel("intraop point -> moved preop distance (mm)")
     hist.set_ylabel("points")
     hist.legend(fontsize=8)
-    headline = f"{result.method}: residual {result.residual_mm:.2f} mm, uncertainty {result.uncertainty_mm:.1f} mm"
+    headline = f"{title}: " if title else ""
+    headline += f"{result.method}: residual {result.residual_mm:.2f} mm, uncertainty {result.uncertainty_mm:.1f} mm"
     if result.rms_tre_mm is not None:
         headline += f", RMS-TRE {result.rms_tre_mm:.2f} mm"
     fig.suptitle(f"{headline}\n{status}", color="firebrick" if warnings else "darkgreen")

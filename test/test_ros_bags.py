@@ -144,3 +144,24 @@ def test_replay_writes_output_bag_with_registration_topics(tmp_path, case_bag):
     with pytest.raises(InputError, match="exists"):
         replay_bag(case_bag, Config(method="procrustes"), out_path=out)
     assert "case_bag" in format_table([row]) and "uncertainty mm" in format_table([row])
+
+
+def test_replay_plots_the_last_registered_frame_and_keeps_existing_plots(tmp_path, case_bag, capsys):
+    import matplotlib.image
+
+    plots = tmp_path / "plots"
+    argv = ["replay", str(case_bag), "--method", "procrustes", "--plots", str(plots)]
+    assert main(argv) == 0
+    png = plots / "case_bag.png"
+    image = matplotlib.image.imread(png)
+    assert image.shape[1] > 1500 and image[..., :3].std() > 0.05
+    capsys.readouterr()
+    before = png.read_bytes()
+    assert main(argv) == 2  # an existing plot is not overwritten without --force
+    assert "exists; pass --force" in capsys.readouterr().err and png.read_bytes() == before
+    assert main([*argv, "--force"]) == 0
+    # Every frame failing (the oracle without ground truth) gives no pose, so no picture either.
+    source, target, _, _ = synthetic_case()
+    bare = make_case_bag(tmp_path / "bare_bag", source, target)
+    assert main(["replay", str(bare), "--method", "procrustes", "--plots", str(tmp_path / "none")]) == 1
+    assert not (tmp_path / "none" / "bare_bag.png").exists()

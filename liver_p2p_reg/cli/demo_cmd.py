@@ -30,7 +30,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", help="registration method (default: the configured default)")
     p.add_argument("--config", help="YAML configuration file")
     p.add_argument(
-        "--out", default="out/demo", help="folder for the output bags, replaced on each demo run (default: out/demo)"
+        "--out",
+        default="out/demo",
+        help="folder for the output bags and an overlay PNG per bag, replaced on each demo run (default: out/demo)",
     )
     p.set_defaults(func=run)
 
@@ -49,8 +51,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("no bundled bags found (expected a bags/ folder next to the package)")
     paths = sorted(p for p in bags.iterdir() if (p / "metadata.yaml").is_file() or p.suffix == ".mcap")
     print(f"Replaying {len(paths)} bundled bags from {bags} with method {config.method} ...", flush=True)
-    rows = replay_bags(paths, config, out_dir=Path(args.out), progress=True, overwrite=True)
+    rows = replay_bags(paths, config, out_dir=Path(args.out), progress=True, overwrite=True, plot_dir=Path(args.out))
     print(format_table(rows))
+    print(f"Output bags and an overlay PNG of each bag's last registered frame: {args.out}/")
     for row in rows:  # why a bag is not OK, in the node's own words (its worst frame's diagnostic)
         if row.status != "OK":
             print(f"{row.bag}: {row.status}: {row.message}")

@@ -14,7 +14,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("replay", help="replay rosbag2/MCAP bags through the registration node core")
     p.add_argument("bags", nargs="+", help="rosbag2 directories (with metadata.yaml) or .mcap files")
     p.add_argument("--out", help="folder for output bags with /registration/* and /diagnostics added")
-    p.add_argument("--force", action="store_true", help="overwrite existing output bags")
+    p.add_argument("--plots", metavar="DIR", help="draw each bag's last registered frame to DIR/<bag>.png")
+    p.add_argument("--force", action="store_true", help="overwrite existing output bags and plots")
     p.add_argument("--method", help="registration method (default: the configured one)")
     p.add_argument("--mode", choices=NODE_MODES, help="node mode (default: the configured one)")
     p.add_argument("--config", help="YAML configuration file (plain or ROS parameter file)")
@@ -37,7 +38,15 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"bag not found: {path}")
         if not is_bag_path(path):
             raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
-    rows = replay_bags(paths, config, out_dir=args.out, progress=True, overwrite=args.force, max_frames=args.max_frames)
+    rows = replay_bags(
+        paths,
+        config,
+        out_dir=args.out,
+        progress=True,
+        overwrite=args.force,
+        max_frames=args.max_frames,
+        plot_dir=args.plots,
+    )
     print(format_table(rows))
     for row in rows:
         if row.status != "OK":

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..confidence import pose_warnings
 from ..config import Config
 from ..errors import InputError
 from ..registrar import Registrar, get_method
@@ -25,7 +26,7 @@ from .bag_io import (
 from .bag_make import CASE_KEY, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 from .messages import diagnostic_array, pose_stamped, rosbags_output_types, transform_stamped
 from .node_core import ERROR, LEVEL_NAMES, OK, CoreOutput, NodeCore
-from .pointcloud2 import M_PER_MM, points_to_cloud
+from .pointcloud2 import M_PER_MM, cloud_to_points_mm, points_to_cloud
 
 LOG = logging.getLogger("liver_p2p_reg.replay")
 TOPIC_POSE = "/registration/pose"
@@ -69,11 +70,13 @@ def replay_bag(
     overwrite: bool = False,
     registrar: Registrar | None = None,
     max_frames: int | None = None,
+    plot_path: str | Path | None = None,
 ) -> ReplayRow:
     """Drive a NodeCore with a bag's messages in log-time order; optionally write inputs + outputs.
 
     Bag time stands in for the clock, so the rate limit and latest-only policy behave as live.
     max_frames: stop registering after this many registrations (quick tests); 0/None = all.
+    plot_path: also draw the last registered frame (overlay.plot_registration) to this PNG.
     """
     path = Path(path)
     core = NodeCore(config, registrar)
@@ -82,11 +85,16 @@ def replay_bag(
     outputs: list[CoreOutput] = []
     frames = 0
     last_ns = 0
+    latest: dict[str, object] = {}  # the last intraop cloud / fiducials received (the core registers the latest)
+    last_posed: tuple[CoreOutput, object, object] | None = None  # (output, its cloud, its fiducials)
 
     def emit(output: CoreOutput | None, stamp_ns: int, log_ns: int) -> None:
+        nonlocal last_posed
         if output is None:
             return
         outputs.append(output)
+        if output.pose is not None and output.result is not None:
+            last_posed = (output, latest.get("cloud"), latest.get("fiducials"))
         if writer is None:
             return
         if output.pose is not None:
@@ -118,8 +126,10 @@ def replay_bag(
                 core.on_preop_fiducials_msg(item.msg)
             elif item.topic == TOPIC_INTRAOP_FIDUCIALS:
                 core.on_intraop_fiducials_msg(item.msg)
+                latest["fiducials"] = item.msg
             elif item.topic == TOPIC_INTRAOP:
                 frames += 1
+                latest["cloud"] = item.msg
                 if max_frames and len(outputs) >= max_frames:
                     continue
                 for diag in core.on_intraop_msg(item.msg):
@@ -136,7 +146,37 @@ def replay_bag(
             info = json.loads(custom[CASE_KEY])
         except ValueError:
             info = {}
+    if plot_path is not None and last_posed is not None:
+        _plot_frame(plot_path, core, *last_posed, title=path.name)
     return _summarize(path, frames, outputs, str(out_path or ""), info)
+
+
+def _plot_frame(
+    plot_path: str | Path, core: NodeCore, output: CoreOutput, cloud: object, fiducials: object, title: str
+) -> None:
+    """The overlay PNG of one registered frame, with the bag's ground-truth fiducials when it has them."""
+    from ..overlay import plot_registration
+
+    fid_s = core.preop_fiducials_mm
+    fid_t = cloud_to_points_mm(fiducials) if fiducials is not None and fid_s is not None else None
+    if fid_t is None or fid_s is None or fid_t.shape != fid_s.shape:
+        fid_s = fid_t = None
+    result = output.result
+    warnings = None
+    if output.level != OK:  # the node's reasons, else (e.g. a units warning) its whole message
+        reasons = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, core.config)
+        warnings = list(reasons.values()) or [output.summary]
+    plot_registration(
+        core.preop_mm,
+        cloud_to_points_mm(cloud),
+        result,
+        plot_path,
+        warnings=warnings,
+        residual_warn_mm=core.config.residual_warn_mm,
+        source_fiducials_mm=fid_s,
+        target_fiducials_mm=fid_t,
+        title=title,
+    )
 
 
 def _stamp(msg: object) -> int:
@@ -182,11 +222,19 @@ def replay_bags(
     progress: bool = True,
     overwrite: bool = False,
     max_frames: int | None = None,
+    plot_dir: str | Path | None = None,
 ) -> list[ReplayRow]:
-    """Replay several bags with one Registrar (method caches shared); output bags go to out_dir/<name>."""
+    """Replay several bags with one Registrar (method caches shared); output bags go to out_dir/<name>,
+    overlay PNGs of each bag's last registered frame to plot_dir/<name>.png."""
     if not paths:
         raise InputError("no bags given")
     get_method(config.method)  # an unknown method is one InputError up front, not an ERROR per frame
+    plots = {Path(p): None if plot_dir is None else Path(plot_dir) / f"{_bag_name(Path(p))}.png" for p in paths}
+    if plot_dir is not None:
+        existing = [str(p) for p in plots.values() if p.exists()]
+        if existing and not overwrite:
+            raise InputError(f"{existing[0]} exists; pass --force to overwrite the plots")
+        Path(plot_dir).mkdir(parents=True, exist_ok=True)
     registrar = Registrar(config)
     rows = []
     iterator = paths
@@ -196,11 +244,23 @@ def replay_bags(
         iterator = tqdm(paths, desc="replay", unit="bag")
     for path in iterator:
         path = Path(path)
-        out = None if out_dir is None else Path(out_dir) / path.name.removesuffix(".mcap")
+        out = None if out_dir is None else Path(out_dir) / _bag_name(path)
         rows.append(
-            replay_bag(path, config, out_path=out, overwrite=overwrite, registrar=registrar, max_frames=max_frames)
+            replay_bag(
+                path,
+                config,
+                out_path=out,
+                overwrite=overwrite,
+                registrar=registrar,
+                max_frames=max_frames,
+                plot_path=plots[path],
+            )
         )
     return rows
+
+
+def _bag_name(path: Path) -> str:
+    return path.name.removesuffix(".mcap")
 
 
 def _fmt(value: float, digits: int = 2) -> str:
