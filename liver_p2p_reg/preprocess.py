@@ -38,6 +38,20 @@ def target_normalization(target_mm: np.ndarray, source_norm: Normalization) -> N
     return Normalization(np.asarray(target_mm, dtype=np.float64).mean(axis=0), source_norm.scale_mm)
 
 
+def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """One int64 key per point naming its floor(p / voxel) cell; keys sort like the cells (x, y, z).
+
+    A 1-D key makes np.unique several times faster than unique rows. When the cells span too
+    much for one int64 (far outliers), the cells' rank among the unique rows is the key instead.
+    """
+    cells = np.floor(np.asarray(points, dtype=np.float64) / voxel_size).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = [int(v) + 1 for v in cells.max(axis=0)]
+    if span[0] * span[1] * span[2] < 2**62:
+        return (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
+
+
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Replace the points of each occupied voxel by their mean (deterministic, sorted by voxel)."""
     if voxel_size <= 0:
@@ -45,11 +59,8 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0:
         return points.reshape(0, 3)
-    keys = np.floor(points / voxel_size).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, points)
+    _, inverse, counts = np.unique(voxel_keys(points, voxel_size), return_inverse=True, return_counts=True)
+    sums = np.stack([np.bincount(inverse, weights=points[:, i], minlength=len(counts)) for i in range(3)], axis=1)
     return sums / counts[:, None]
 
 

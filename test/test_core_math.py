@@ -205,3 +205,30 @@ def test_statistical_inliers_drop_flying_pixels_and_keep_the_surface(rng: np.ran
     assert keep[4000:].mean() < 0.2  # most flying pixels go
     assert statistical_inliers(surface[:3], 20, 2.0).all()  # too small to judge: keep all
     assert statistical_inliers(surface, 20, 0.0).all()  # disabled
+
+
+def _voxel_means_reference(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Per-cell means by a dict, sorted by cell: what voxel_downsample must return."""
+    cells: dict[tuple, list] = {}
+    for p in points:
+        cells.setdefault(tuple(np.floor(p / voxel).astype(np.int64)), []).append(p)
+    return np.array([np.mean(cells[c], axis=0) for c in sorted(cells)])
+
+
+@pytest.mark.parametrize("voxel", [0.04, 0.3, 1e-3])
+def test_voxel_downsample_equals_per_cell_means(rng: np.random.Generator, voxel: float) -> None:
+    from liver_p2p_reg.preprocess import voxel_downsample
+
+    points = rng.normal(size=(3000, 3)) * [1.0, 0.5, 0.2]
+    np.testing.assert_allclose(voxel_downsample(points, voxel), _voxel_means_reference(points, voxel), atol=1e-12)
+
+
+def test_voxel_downsample_survives_cells_too_far_apart_for_one_int64_key() -> None:
+    """A far outlier (e.g. a flying pixel in metres among millimetres) must not merge cells."""
+    from liver_p2p_reg.phantom.crop import count_voxels
+    from liver_p2p_reg.preprocess import voxel_downsample
+
+    points = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [5.1, 0.0, 0.0], [5.3, 0.0, 0.0], [3e7, -3e7, 3e7]])
+    out = voxel_downsample(points, 1.0)  # spans ~(3e7)^3 cells: more than an int64 key can number
+    np.testing.assert_allclose(out, [[0.2, 0.2, 0.2], [5.2, 0.0, 0.0], [3e7, -3e7, 3e7]])
+    assert count_voxels(points, 1.0) == 3

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registrar import available_methods
 from liver_p2p_reg.ros.bag_io import rosbags_types
-from liver_p2p_reg.ros.node_core import ERROR, OK, STALE, WARN, NodeCore, voxel_downsample_bounded
+from liver_p2p_reg.ros.node_core import ERROR, OK, STALE, WARN, NodeCore
 from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
 
 TYPES = rosbags_types()
@@ -97,12 +97,6 @@ def test_million_point_cloud_is_voxelized_first():
     assert diag.level == ERROR and "too few" in diag.message
     assert diag.values["input_points"] == "1000000"
     assert int(diag.values["valid_points"]) < 100
-
-
-def test_voxel_downsample_bounded_means():
-    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [5.1, 0.0, 0.0], [5.3, 0.0, 0.0]])
-    out = voxel_downsample_bounded(pts, 1.0)
-    np.testing.assert_allclose(sorted(out.tolist()), [[0.2, 0.2, 0.2], [5.2, 0.0, 0.0]])
 
 
 def test_bad_preop_is_rejected():

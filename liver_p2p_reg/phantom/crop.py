@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError, LiverP2PError
-from ..preprocess import source_normalization, target_normalization, voxel_downsample
+from ..preprocess import source_normalization, target_normalization, voxel_downsample, voxel_keys
 
 CROP_MODES = ("random", "camera")
 VOXEL_SIZE_NORM = 0.04
@@ -26,18 +26,11 @@ TRANSLATION_RANGE_MM = 100.0
 
 
 def count_voxels(points: np.ndarray, voxel_size: float) -> int:
-    """Number of occupied voxels = len(preprocess.voxel_downsample(points, voxel_size)), faster.
-
-    Same floor(p / voxel) cells, but counted through one int64 key per point (np.unique on a
-    1-D array) instead of unique rows and per-voxel means: the crop bisection calls it often.
-    """
+    """Number of occupied voxels = len(preprocess.voxel_downsample(points, voxel_size)), without
+    the per-voxel means: the crop bisection calls it often."""
     if len(points) == 0:
         return 0
-    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel_size).astype(np.int64)
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    return int(np.unique(flat).size)
+    return int(np.unique(voxel_keys(points, voxel_size)).size)
 
 
 class VisibilityMeter:

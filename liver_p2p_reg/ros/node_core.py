@@ -20,6 +20,7 @@ from ..confidence import pose_warnings
 from ..config import Config
 from ..errors import InputError, LiverP2PError
 from ..metrics import transform_points
+from ..preprocess import voxel_downsample
 from ..registrar import Registrar
 from ..result import RegistrationResult
 from .pointcloud2 import cloud_to_points_mm, stamp_to_ns
@@ -311,7 +312,7 @@ class NodeCore:
         warnings: list[str] = []
         if len(points) >= self.config.max_input_points:
             voxel_mm = (scale_mm or _extent_mm(points)) * self.config.voxel_size_norm / 2
-            points = voxel_downsample_bounded(points, voxel_mm)
+            points = voxel_downsample(points, voxel_mm)
             warnings.append(f"{n_raw} input points voxelized to {len(points)} ({voxel_mm:.2f} mm voxels)")
         values["valid_points"] = str(len(points))
         if len(points) < self.config.min_points:
@@ -477,18 +478,3 @@ def result_values(result: RegistrationResult) -> dict[str, str]:
 def _extent_mm(points_mm: np.ndarray) -> float:
     """Bounding-box diagonal of a cloud."""
     return float(np.linalg.norm(points_mm.max(axis=0) - points_mm.min(axis=0)))
-
-
-def voxel_downsample_bounded(points_mm: np.ndarray, voxel_mm: float) -> np.ndarray:
-    """Voxel-mean downsampling with 1-D keys (O(N) memory; fast on millions of points)."""
-    if not voxel_mm > 0:
-        raise InputError(f"voxel size must be > 0, got {voxel_mm}")
-    lo = points_mm.min(axis=0)
-    cells = np.floor((points_mm - lo) / voxel_mm).astype(np.int64)
-    dims = cells.max(axis=0) + 1
-    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    out = np.empty((len(counts), 3))
-    for axis in range(3):
-        out[:, axis] = np.bincount(inverse, weights=points_mm[:, axis], minlength=len(counts)) / counts
-    return out
