@@ -8,6 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .metrics import transform_points
+from .plotting import pyplot
 from .result import RegistrationResult
 
 # Target points farther than this from the moved source are drawn in the colour map's last colour.
@@ -40,11 +41,7 @@ def plot_registration(
     Fiducials, when given, are drawn as pairs (moved source fiducial -> target fiducial); `title`
     (e.g. the bag's name) leads the headline.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only; no display on servers or CI
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     T = np.asarray(result.T_target_source, dtype=np.float64)
     moved = transform_points(T, np.asarray(source_mm, dtype=np.float64))
     target = np.asarray(target_mm, dtype=np.float64)

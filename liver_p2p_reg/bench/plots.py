@@ -6,24 +6,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ..plotting import pyplot
 from .cases import BIN_EDGES, BIN_LABELS
 from .stats import Row, by_bin, main_rows, order_methods, select, success_curve, where
 
 TAUS_MM = np.linspace(0.0, 40.0, 81)
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only; no display on servers or CI
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def success_vs_tau(rows: list[Row], path: Path) -> Path:
     """Success rate vs threshold tau (0-40 mm): the lowest visibility bin and all cases."""
-    plt = _pyplot()
+    plt = pyplot()
     rows = main_rows(rows)
     lo, hi = BIN_EDGES[0], BIN_EDGES[1]
     panels = [
@@ -51,7 +43,7 @@ def success_vs_tau(rows: list[Row], path: Path) -> Path:
 
 def tre_vs_visibility(rows: list[Row], path: Path) -> Path:
     """Mean RMS-TRE per visibility bin for every method (log scale)."""
-    plt = _pyplot()
+    plt = pyplot()
     rows = main_rows(rows)
     centres = [(a + b) / 2 for a, b in zip(BIN_EDGES, BIN_EDGES[1:], strict=False)]
     fig, ax = plt.subplots(figsize=(7, 4.5))
@@ -77,7 +69,7 @@ def tre_vs_visibility(rows: list[Row], path: Path) -> Path:
 
 def k_ablation(curves: dict[str, dict[int, tuple[float, float]]], path: Path) -> Path:
     """Mean RMS-TRE vs K (number of patches) per P2P method: lowest bin and all ablation cases."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for m, per_k in sorted(curves.items()):
         ks = sorted(per_k)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..plotting import pyplot
 from .dataset import VISIBILITY_BINS
 
 STAT_COLUMNS = (
@@ -46,11 +47,7 @@ def summarize(rows: Sequence[dict]) -> dict:
 
 def plot_histograms(rows: Sequence[dict], path: str | Path, title: str = "") -> Path:
     """Write a 1x4 panel of histograms like the paper's Fig. 4."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.6), dpi=90)
     for ax, (key, label) in zip(axes, STAT_COLUMNS, strict=True):
         v = np.array([r[key] for r in rows], dtype=np.float64)

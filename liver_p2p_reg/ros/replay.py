@@ -157,9 +157,10 @@ def _plot_frame(
     """The overlay PNG of one registered frame, with the bag's ground-truth fiducials when it has them."""
     from ..overlay import plot_registration
 
-    fid_s = core.preop_fiducials_mm
-    fid_t = cloud_to_points_mm(fiducials) if fiducials is not None and fid_s is not None else None
-    if fid_t is None or fid_s is None or fid_t.shape != fid_s.shape:
+    fid_s, fid_t = core.preop_fiducials_mm, None
+    if fid_s is not None and fiducials is not None:
+        fid_t = cloud_to_points_mm(fiducials)
+    if fid_t is None or fid_t.shape != fid_s.shape:
         fid_s = fid_t = None
     result = output.result
     warnings = None
