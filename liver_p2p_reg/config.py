@@ -27,6 +27,7 @@ MINIMUMS: dict[str, float] = {
     "min_points": 3,
     "outlier_neighbors": 3,
     "max_patch_rows": 0,
+    "consensus_seeds": 0,
     "refit_iterations": 0,
     "icp_max_points": 100,
     "refine_candidates": 1,
@@ -62,6 +63,11 @@ class Config:
     refit_iterations: int = 6  # robust re-fits of each candidate on its own consistent matches; 0: off (the paper)
     refit_radius_start_norm: float = 0.3  # first re-fit radius (normalized units) ...
     refit_radius_end_norm: float = 0.04  # ... shrinking geometrically to this one
+    # each P2P candidate also gets a fit started from a pairwise-distance consensus among its
+    # this many most confident matches (an extra candidate; robust when wrong matches are the
+    # majority); 0: off (the paper)
+    consensus_seeds: int = 64
+    consensus_sigma_norm: float = 0.1  # pairwise-distance mismatch at which two matches stop being compatible
     fpfh_radius_norm: float = 0.25  # FPFH feature radius (normalized units)
     normal_radius_norm: float = 0.1  # normal estimation radius (normalized units)
     ransac_max_corr_norm: float = 0.05  # FPFH+RANSAC max correspondence distance (paper)
@@ -112,6 +118,8 @@ class Config:
                 raise InputError(f"{name} must be >= {minimum}, got {value}")
         if not self.voxel_size_norm > 0:
             raise InputError(f"voxel_size_norm must be > 0, got {self.voxel_size_norm}")
+        if not self.consensus_sigma_norm > 0:
+            raise InputError(f"consensus_sigma_norm must be > 0, got {self.consensus_sigma_norm}")
         if not self.temperature > 0:
             raise InputError(f"temperature must be > 0, got {self.temperature}")
         if self.selection not in SELECTION_RULES:

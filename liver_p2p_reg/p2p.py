@@ -35,6 +35,12 @@ class P2PSettings:
     mutual_only: bool = False  # True: strict mutual nearest neighbours (the paper); False: every row's best match
     # robust re-fit radii (normalized), largest first; () = off (the paper's single fit)
     refit_radii: tuple[float, ...] = geometric_radii(0.3, 0.04, 6)
+    # > 0: every candidate gets a second fit, started from a spatial-compatibility consensus
+    # among its this many strongest matches (see consensus_pose); 0: off (the paper)
+    consensus_seeds: int = 0
+    consensus_sigma: float = 0.1  # pairwise-distance mismatch (normalized) at which compatibility reaches 0
+    consensus_group: int = 16  # matches per hypothesis: the seed and its most compatible partners
+    consensus_inlier: float = 0.1  # a hypothesis scores the confidence of the matches it brings within this
 
 
 @dataclass
@@ -50,6 +56,7 @@ class P2POutput:
     chosen: int
     names: list[str]
     patch_nodes: torch.Tensor  # (K,) source indices of the patch nodes
+    # with consensus_seeds > 0, indices 1+K .. 1+2K repeat 0..K started from the consensus pose
     runtime_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -118,6 +125,68 @@ def robust_refit(
     return R, t
 
 
+def consensus_pose(
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSettings
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Best of the hypotheses grown from each strong match and its most compatible partners.
+
+    Batched: matched pairs source/target (B, P, 3), weights (B, P). Two correct matches keep
+    their distance under a rigid motion (up to the deformation), whatever the pose, so the
+    pairwise compatibility of the `consensus_seeds` most confident matches, sharpened by its
+    second order (SC^2: compatible pairs that share many compatible partners), groups correct
+    matches without a pose guess. Each seed's group gives one Procrustes hypothesis; the one
+    that brings the most match confidence within `consensus_inlier` wins. A weighted fit of all
+    matches is pulled by the wrong ones; on a small smooth view they can be the majority, and
+    the robust re-fit then starts (and stays) in the wrong basin. Returns R (B,3,3), t (B,3), ok (B,).
+    """
+    with torch.no_grad():
+        b, p = weights.shape
+        q = min(settings.consensus_seeds, p)
+        top_w, top = torch.topk(weights, q, dim=1)  # (B, Q)
+        seeds_src = torch.gather(source, 1, top[..., None].expand(-1, -1, 3))
+        seeds_tgt = torch.gather(target, 1, top[..., None].expand(-1, -1, 3))
+        valid = top_w > 0
+        mismatch = torch.cdist(seeds_src, seeds_src) - torch.cdist(seeds_tgt, seeds_tgt)
+        pair_valid = (valid[:, :, None] & valid[:, None, :]).to(weights.dtype)
+        compat = (1 - mismatch.square() / settings.consensus_sigma**2).clamp(min=0) * pair_valid
+        compat2 = compat * (compat @ compat)
+        g = min(settings.consensus_group, q)
+        group = torch.topk(compat2, g, dim=2).indices.reshape(b, q * g)  # each seed's row includes itself
+        g_src = torch.gather(seeds_src, 1, group[..., None].expand(-1, -1, 3)).view(b * q, g, 3)
+        g_tgt = torch.gather(seeds_tgt, 1, group[..., None].expand(-1, -1, 3)).view(b * q, g, 3)
+        R, t, ok = weighted_procrustes(g_src, g_tgt)
+        R, t, ok = R.view(b, q, 3, 3), t.view(b, q, 3), ok.view(b, q) & valid
+        # ||R s + t - y||^2 for every (hypothesis, match), expanded into matrix products:
+        # a (B, Q, P, 3) difference tensor and its norm cost ~20x more on CPU.
+        outer = (target[..., :, None] * source[..., None, :]).flatten(-2)  # (B, P, 9): y s^T
+        rt_t = (R.transpose(-1, -2) @ t[..., None])[..., 0]  # (B, Q, 3): R^T t
+        dist2 = (
+            (source.square().sum(-1) + target.square().sum(-1))[:, None, :]
+            + t.square().sum(-1)[..., None]
+            - 2 * t @ target.transpose(-1, -2)
+            + 2 * rt_t @ source.transpose(-1, -2)
+            - 2 * R.flatten(-2) @ outer.transpose(-1, -2)
+        )  # (B, Q, P)
+        score = torch.where(dist2 < settings.consensus_inlier**2, weights[:, None], 0.0).sum(dim=-1)
+        score = torch.where(ok, score, -1.0)
+        best = score.argmax(dim=1)
+        rows = torch.arange(b, device=weights.device)
+        return R[rows, best], t[rows, best], ok[rows, best] & (score[rows, best] > 0)
+
+
+def _fit_candidates(
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSettings, consensus: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One pose per batch of matched pairs (B, P, 3): weighted (or consensus) start, then robust re-fit."""
+    if consensus:
+        R, t, ok = consensus_pose(source, target, weights, settings)
+    else:
+        R, t, ok = weighted_procrustes(source, target, weights)
+    if settings.refit_radii:
+        R, t = robust_refit(source, target, weights, R, t, ok, settings.refit_radii)
+    return R, t, ok
+
+
 def p2p_register(
     source: torch.Tensor,
     target: torch.Tensor,
@@ -160,39 +229,26 @@ def p2p_register(
         patch_idx = patch_idx[:, ::stride]  # the rows whose matches were computed
     tgt_idx, weight = matches_per_row(log_conf, settings.confidence_threshold, settings.mutual_only)  # (N,), (N,)
     del log_conf
-    R0, t0_vec, ok0 = weighted_procrustes(source, target[tgt_idx], weight)
-    if settings.refit_radii:
-        R0, t0_vec = robust_refit(
-            source[None], target[tgt_idx][None], weight[None], R0[None], t0_vec[None], ok0[None], settings.refit_radii
-        )
-        R0, t0_vec = R0[0], t0_vec[0]
-    R_list, t_list, ok_list = [R0[None]], [t0_vec[None]], [ok0[None]]
-    matched_src = [source]
-    matched_tgt = [target[tgt_idx]]
-    matched_w = [weight]
+    # Matched pairs per candidate group: the whole source (1, N) and, with P2P, the patches (K, P).
+    groups = [(source[None], target[tgt_idx][None], weight[None])]
     names = ["complete-to-partial"]
-
     if patch_idx is not None:
-        # 4. Patch-to-target matching + weighted Procrustes, all K patches at once.
+        # 4. Patch-to-target matching, all K patches at once.
         p_tgt_idx, p_weight = matches_per_row(
             patch_log_conf, settings.confidence_threshold, settings.mutual_only
         )  # (K, P)
         del patch_log_conf
-        patch_src = source[patch_idx]  # (K, P, 3)
-        patch_tgt = target[p_tgt_idx]  # (K, P, 3)
-        Rk, tk, okk = weighted_procrustes(patch_src, patch_tgt, p_weight)
-        if settings.refit_radii:
-            Rk, tk = robust_refit(patch_src, patch_tgt, p_weight, Rk, tk, okk, settings.refit_radii)
-        R_list.append(Rk)
-        t_list.append(tk)
-        ok_list.append(okk)
-        matched_src.extend(patch_src.unbind(0))
-        matched_tgt.extend(patch_tgt.unbind(0))
-        matched_w.extend(p_weight.unbind(0))
+        groups.append((source[patch_idx], target[p_tgt_idx], p_weight))
         names += [f"patch-{i}" for i in range(len(nodes))]
-    R = torch.cat(R_list)
-    t = torch.cat(t_list)
-    ok = torch.cat(ok_list)
+    starts = [False, True] if settings.consensus_seeds > 0 else [False]
+    fits = [_fit_candidates(*group, settings, consensus) for consensus in starts for group in groups]
+    if len(starts) > 1:
+        names += [f"{name}-consensus" for name in names]
+    R = torch.cat([f[0] for f in fits])
+    t = torch.cat([f[1] for f in fits])
+    ok = torch.cat([f[2] for f in fits])
+    # Each candidate's own matches (a consensus-started candidate shares its plain twin's).
+    matched_w = [w for _ in starts for group in groups for w in group[2].unbind(0)]
     n_matches = torch.stack([(w > 0).sum() for w in matched_w])
     t_match = time.perf_counter()
 
@@ -200,9 +256,9 @@ def p2p_register(
     with torch.no_grad():
         residual = closest_point_residuals(source, target, R.detach(), t.detach(), ok)
         # Inlier count over the union of all correspondences (the paper's alternative rule).
-        all_src = torch.cat(matched_src)
-        all_tgt = torch.cat(matched_tgt)
-        all_valid = torch.cat(matched_w) > 0
+        all_src = torch.cat([group[0].reshape(-1, 3) for group in groups])
+        all_tgt = torch.cat([group[1].reshape(-1, 3) for group in groups])
+        all_valid = torch.cat([group[2].reshape(-1) for group in groups]) > 0
         moved_pairs = all_src[None] @ R.detach().transpose(1, 2) + t.detach()[:, None]
         close = ((moved_pairs - all_tgt[None]).norm(dim=2) < settings.inlier_radius) & all_valid[None]
         inliers = torch.where(ok, close.sum(dim=1), torch.zeros_like(close.sum(dim=1)))

@@ -183,6 +183,8 @@ def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
         use_p2p=use_p2p,
         mutual_only=config.mutual_only,
         max_patch_rows=config.max_patch_rows,
+        consensus_seeds=config.consensus_seeds,
+        consensus_sigma=config.consensus_sigma_norm,
         refit_radii=geometric_radii(
             config.refit_radius_start_norm, config.refit_radius_end_norm, config.refit_iterations
         ),

@@ -276,6 +276,7 @@ def test_ablations_reach_the_method_through_config(dataset: Path, tmp_path: Path
         "probe-test-p2p[candidate_proposal=False]",
         "probe-test-p2p[mutual_only=True]",
         "probe-test-p2p[refit_iterations=0]",
+        "probe-test-p2p[consensus_seeds=0]",
     }
     assert sum(r["method"] == "probe-test-p2p[k=1]" for r in rows) == 8  # one case per bin
     by = {(r["case_id"], r["method"]): r for r in rows}
@@ -285,7 +286,7 @@ def test_ablations_reach_the_method_through_config(dataset: Path, tmp_path: Path
     assert by[case, "probe-test-p2p[selection=inlier-count]"]["rms_tre_mm"] > 25
     summary = (out / "summary.md").read_text()
     assert "P2P ablations" in summary and "K=8" in summary and (out / "ablation_k.png").is_file()
-    assert "mutual_only=True" in summary and "refit_iterations=0" in summary
+    assert "mutual_only=True" in summary and "refit_iterations=0" in summary and "consensus_seeds=0" in summary
 
 
 def test_oracle_error_equals_best_rigid_fit_of_the_fiducials(dataset: Path, tmp_path: Path) -> None:

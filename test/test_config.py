@@ -46,6 +46,8 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"refine_candidates": 0}, "refine_candidates must be >= 1"),
         ({"screen_icp_points": 10}, "screen_icp_points must be >= 100"),
         ({"screen_icp_iterations": 0}, "screen_icp_iterations must be >= 1"),
+        ({"consensus_seeds": -1}, "consensus_seeds must be >= 0"),
+        ({"consensus_sigma_norm": 0}, "consensus_sigma_norm must be > 0"),
     ],
 )
 def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:

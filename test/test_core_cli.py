@@ -55,12 +55,15 @@ def test_p2p_output_lists_candidates(files: dict, tmp_path: Path, capsys: pytest
     config.write_text("temperature: 0.1\nvoxel_size_norm: 0.05\n")
     assert main(["register", files["source.ply"], files["target.xyz"], "--method", "fpfh-p2p", "--k", "3"]) == 0
     result = json.loads(capsys.readouterr().out)
-    assert len(result["candidates"]) == 4 and result["chosen_candidate"] in range(4)
+    # 1 + K plain candidates and as many consensus-started twins
+    assert len(result["candidates"]) == 8 and result["chosen_candidate"] in range(8)
     assert all(np.array(c["transform"]).shape == (4, 4) for c in result["candidates"])
     argv = ["register", files["source.ply"], files["target.xyz"], "--method", "fpfh", "--config", str(config)]
     assert main(argv) == 0
     coarse = json.loads(capsys.readouterr().out)
-    assert len(coarse["candidates"]) == 1 and coarse["n_source"] < result["n_source"]
+    # no patches: the complete-to-partial candidate and its consensus-started twin
+    assert [c["name"] for c in coarse["candidates"]] == ["complete-to-partial", "complete-to-partial-consensus"]
+    assert coarse["n_source"] < result["n_source"]
 
 
 def _error(argv: list[str], capsys: pytest.CaptureFixture) -> str:

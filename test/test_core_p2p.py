@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from liver_p2p_reg.p2p import P2PSettings, farthest_point_sampling, geometric_radii, p2p_register, robust_refit
+from liver_p2p_reg.p2p import (
+    P2PSettings,
+    consensus_pose,
+    farthest_point_sampling,
+    geometric_radii,
+    p2p_register,
+    robust_refit,
+)
 from liver_p2p_reg.preprocess import voxel_downsample
 from liver_p2p_reg.procrustes import weighted_procrustes
 
@@ -191,3 +198,43 @@ def test_robust_refit_keeps_the_pose_when_too_few_matches_remain(rng: np.random.
     R0, t0 = torch.eye(3, dtype=torch.float64)[None], torch.zeros(1, 3, dtype=torch.float64)
     R, t = robust_refit(source, target, weights, R0, t0, torch.tensor([True]), (0.5, 0.1))
     assert torch.equal(R, R0) and torch.equal(t, t0)
+
+
+def test_consensus_pose_finds_the_pose_of_a_minority_of_matches(rng: np.random.Generator) -> None:
+    source = _surface(rng)[:400]
+    R_true, t_true = _rigid(rng)
+    target = source @ R_true.T + t_true
+    bad = rng.random(len(source)) < 0.6  # most matches point somewhere else on the surface
+    target[bad] = target[rng.permutation(np.flatnonzero(bad))]
+    src, tgt = _t(source)[None], _t(target)[None]
+    weights = torch.ones(1, len(source), dtype=torch.float64)
+    R0, _, _ = weighted_procrustes(src, tgt, weights)
+    assert float((R0[0] - _t(R_true)).abs().max()) > 0.1  # the plain fit is far off
+    R, t, ok = consensus_pose(src, tgt, weights, P2PSettings(consensus_seeds=64))
+    assert bool(ok[0])
+    # The winning hypothesis is fitted on correct matches only, so it is exact.
+    np.testing.assert_allclose(R[0].numpy(), R_true, atol=1e-9)
+    np.testing.assert_allclose(t[0].numpy(), t_true, atol=1e-9)
+
+
+def test_consensus_pose_reports_failure_without_matches(rng: np.random.Generator) -> None:
+    source = _t(_surface(rng)[:50])[None]
+    _, _, ok = consensus_pose(
+        source, source + 1.0, torch.zeros(1, 50, dtype=torch.float64), P2PSettings(consensus_seeds=16)
+    )
+    assert not bool(ok[0])
+
+
+def test_consensus_adds_one_candidate_per_plain_one(rng: np.random.Generator) -> None:
+    source = _surface(rng)
+    crop = _crop(source, source[np.argmax(source[:, 0])], 0.3)
+    R_true, t_true = _rigid(rng)
+    target = source[crop] @ R_true.T + t_true
+    x_source = _features(rng, len(source))
+    x_target = _noisy(x_source[crop], rng, 0.3)
+    settings = P2PSettings(k=3, consensus_seeds=32)
+    out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), settings)
+    assert out.names[4:] == [f"{name}-consensus" for name in out.names[:4]] and out.R.shape == (8, 3, 3)
+    assert torch.equal(out.n_matches[:4], out.n_matches[4:])  # a twin shares its plain candidate's matches
+    R, t = _candidate(out, out.chosen)
+    assert np.abs(R - R_true).max() < 0.05 and np.abs(t - t_true).max() < 0.05

@@ -149,9 +149,11 @@ def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
             other_rule = "inlier-count" if cfg.selection == "closest-point" else "closest-point"
             ablation.append(Variant(m, (("selection", other_rule),)))
             ablation.append(Variant(m, (("candidate_proposal", not cfg.candidate_proposal),)))
-            # this project's two additions to the paper's module: row-best matches and the robust re-fit
+            # this project's additions to the paper's module: row-best matches, the robust re-fit
+            # and the consensus-started twin candidates
             ablation.append(Variant(m, (("mutual_only", not cfg.mutual_only),)))
             ablation.append(Variant(m, (("refit_iterations", 0 if cfg.refit_iterations else 6),)))
+            ablation.append(Variant(m, (("consensus_seeds", 0 if cfg.consensus_seeds else 64),)))
     clean = [c for c in spec.cases if c.added_noise_mm == 0]  # ablations run on the noise-free cases
     ablation_ids = {c.case_id for c in first_per_bin(clean, spec.ablation_cases_per_bin)}
     jobs = []

@@ -321,12 +321,15 @@ class Summary:
             plots.k_ablation(curves, out / "ablation_k.png")
             lines += ["", "![mean RMS-TRE vs K](ablation_k.png)", ""]
         refit_values = (cfg["refit_iterations"], 0) if cfg["refit_iterations"] else (0, 6)
+        seeds = cfg.get("consensus_seeds", 0)  # absent from runs made before the option existed
+        consensus_values = (seeds, 0) if seeds else (0, 64)
         screen_values = (cfg.get("refine_candidates", 1), 1) if cfg.get("refine_candidates", 1) > 1 else (1, 6)
         for field, values, methods in (
             ("selection", ("closest-point", "inlier-count"), list(curves)),
             ("candidate_proposal", (True, False), list(curves)),
             ("mutual_only", (False, True), list(curves)),  # True: the paper's strict mutual nearest neighbours
             ("refit_iterations", refit_values, list(curves)),  # 0: the paper's single weighted Procrustes fit
+            ("consensus_seeds", consensus_values, list(curves)),  # 0: no consensus-started twin candidates
             ("refine_candidates", screen_values, screened),  # 1: ICP refines only P2P's choice
         ):
             if not methods:
@@ -338,7 +341,7 @@ class Summary:
             for m in methods:
                 cells = []
                 for v in values:
-                    variant = "" if str(cfg[field]) == str(v) else f"{field}={v}"
+                    variant = "" if str(cfg.get(field)) == str(v) else f"{field}={v}"
                     sub = self._variant_rows(m, variant)
                     low = np.array([r["rms_tre_mm"] for r in sub if _in_bin(0)(r)], float)
                     cells += [_pm(low), _pm(np.array([r["rms_tre_mm"] for r in sub], float)), _pct(success_rate(sub))]
