@@ -85,12 +85,23 @@ def closest_point_residuals(
     tree = cKDTree(source.detach().cpu().double().numpy())
     R_np, t_np, tgt = R.cpu().double().numpy(), t.cpu().double().numpy(), target.cpu().double().numpy()
     out = np.full(len(R_np), np.inf)
-    good = np.flatnonzero(ok.cpu().numpy())
-    if len(good):
+    # Candidates that converged to the same pose (a consensus-started twin often ends where its
+    # plain candidate did) are measured once; "same" is 1e-9 normalized, far below any residual.
+    poses = np.concatenate([R_np.reshape(len(R_np), 9), t_np], axis=1)
+    first = np.arange(len(R_np))
+    good = []
+    for c in np.flatnonzero(ok.cpu().numpy()):
+        same = [g for g in good if np.abs(poses[g] - poses[c]).max() < 1e-9]
+        if same:
+            first[c] = same[0]
+        else:
+            good.append(c)
+    if good:
         # All candidates' queries in one call: y_s = R^T (y - t), as row vectors (y - t) @ R.
         queries = np.einsum("cmi,cij->cmj", tgt[None] - t_np[good][:, None], R_np[good])
-        dist, _ = tree.query(queries.reshape(-1, 3), k=1)
+        dist, _ = tree.query(queries.reshape(-1, 3), k=1, workers=max(1, torch.get_num_threads()))
         out[good] = dist.reshape(len(good), -1).mean(axis=1)
+        out = np.where(np.isfinite(out[first]) & ok.cpu().numpy(), out[first], out)
     return torch.as_tensor(out, dtype=target.dtype, device=target.device)
 
 
@@ -125,6 +136,24 @@ def robust_refit(
     return R, t
 
 
+def pair_distances_sq(R: torch.Tensor, t: torch.Tensor, source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """||R_q s_p + t_q - y_p||^2 for every pose q and matched pair p: (B, Q, P).
+
+    R (B, Q, 3, 3), t (B, Q, 3), source/target (B, P, 3). Expanded into matrix products
+    (|s|^2 + |t|^2 + |y|^2 - 2 t.y + 2 (R^T t).s - 2 vec(R).vec(y s^T)) because a (B, Q, P, 3)
+    difference tensor and its norm over the last axis cost ~20x more on CPU.
+    """
+    outer = (target[..., :, None] * source[..., None, :]).flatten(-2)  # (B, P, 9): y s^T
+    rt_t = (R.transpose(-1, -2) @ t[..., None])[..., 0]  # (B, Q, 3): R^T t
+    return (
+        (source.square().sum(-1) + target.square().sum(-1))[:, None, :]
+        + t.square().sum(-1)[..., None]
+        - 2 * t @ target.transpose(-1, -2)
+        + 2 * rt_t @ source.transpose(-1, -2)
+        - 2 * R.flatten(-2) @ outer.transpose(-1, -2)
+    )
+
+
 def consensus_pose(
     source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSettings
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -156,17 +185,7 @@ def consensus_pose(
         g_tgt = torch.gather(seeds_tgt, 1, group[..., None].expand(-1, -1, 3)).view(b * q, g, 3)
         R, t, ok = weighted_procrustes(g_src, g_tgt)
         R, t, ok = R.view(b, q, 3, 3), t.view(b, q, 3), ok.view(b, q) & valid
-        # ||R s + t - y||^2 for every (hypothesis, match), expanded into matrix products:
-        # a (B, Q, P, 3) difference tensor and its norm cost ~20x more on CPU.
-        outer = (target[..., :, None] * source[..., None, :]).flatten(-2)  # (B, P, 9): y s^T
-        rt_t = (R.transpose(-1, -2) @ t[..., None])[..., 0]  # (B, Q, 3): R^T t
-        dist2 = (
-            (source.square().sum(-1) + target.square().sum(-1))[:, None, :]
-            + t.square().sum(-1)[..., None]
-            - 2 * t @ target.transpose(-1, -2)
-            + 2 * rt_t @ source.transpose(-1, -2)
-            - 2 * R.flatten(-2) @ outer.transpose(-1, -2)
-        )  # (B, Q, P)
+        dist2 = pair_distances_sq(R, t, source, target)  # (B, Q, P)
         score = torch.where(dist2 < settings.consensus_inlier**2, weights[:, None], 0.0).sum(dim=-1)
         score = torch.where(ok, score, -1.0)
         best = score.argmax(dim=1)
@@ -259,8 +278,8 @@ def p2p_register(
         all_src = torch.cat([group[0].reshape(-1, 3) for group in groups])
         all_tgt = torch.cat([group[1].reshape(-1, 3) for group in groups])
         all_valid = torch.cat([group[2].reshape(-1) for group in groups]) > 0
-        moved_pairs = all_src[None] @ R.detach().transpose(1, 2) + t.detach()[:, None]
-        close = ((moved_pairs - all_tgt[None]).norm(dim=2) < settings.inlier_radius) & all_valid[None]
+        dist2 = pair_distances_sq(R.detach()[None], t.detach()[None], all_src[None], all_tgt[None])[0]  # (C, P)
+        close = (dist2 < settings.inlier_radius**2) & all_valid[None]
         inliers = torch.where(ok, close.sum(dim=1), torch.zeros_like(close.sum(dim=1)))
         if not bool(ok.any()):
             chosen = 0

@@ -8,6 +8,7 @@ import torch
 
 from liver_p2p_reg.p2p import (
     P2PSettings,
+    closest_point_residuals,
     consensus_pose,
     farthest_point_sampling,
     geometric_radii,
@@ -238,3 +239,19 @@ def test_consensus_adds_one_candidate_per_plain_one(rng: np.random.Generator) ->
     assert torch.equal(out.n_matches[:4], out.n_matches[4:])  # a twin shares its plain candidate's matches
     R, t = _candidate(out, out.chosen)
     assert np.abs(R - R_true).max() < 0.05 and np.abs(t - t_true).max() < 0.05
+
+
+def test_closest_point_residuals_measure_repeated_poses_once_and_exactly(rng: np.random.Generator) -> None:
+    source = _surface(rng)[:300]
+    target = source[:120] + 0.01
+    poses = [_rigid(rng), (np.eye(3), np.zeros(3))]
+    order = [0, 1, 0, 1, 0]  # repeated poses, as when a consensus twin ends where its plain candidate did
+    R = _t(np.stack([poses[i][0] for i in order]))
+    t = _t(np.stack([poses[i][1] for i in order]))
+    ok = torch.tensor([True, True, True, False, True])
+    residual = closest_point_residuals(_t(source), _t(target), R, t, ok).numpy()
+    for c, i in enumerate(order):
+        Ri, ti = poses[i]
+        moved = source @ Ri.T + ti
+        expected = np.linalg.norm(target[:, None] - moved[None], axis=2).min(axis=1).mean()  # brute force
+        assert residual[c] == (pytest.approx(expected, abs=1e-12) if ok[c] else np.inf)
