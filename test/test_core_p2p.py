@@ -54,6 +54,16 @@ def _t(a: np.ndarray) -> torch.Tensor:
     return torch.as_tensor(a, dtype=torch.float64)
 
 
+def _moved_crop_with_features(rng: np.random.Generator, axis: int, feature_noise: float) -> tuple:
+    """A 30 % crop around the surface's extreme along `axis`, rigidly moved, with noisy copies of the source features."""
+    source = _surface(rng)
+    crop = _crop(source, source[np.argmax(source[:, axis])], 0.3)
+    R_true, t_true = _rigid(rng)
+    x_source = _features(rng, len(source))
+    x_target = _noisy(x_source[crop], rng, feature_noise)
+    return source, source[crop] @ R_true.T + t_true, x_source, x_target, R_true, t_true
+
+
 def _candidate(out, c: int) -> tuple[np.ndarray, np.ndarray]:
     return out.R[c].detach().numpy(), out.t[c].detach().numpy()
 
@@ -134,12 +144,8 @@ def test_inlier_rule_and_no_candidate_proposal_are_selectable(rng: np.random.Gen
 
 
 def test_moving_the_target_moves_the_estimate(rng: np.random.Generator) -> None:
-    source = _surface(rng)
-    crop = _crop(source, source[np.argmax(source[:, 1])], 0.3)
-    R_true, t_true = _rigid(rng)
-    target = source[crop] @ R_true.T + t_true
-    x_source = _features(rng, len(source))
-    x_target = _noisy(x_source[crop], rng, 0.6)  # noisy enough that the estimate is not exact
+    # noisy enough features that the estimate is not exact
+    source, target, x_source, x_target, _, _ = _moved_crop_with_features(rng, axis=1, feature_noise=0.6)
     settings = P2PSettings(k=5)
     out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), settings)
     Q, b = _rigid(rng)
@@ -227,12 +233,7 @@ def test_consensus_pose_reports_failure_without_matches(rng: np.random.Generator
 
 
 def test_consensus_adds_one_candidate_per_plain_one(rng: np.random.Generator) -> None:
-    source = _surface(rng)
-    crop = _crop(source, source[np.argmax(source[:, 0])], 0.3)
-    R_true, t_true = _rigid(rng)
-    target = source[crop] @ R_true.T + t_true
-    x_source = _features(rng, len(source))
-    x_target = _noisy(x_source[crop], rng, 0.3)
+    source, target, x_source, x_target, R_true, t_true = _moved_crop_with_features(rng, axis=0, feature_noise=0.3)
     settings = P2PSettings(k=3, consensus_seeds=32)
     out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), settings)
     assert out.names[4:] == [f"{name}-consensus" for name in out.names[:4]] and out.R.shape == (8, 3, 3)
