@@ -194,16 +194,30 @@ def consensus_pose(
 
 
 def _fit_candidates(
-    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSettings, consensus: bool
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One pose per batch of matched pairs (B, P, 3): weighted (or consensus) start, then robust re-fit."""
-    if consensus:
-        R, t, ok = consensus_pose(source, target, weights, settings)
-    else:
-        R, t, ok = weighted_procrustes(source, target, weights)
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSettings
+) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Poses for a batch of matched pairs (B, P, 3): the weighted fit, then (if on) the consensus twins.
+
+    Every start is followed by the robust re-fit; plain and consensus starts are re-fitted in one
+    batched call (half the small-tensor calls, which dominate at these sizes).
+    """
+    starts = [weighted_procrustes(source, target, weights)]
+    if settings.consensus_seeds > 0:
+        starts.append(consensus_pose(source, target, weights, settings))
+    R, t, ok = (torch.cat(parts) for parts in zip(*starts, strict=True))
     if settings.refit_radii:
-        R, t = robust_refit(source, target, weights, R, t, ok, settings.refit_radii)
-    return R, t, ok
+        copies = len(starts)
+        R, t = robust_refit(
+            source.repeat(copies, 1, 1),
+            target.repeat(copies, 1, 1),
+            weights.repeat(copies, 1),
+            R,
+            t,
+            ok,
+            settings.refit_radii,
+        )
+    b = source.shape[0]
+    return [(R[i * b : (i + 1) * b], t[i * b : (i + 1) * b], ok[i * b : (i + 1) * b]) for i in range(len(starts))]
 
 
 def p2p_register(
@@ -259,8 +273,9 @@ def p2p_register(
         del patch_log_conf
         groups.append((source[patch_idx], target[p_tgt_idx], p_weight))
         names += [f"patch-{i}" for i in range(len(nodes))]
-    starts = [False, True] if settings.consensus_seeds > 0 else [False]
-    fits = [_fit_candidates(*group, settings, consensus) for consensus in starts for group in groups]
+    per_group = [_fit_candidates(*group, settings) for group in groups]  # [group][start]
+    starts = range(len(per_group[0]))
+    fits = [per_group[g][s] for s in starts for g in range(len(groups))]  # plain candidates first, then twins
     if len(starts) > 1:
         names += [f"{name}-consensus" for name in names]
     R = torch.cat([f[0] for f in fits])
