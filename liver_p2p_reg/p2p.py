@@ -88,7 +88,7 @@ def closest_point_residuals(
     # Candidates that converged to the same pose (a consensus-started twin often ends where its
     # plain candidate did) are measured once; "same" is 1e-9 normalized, far below any residual.
     poses = np.concatenate([R_np.reshape(len(R_np), 9), t_np], axis=1)
-    first = np.arange(len(R_np))
+    first = np.arange(len(R_np))  # each candidate's first equal pose (itself unless repeated)
     good = []
     for c in np.flatnonzero(ok.cpu().numpy()):
         same = [g for g in good if np.abs(poses[g] - poses[c]).max() < 1e-9]
@@ -101,7 +101,7 @@ def closest_point_residuals(
         queries = np.einsum("cmi,cij->cmj", tgt[None] - t_np[good][:, None], R_np[good])
         dist, _ = tree.query(queries.reshape(-1, 3), k=1, workers=max(1, torch.get_num_threads()))
         out[good] = dist.reshape(len(good), -1).mean(axis=1)
-        out = np.where(np.isfinite(out[first]) & ok.cpu().numpy(), out[first], out)
+        out = out[first]  # failed candidates point at themselves and stay inf
     return torch.as_tensor(out, dtype=target.dtype, device=target.device)
 
 
