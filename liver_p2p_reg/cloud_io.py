@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -38,8 +39,15 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> n
         if suffix in (".npy", ".npz"):
             points = _load_numpy(path, key)
         elif suffix in (".xyz", ".xyzn", ".pts"):
-            points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments=("#", "//"))[:, :3]
+            with warnings.catch_warnings():  # an empty file is reported below, in one line
+                warnings.simplefilter("ignore", UserWarning)
+                points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments=("#", "//"))[:, :3]
         else:
+            if suffix == ".ply":
+                with path.open("rb") as f:
+                    magic = f.read(3)
+                if magic != b"ply":  # checked here: Open3D's reader would print its own complaint to stderr
+                    raise InputError(f"cannot read {path}: not a PLY file (it does not start with 'ply')")
             vertices, triangles = load_mesh(path)
             points = vertices if len(triangles) == 0 else sample_mesh_surface(vertices, triangles, seed=seed)
     except InputError:
@@ -49,6 +57,8 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> n
             f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
         ) from None
     points = np.asarray(points, dtype=np.float64)
+    if points.size == 0:
+        raise InputError(f"{path}: no points in the file")
     if points.ndim != 2 or points.shape[1] < 3:
         raise InputError(f"{path}: expected an (N, 3) array of points, got shape {points.shape}")
     return points[:, :3]
@@ -110,6 +120,24 @@ def clean_points(points: np.ndarray, name: str, *, min_points: int = 3) -> np.nd
     if len(points) < min_points:
         raise InputError(f"{name}: only {len(points)} valid points, at least {min_points} are needed")
     return points
+
+
+def extent_mm(points_mm: np.ndarray) -> float:
+    """Size of a cloud: its bounding-box diagonal (mm)."""
+    return float(np.linalg.norm(points_mm.max(axis=0) - points_mm.min(axis=0)))
+
+
+def implausible_extent(extent: float, name: str, min_mm: float, max_mm: float) -> str:
+    """Why a cloud of this size (mm) is likely in other units; "" when min_mm <= extent <= max_mm.
+
+    A liver is 50-300 mm across: a cloud given in metres is ~1000x too small and looks like a
+    point, one in micrometres ~1000x too large; both would still "register" to a meaningless pose.
+    """
+    if extent > max_mm:
+        return f"{name} extent {extent:.0f} mm exceeds {max_mm:.0f} mm: wrong units?"
+    if extent < min_mm:
+        return f"{name} extent {extent:.3g} mm is below {min_mm:.0f} mm: wrong units?"
+    return ""
 
 
 def save_points(path: str | Path, points: np.ndarray) -> None:

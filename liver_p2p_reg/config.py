@@ -137,6 +137,11 @@ class Config:
             )
         if not 0 < self.icp_trim_ratio <= 1:
             raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
+        if not 0 <= self.expected_extent_min_mm < self.expected_extent_max_mm:
+            raise InputError(
+                "need 0 <= expected_extent_min_mm < expected_extent_max_mm, got "
+                f"{self.expected_extent_min_mm} and {self.expected_extent_max_mm}"
+            )
         if not self.max_rate_hz > 0:
             raise InputError(f"max_rate_hz must be > 0, got {self.max_rate_hz}")
         return self

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from liver_p2p_reg.cloud_io import clean_points, load_points, save_points
+from liver_p2p_reg.cloud_io import clean_points, extent_mm, implausible_extent, load_points, save_points
 from liver_p2p_reg.errors import InputError
 
 
@@ -59,14 +59,28 @@ def test_mesh_is_sampled_over_its_surface(tmp_path: Path) -> None:
         ("bad.npy", b"not numpy", "cannot read"),
         ("empty.ply", b"", "cannot read"),
         ("text.xyz", b"a b c\n", "cannot read"),
+        ("empty.xyz", b"", "no points in the file"),
+        ("garbage.ply", b"\x00\x01 not a ply file", "not a PLY file"),
     ],
 )
-def test_bad_files(tmp_path: Path, name: str, content: bytes | None, message: str) -> None:
+def test_bad_files(
+    tmp_path: Path, capfd: pytest.CaptureFixture, recwarn: pytest.WarningsRecorder, name: str, content, message: str
+) -> None:
     path = tmp_path / name
     if content is not None:
         path.write_bytes(content)
     with pytest.raises(InputError, match=message):
         load_points(path)
+    # The error is the only report: no Python warning, nothing printed by a C++ reader.
+    assert len(recwarn) == 0 and capfd.readouterr().err == ""
+
+
+def test_extent_says_when_units_look_wrong(rng: np.random.Generator) -> None:
+    liver = _blob(rng)  # 160 mm across
+    assert extent_mm(liver) == pytest.approx(np.linalg.norm(liver.max(0) - liver.min(0)))
+    assert implausible_extent(extent_mm(liver), "target", 20.0, 600.0) == ""
+    assert "below 20 mm: wrong units?" in implausible_extent(extent_mm(liver / 1000), "target", 20.0, 600.0)
+    assert "exceeds 600 mm: wrong units?" in implausible_extent(extent_mm(liver * 1000), "target", 20.0, 600.0)
 
 
 def test_clean_points_drops_nan_and_refuses_empty(rng: np.random.Generator) -> None:

@@ -70,8 +70,9 @@ def _error(argv: list[str], capsys: pytest.CaptureFixture) -> str:
     assert main(argv) == 2
     captured = capsys.readouterr()
     assert captured.out == ""  # no JSON, in particular no identity transform
-    lines = [line for line in captured.err.splitlines() if line.startswith("liver-p2p: error:")]
-    assert len(lines) == 1 and "Traceback" not in captured.err
+    lines = captured.err.splitlines()
+    # Exactly one line: no traceback, no library warning with a source line before it.
+    assert len(lines) == 1 and lines[0].startswith("liver-p2p: error:"), captured.err
     return lines[0]
 
 
@@ -87,6 +88,12 @@ def test_bad_inputs_give_one_line_errors(files: dict, tmp_path: Path, capsys: py
     nan = tmp_path / "nan.npy"
     np.save(nan, np.full((500, 3), np.nan))
     assert "NaN" in _error(["register", src, str(nan)], capsys)
+    empty_text = tmp_path / "empty.xyz"
+    empty_text.write_text("")
+    assert "no points in the file" in _error(["register", src, str(empty_text)], capsys)
+    metres = tmp_path / "metres.npy"  # a depth sensor's cloud saved in metres
+    np.save(metres, files["target"] / 1000.0)
+    assert "target extent" in _error(["register", src, str(metres)], capsys)
     few = tmp_path / "few.npy"
     np.save(few, files["target"][:20])
     assert "only 20 valid points" in _error(["register", src, str(few)], capsys)

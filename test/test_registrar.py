@@ -37,6 +37,25 @@ def test_bad_clouds_are_refused_before_any_method_runs(rng: np.random.Generator)
         registrar.register(pts, pts, source_fiducials_mm=pts[:5], target_fiducials_mm=pts[:6])
 
 
+@pytest.mark.parametrize("scale", [1e-3, 1e3], ids=["metres", "micrometres"])
+def test_clouds_in_other_units_are_refused(rng: np.random.Generator, scale: float) -> None:
+    liver = rng.normal(size=(2000, 3))
+    liver = liver / np.linalg.norm(liver, axis=1, keepdims=True) * [80.0, 55.0, 40.0]
+    view = liver[liver[:, 0] > 20]
+    with pytest.raises(InputError, match="target extent .* wrong units"):
+        Registrar().register(liver, view * scale, method="icp")
+    with pytest.raises(InputError, match="source extent .* wrong units"):
+        Registrar().register(liver * scale, view, method="icp")
+    # Other objects: the plausible range is a setting (and its bounds are checked).
+    lo, hi = (0.01, 600.0) if scale < 1 else (20.0, 1e6)
+    result = Registrar(Config(expected_extent_min_mm=lo, expected_extent_max_mm=hi)).register(
+        liver * scale, view * scale, method="icp"
+    )
+    assert np.isfinite(result.T_target_source).all()
+    with pytest.raises(InputError, match="expected_extent_min_mm < expected_extent_max_mm"):
+        Config(expected_extent_min_mm=50.0, expected_extent_max_mm=40.0).validate()
+
+
 def test_metrics_on_a_known_transform(rng: np.random.Generator) -> None:
     T = _rigid(rng)
     fid = rng.normal(size=(30, 3)) * 40

@@ -106,6 +106,14 @@ def test_bad_preop_is_rejected():
     assert core.set_preop(liver_like() * 1000).level == WARN  # accepted, but flagged
 
 
+def test_preop_in_wrong_units_never_gives_a_pose():
+    core = NodeCore(Config(method="procrustes"))
+    assert core.set_preop(liver_like() * 1000).level == WARN  # kept, flagged
+    core.on_intraop_msg(cloud_msg(liver_like()))
+    diag = only_diag(core.process_pending(0.0))
+    assert diag.level == ERROR and "source extent" in diag.message and "wrong units" in diag.message
+
+
 def test_continuous_rate_limit_keeps_latest_only():
     core = core_with_preop(max_rate_hz=2.0)
     core.on_intraop_points(liver_like(50), "camera", 1)

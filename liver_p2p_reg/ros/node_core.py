@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..cloud_io import extent_mm, implausible_extent
 from ..confidence import pose_warnings
 from ..config import Config
 from ..errors import InputError, LiverP2PError
@@ -143,7 +144,7 @@ class NodeCore:
                 PREOP_DIAG_NAME,
                 f"preop model has {len(points)} valid points (< {self.config.min_points}); ignored",
             )
-        extent = _extent_mm(points)
+        extent = extent_mm(points)
         with self._lock:
             self.preop_mm = points
             self.preop_frame = frame_id or "ct"
@@ -311,13 +312,13 @@ class NodeCore:
             return fail(ERROR, f"intraop cloud has no valid points (all {n_raw} are NaN/inf)")
         warnings: list[str] = []
         if len(points) >= self.config.max_input_points:
-            voxel_mm = (scale_mm or _extent_mm(points)) * self.config.voxel_size_norm / 2
+            voxel_mm = (scale_mm or extent_mm(points)) * self.config.voxel_size_norm / 2
             points = voxel_downsample(points, voxel_mm)
             warnings.append(f"{n_raw} input points voxelized to {len(points)} ({voxel_mm:.2f} mm voxels)")
         values["valid_points"] = str(len(points))
         if len(points) < self.config.min_points:
             return fail(ERROR, f"too few valid intraop points: {len(points)} < min_points {self.config.min_points}")
-        extent = _extent_mm(points)
+        extent = extent_mm(points)
         values["extent_mm"] = f"{extent:.1f}"
         unit_warning = self._units_warning(extent, "intraop cloud")
         if unit_warning:
@@ -427,19 +428,17 @@ class NodeCore:
         n_raw = int(msg.width) * int(msg.height)
         return cloud_to_points_mm(msg), n_raw
 
-    def _units_warning(self, extent_mm: float, what: str) -> str:
-        lo, hi = self.config.expected_extent_min_mm, self.config.expected_extent_max_mm
-        if extent_mm > hi:
+    def _units_warning(self, extent: float, what: str) -> str:
+        cfg = self.config
+        problem = implausible_extent(extent, what, cfg.expected_extent_min_mm, cfg.expected_extent_max_mm)
+        if not problem:
+            return ""
+        if extent > cfg.expected_extent_max_mm:
             return (
-                f"{what} extent {extent_mm:.0f} mm exceeds {hi:.0f} mm: wrong units? "
-                "(ROS messages must be in metres; millimetre values published as metres look 1000x too large)"
+                problem
+                + " (ROS messages must be in metres; millimetre values published as metres look 1000x too large)"
             )
-        if extent_mm < lo:
-            return (
-                f"{what} extent {extent_mm:.3g} mm is below {lo:.0f} mm: wrong units? "
-                "(ROS messages must be in metres; a liver is 0.05-0.3 m across)"
-            )
-        return ""
+        return problem + " (ROS messages must be in metres; a liver is 0.05-0.3 m across)"
 
     def _counters(self) -> dict[str, str]:
         return {
@@ -473,8 +472,3 @@ def result_values(result: RegistrationResult) -> dict[str, str]:
     for stage, ms in result.runtime_ms.items():
         values[f"runtime_ms.{stage}"] = f"{ms:.1f}"
     return values
-
-
-def _extent_mm(points_mm: np.ndarray) -> float:
-    """Bounding-box diagonal of a cloud."""
-    return float(np.linalg.norm(points_mm.max(axis=0) - points_mm.min(axis=0)))
