@@ -74,13 +74,29 @@ def test_train_writes_checkpoints_and_resumes(store: Path, tmp_path: Path) -> No
     assert rows[-1]["step"] == "3" and float(rows[-1]["val_learned_p2p_mm"]) > 0
 
 
-def test_bad_training_config_is_an_input_error(tmp_path: Path) -> None:
+def test_bad_training_config_is_an_input_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     bad = tmp_path / "train.yaml"
     bad.write_text("stepz: 3\n")
     with pytest.raises(InputError, match="stepz"):
         TrainConfig.from_yaml(bad)
     with pytest.raises(InputError, match="cannot read"):
         TrainConfig.from_yaml(tmp_path / "missing.yaml")
+    # Values are checked when the file is read, before minutes of building the store.
+    for text, message in [
+        ("steps: -5", "steps must be >= 1"),
+        ("steps: abc", "steps must be an integer"),
+        ("visibility_min: 0.8\nvisibility_max: 0.5", "visibility_min <= visibility_max"),
+        ("crop_modes: [random, sideways]", "crop_modes"),
+        ("model: {widht: 3}", "unknown model keys: widht"),
+        ("init_weights: nope.safetensors", "init_weights nope.safetensors not found"),
+        ("- a list", "must be a mapping"),
+    ]:
+        bad.write_text(text + "\n")
+        with pytest.raises(InputError, match=message):
+            TrainConfig.from_yaml(bad)
+    monkeypatch.chdir(Path(__file__).parents[1])  # init_weights is relative to the repository
+    for name in ("train.yaml", "train_finetune.yaml"):  # the shipped configs pass
+        TrainConfig.from_yaml(Path("config") / name)
 
 
 def test_fine_tuning_starts_from_init_weights(store: Path, tmp_path: Path) -> None:

@@ -22,6 +22,7 @@ from ..config import Config
 from ..errors import InputError, LiverP2PError
 from ..matching import dual_softmax, score_matrix
 from ..metrics import rms_tre_mm
+from ..phantom.crop import CROP_MODES
 from ..pipelines import prepare
 from .descriptors import local_features
 from .model import MatcherNet, ModelConfig
@@ -72,11 +73,76 @@ class TrainConfig:
             raise InputError(f"cannot read training config {path}: {exc.strerror or exc}") from None
         except yaml.YAMLError as exc:
             raise InputError(f"training config {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        if not isinstance(data, dict):
+            raise InputError(f"training config {path} must be a mapping of key: value lines")
         known = {f.name for f in fields(cls)}
         bad = sorted(set(data) - known)
         if bad:
             raise InputError(f"unknown training config keys: {', '.join(bad)}")
-        return cls(**data)
+        return cls(**data).validate()
+
+    def validate(self) -> TrainConfig:
+        """Check types and ranges now, with a one-line InputError, not minutes into building the store."""
+        for f in fields(self):
+            value, default = getattr(self, f.name), getattr(TrainConfig(), f.name)
+            expected = (int, float) if isinstance(default, float) else type(default)
+            if isinstance(value, bool) != isinstance(default, bool) or not isinstance(value, expected):
+                kind = {
+                    "int": "an integer",
+                    "float": "a number",
+                    "str": "a string",
+                    "list": "a list",
+                    "dict": "a mapping",
+                }
+                raise InputError(f"training config: {f.name} must be {kind[type(default).__name__]}, got {value!r}")
+        minimums = {
+            "store_livers": 2,
+            "store_deformations": 1,
+            "store_tets": 500,
+            "val_livers": 1,
+            "val_pairs": 1,
+            "seed": 0,
+            "steps": 1,
+            "lr": 0,  # 0 is allowed: a frozen run (the fine-tuning test uses it)
+            "weight_decay": 0,
+            "warmup_steps": 0,
+            "overlap_weight": 0,
+            "val_every": 1,
+            "checkpoint_every": 1,
+            "threads": 0,
+            "loader_workers": 0,
+            "max_minutes": 0,
+        }
+        for name, minimum in minimums.items():
+            if getattr(self, name) < minimum:
+                raise InputError(f"training config: {name} must be >= {minimum}, got {getattr(self, name)}")
+        if not self.temperature > 0:
+            raise InputError(f"training config: temperature must be > 0, got {self.temperature}")
+        if self.val_livers >= self.store_livers:
+            raise InputError(
+                f"training config: val_livers ({self.val_livers}) must be fewer than store_livers ({self.store_livers})"
+            )
+        if not 0 < self.visibility_min <= self.visibility_max <= 1:
+            raise InputError(
+                "training config: need 0 < visibility_min <= visibility_max <= 1, got "
+                f"{self.visibility_min} and {self.visibility_max}"
+            )
+        if not self.crop_modes or any(mode not in CROP_MODES for mode in self.crop_modes):
+            raise InputError(
+                f"training config: crop_modes must be a non-empty list of {CROP_MODES}, got {self.crop_modes}"
+            )
+        if not self.noise_levels_mm or any(
+            not isinstance(n, int | float) or isinstance(n, bool) or not n >= 0 for n in self.noise_levels_mm
+        ):
+            raise InputError(
+                f"training config: noise_levels_mm must be a non-empty list of numbers >= 0, got {self.noise_levels_mm}"
+            )
+        unknown = sorted(set(self.model) - {f.name for f in fields(ModelConfig)})
+        if unknown:
+            raise InputError(f"training config: unknown model keys: {', '.join(unknown)}")
+        if self.init_weights and not Path(self.init_weights).is_file():
+            raise InputError(f"training config: init_weights {self.init_weights} not found")
+        return self
 
 
 def prepare_pair(
@@ -274,6 +340,7 @@ def train(
     """Run (or resume) training; returns the final state dict (best validation numbers, paths)."""
     from tqdm import tqdm
 
+    cfg.validate()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
