@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -103,9 +104,19 @@ def sample_mesh_surface(vertices: np.ndarray, triangles: np.ndarray, *, seed: in
     return np.concatenate([vertices, samples], axis=0)
 
 
+def as_float_array(values: Any, name: str) -> np.ndarray:
+    """`values` as a float64 array; InputError (not a numpy ValueError/TypeError) if they are not real numbers."""
+    if np.iscomplexobj(values):
+        raise InputError(f"{name}: complex numbers are not coordinates")
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: not an array of numbers ({exc})") from None
+
+
 def clean_points(points: np.ndarray, name: str, *, min_points: int = 3) -> np.ndarray:
     """Drop NaN/inf rows (with a warning); raise InputError if too few points remain."""
-    points = np.asarray(points, dtype=np.float64)
+    points = as_float_array(points, name)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"{name}: expected an (N, 3) array of points, got shape {points.shape}")
     if len(points) == 0:

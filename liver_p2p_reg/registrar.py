@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .cloud_io import clean_points, extent_mm, implausible_extent
+from .cloud_io import as_float_array, clean_points, extent_mm, implausible_extent
 from .confidence import is_ambiguous
 from .config import Config
 from .errors import InputError, LiverP2PError
@@ -178,7 +178,7 @@ def register(
 def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
     if T is None:
         return None
-    T = np.asarray(T, dtype=np.float64)
+    T = as_float_array(T, "initial_T_mm")
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise InputError(f"initial_T_mm must be a finite 4x4 matrix, got shape {T.shape}")
     R = T[:3, :3]
@@ -190,10 +190,13 @@ def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
 def _check_fiducials(fid_s: np.ndarray | None, fid_t: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
     if fid_s is None or fid_t is None:
         return (
-            None if fid_s is None else np.asarray(fid_s, float),
-            None if fid_t is None else np.asarray(fid_t, float),
+            None if fid_s is None else as_float_array(fid_s, "source fiducials"),
+            None if fid_t is None else as_float_array(fid_t, "target fiducials"),
         )
-    fid_s, fid_t = np.asarray(fid_s, float), np.asarray(fid_t, float)
+    fid_s, fid_t = as_float_array(fid_s, "source fiducials"), as_float_array(fid_t, "target fiducials")
     if fid_s.shape != fid_t.shape or fid_s.ndim != 2 or fid_s.shape[1] != 3:
         raise InputError(f"fiducials must be two (F, 3) arrays of the same shape, got {fid_s.shape} and {fid_t.shape}")
+    if not (np.isfinite(fid_s).all() and np.isfinite(fid_t).all()):
+        # unlike cloud points they are paired one to one, so a bad one cannot just be dropped
+        raise InputError("fiducials contain NaN or infinite coordinates")
     return fid_s, fid_t

@@ -35,6 +35,16 @@ def test_bad_clouds_are_refused_before_any_method_runs(rng: np.random.Generator)
         registrar.register(pts, pts[:10])
     with pytest.raises(InputError, match="fiducials must be two"):
         registrar.register(pts, pts, source_fiducials_mm=pts[:5], target_fiducials_mm=pts[:6])
+    nan_fiducials = np.where(np.arange(5)[:, None] == 2, np.nan, pts[:5])
+    with pytest.raises(InputError, match="fiducials contain NaN"):  # a silent NaN RMS-TRE before
+        registrar.register(pts, pts, source_fiducials_mm=pts[:5], target_fiducials_mm=nan_fiducials)
+    # Not numbers at all: an InputError too, not numpy's ValueError / TypeError.
+    with pytest.raises(InputError, match="source: not an array of numbers"):
+        registrar.register([["a", "b", "c"]] * 200, pts)
+    with pytest.raises(InputError, match="target: complex numbers"):
+        registrar.register(pts, pts + 1j)
+    with pytest.raises(InputError, match="initial_T_mm: not an array of numbers"):
+        registrar.register(pts, pts, method="track", initial_T_mm=[["x"] * 4] * 4)
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1e3], ids=["metres", "micrometres"])
