@@ -83,6 +83,14 @@ def test_nan_points_removed(points_m):
     assert np.isfinite(out).all()
 
 
+def test_values_that_overflow_in_mm_are_dropped_silently(points_m, recwarn):
+    pts = points_m.copy()
+    pts[4] = 1e307  # finite in metres, infinite once multiplied by 1000
+    out = cloud_to_points_mm(points_to_cloud(pts, TYPES, frame_id="cam", dtype=np.float64))
+    assert len(out) == 59 and np.isfinite(out).all()
+    assert len(recwarn) == 0  # no numpy RuntimeWarning in the node's log
+
+
 def test_missing_xyz_field_is_input_error(points_m):
     msg = points_to_cloud(points_m, TYPES, frame_id="cam", extra_fields={"intensity": np.ones(60, np.float32)})
     msg.fields = [f for f in msg.fields if f.name != "z"]

@@ -96,13 +96,16 @@ def cloud_to_points_m(msg: Any) -> np.ndarray:
     dtype = np.dtype({"names": ["x", "y", "z"], "formats": formats, "offsets": offsets, "itemsize": point_step})
     rec = np.frombuffer(raw, dtype=dtype, count=n)
     points = np.empty((n, 3), dtype=np.float64)
-    points[:, 0], points[:, 1], points[:, 2] = rec["x"], rec["y"], rec["z"]
+    with np.errstate(invalid="ignore"):  # garbage bytes may decode to NaN: dropped just below
+        points[:, 0], points[:, 1], points[:, 2] = rec["x"], rec["y"], rec["z"]
     return points[np.isfinite(points).all(axis=1)]
 
 
 def cloud_to_points_mm(msg: Any) -> np.ndarray:
-    """`cloud_to_points_m` converted to millimetres (the core's unit)."""
-    return cloud_to_points_m(msg) * MM_PER_M
+    """`cloud_to_points_m` converted to millimetres (the core's unit), still all finite."""
+    with np.errstate(over="ignore"):  # a value near float64's limit overflows to inf: dropped
+        points = cloud_to_points_m(msg) * MM_PER_M
+    return points[np.isfinite(points).all(axis=1)]
 
 
 def points_to_cloud(
