@@ -114,6 +114,25 @@ def test_bag_make_bad_inputs(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     with pytest.raises(InputError):
         make_case_bag(tmp_path / "z", np.zeros((0, 3)), np.ones((5, 3)))
+    source, target, fs, ft = synthetic_case(4)
+    # Each of these used to write a bag (a NaN model, a cloud in metres, NaN ground truth,
+    # all frames at one stamp, an empty preop message) or, for a .npy, crash.
+    bad_fid = ft.copy()
+    bad_fid[2] = np.nan
+    for kwargs, message in [
+        (dict(source_mm=np.full((500, 3), np.nan)), "source: all 500 points are NaN"),
+        (dict(target_mm=target / 1000.0), "target extent .* wrong units"),
+        (dict(source_fiducials_mm=fs, target_fiducials_mm=bad_fid), "target fiducials contain NaN"),
+        (dict(frame_period_s=0.0), "frame period must be > 0"),
+        (dict(max_preop_points=0), "point limits must be >= 1"),
+        (dict(motion_mm=float("inf")), "sensor motion must be finite"),
+    ]:
+        with pytest.raises(InputError, match=message):
+            make_case_bag(tmp_path / "z", **{"source_mm": source, "target_mm": target, **kwargs})
+    assert not (tmp_path / "z").exists()  # nothing half-written
+    np.save(tmp_path / "array.npy", source)
+    assert main(["bag", "import", str(tmp_path / "array.npy"), str(tmp_path / "w")]) == 2
+    assert "not an NPZ archive" in capsys.readouterr().err
 
 
 def test_replay_refuses_missing_bag_and_unknown_method(tmp_path, case_bag, capsys):

@@ -13,6 +13,7 @@ import csv
 import json
 import logging
 import os
+import zipfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -152,6 +153,8 @@ def read_case(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such case file")
+    if not zipfile.is_zipfile(path):  # np.load would read a .npy array or guess "pickled data"
+        raise InputError(f"{path}: not an NPZ archive (a case file holds src_pcd, tgt_pcd, ... arrays)")
     try:
         with np.load(path, allow_pickle=False) as data:
             raw = {k: data[k] for k in data.files}

@@ -9,6 +9,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..cloud_io import as_float_array, clean_points, extent_mm, implausible_extent
+from ..config import Config
 from ..errors import InputError
 from ..metrics import transform_points
 from .bag_io import POINTCLOUD2, BagWriter, rosbags_types
@@ -73,14 +75,30 @@ def make_case_bag(
     if (source_fiducials_mm is None) != (target_fiducials_mm is None):
         raise InputError("give both source and target fiducials, or neither")
     if source_fiducials_mm is not None:
-        source_fiducials_mm = _points(source_fiducials_mm, "source fiducials")
-        target_fiducials_mm = _points(target_fiducials_mm, "target fiducials")
+        source_fiducials_mm = _points(source_fiducials_mm, "source fiducials", paired=True)
+        target_fiducials_mm = _points(target_fiducials_mm, "target fiducials", paired=True)
         if source_fiducials_mm.shape != target_fiducials_mm.shape:
             raise InputError(
                 f"fiducial pairs differ in shape: {source_fiducials_mm.shape} vs {target_fiducials_mm.shape}"
             )
     if n_frames < 1:
         raise InputError(f"n_frames must be >= 1, got {n_frames}")
+    if not frame_period_s > 0:
+        raise InputError(f"the frame period must be > 0 s, got {frame_period_s}")
+    if not (np.isfinite(motion_mm) and np.isfinite(motion_deg)):
+        raise InputError(f"sensor motion must be finite, got {motion_mm} mm and {motion_deg} deg")
+    if min(max_preop_points, max_intraop_points) < 1:
+        raise InputError(
+            f"point limits must be >= 1, got {max_preop_points} (preop) and {max_intraop_points} (intraop)"
+        )
+    # A bag whose clouds the node would refuse (wrong units) is refused now, with the same words.
+    defaults = Config()
+    for cloud, what in ((source_mm, "source"), (target_mm, "target")):
+        problem = implausible_extent(
+            extent_mm(cloud), what, defaults.expected_extent_min_mm, defaults.expected_extent_max_mm
+        )
+        if problem:
+            raise InputError(f"{problem} (bag inputs are read as millimetres)")
     rng = np.random.default_rng(seed)
     types = rosbags_types()
     description = {
@@ -138,9 +156,12 @@ def load_case_npz(path: str | Path) -> dict[str, Any]:
     return case
 
 
-def _points(points: np.ndarray, what: str) -> np.ndarray:
-    points = np.asarray(points, dtype=np.float64)
+def _points(points: np.ndarray, what: str, *, paired: bool = False) -> np.ndarray:
+    """(N, 3) finite float64 points; NaN rows are dropped, except in fiducial pairs (refused)."""
+    points = as_float_array(points, what)
     if points.ndim != 2 or points.shape[1] < 3 or len(points) == 0:
         raise InputError(f"{what}: expected a non-empty (N, 3) array, got shape {points.shape}")
     points = points[:, :3]
-    return points[np.isfinite(points).all(axis=1)]
+    if paired and not np.isfinite(points).all():
+        raise InputError(f"{what} contain NaN or infinite coordinates")
+    return clean_points(points, what)
