@@ -37,6 +37,7 @@ MINIMUMS: dict[str, float] = {
     "track_max_frames": 1,
     "residual_warn_mm": 0,
     "uncertainty_warn_mm": 0,
+    "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
 }
 
 

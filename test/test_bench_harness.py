@@ -258,6 +258,8 @@ def test_bad_arguments_are_one_line_errors(dataset: Path, tmp_path: Path, capsys
     assert "does not exist" in capsys.readouterr().err
     assert _bench(dataset, tmp_path / "o3", "identity-test", "--noise-levels", "a") == 2
     assert "--noise-levels must be" in capsys.readouterr().err
+    assert _bench(tmp_path / "missing/dir", tmp_path / "o5", "identity-test", "--workers", "0") == 2
+    assert "--workers must be >= 1" in capsys.readouterr().err  # before the data are looked at
     empty = tmp_path / "empty"
     empty.mkdir()
     assert _bench(empty, tmp_path / "o4", "identity-test") == 2

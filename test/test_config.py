@@ -48,6 +48,8 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"screen_icp_iterations": 0}, "screen_icp_iterations must be >= 1"),
         ({"consensus_seeds": -1}, "consensus_seeds must be >= 0"),
         ({"consensus_sigma_norm": 0}, "consensus_sigma_norm must be > 0"),
+        ({"seed": -1}, "seed must be >= 0"),
+        ({"expected_extent_min_mm": 700.0}, "expected_extent_min_mm < expected_extent_max_mm"),
     ],
 )
 def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:

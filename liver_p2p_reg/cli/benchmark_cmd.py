@@ -114,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"README {args.readme} does not exist")
     if args.ablation_cases_per_bin < 1:
         raise InputError(f"--ablation-cases-per-bin must be >= 1, got {args.ablation_cases_per_bin}")
+    if args.workers < 1:  # here too (the harness checks it), before the test set is generated
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
     noise_levels = _noise_levels(args.noise_levels)
     folder, dataset_id = resolve_dataset(args.dataset, Path(args.data_root) if args.data_root else None)
     cases = select_cases([case_info(p) for p in list_case_paths(folder)], args.preset, args.limit)
