@@ -107,11 +107,23 @@ def test_bad_preop_is_rejected():
 
 
 def test_preop_in_wrong_units_never_gives_a_pose():
-    core = NodeCore(Config(method="procrustes"))
+    core = NodeCore(Config(method="icp"))
     assert core.set_preop(liver_like() * 1000).level == WARN  # kept, flagged
     core.on_intraop_msg(cloud_msg(liver_like()))
     diag = only_diag(core.process_pending(0.0))
-    assert diag.level == ERROR and "source extent" in diag.message and "wrong units" in diag.message
+    assert diag.level == ERROR and diag.message.startswith("preop model extent") and "wrong units" in diag.message
+    assert core.set_preop(liver_like()).level == OK  # a model in mm (as metres) clears it
+    core.on_intraop_msg(cloud_msg(liver_like(), stamp_ns=2))
+    assert core.process_pending(10.0).pose is not None
+
+
+def test_cloud_without_frame_id_gets_no_pose():
+    core = core_with_preop()
+    msg = cloud_msg(liver_like())
+    msg.header.frame_id = ""
+    core.on_intraop_msg(msg)
+    diag = only_diag(core.process_pending(0.0))
+    assert diag.level == ERROR and "empty header.frame_id" in diag.message
 
 
 def test_continuous_rate_limit_keeps_latest_only():

@@ -122,6 +122,7 @@ class NodeCore:
         self.preop_frame = "ct"
         self.preop_fiducials_mm: np.ndarray | None = None
         self._preop_scale_mm: float | None = None
+        self._preop_problem = ""  # why the current model cannot be registered against (wrong units)
         self._intraop_fiducials: dict[int, np.ndarray] = {}  # header stamp -> (F, 3) mm
         self._pending: _Cloud | None = None
         self._latest: _Cloud | None = None
@@ -145,15 +146,16 @@ class NodeCore:
                 f"preop model has {len(points)} valid points (< {self.config.min_points}); ignored",
             )
         extent = extent_mm(points)
+        unit_warning = self._units_warning(extent, "preop model")
         with self._lock:
             self.preop_mm = points
             self.preop_frame = frame_id or "ct"
             centre = points.mean(axis=0)
             self._preop_scale_mm = float(np.max(np.linalg.norm(points - centre, axis=1)))
+            self._preop_problem = unit_warning
             self._once_done = False
             self._track = None  # a pose of another model is no prior
         values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": self.preop_frame}
-        unit_warning = self._units_warning(extent, "preop model")
         if not unit_warning:
             # The model's own share of the work (its features, ICP index, ...) is done now,
             # once, instead of inside the first frame's latency.
@@ -295,12 +297,16 @@ class NodeCore:
 
         with self._lock:
             preop, preop_frame, fid_s = self.preop_mm, self.preop_frame, self.preop_fiducials_mm
-            scale_mm = self._preop_scale_mm
+            scale_mm, preop_problem = self._preop_scale_mm, self._preop_problem
             fid_t = self._intraop_fiducials.get(cloud.stamp_ns)
             if fid_t is None and self._intraop_fiducials:
                 fid_t = self._intraop_fiducials[max(self._intraop_fiducials)]
         if preop is None:
             return fail(ERROR, "no preop model received yet (/preop/points)")
+        if preop_problem:  # kept with a WARN on arrival; a pose against it would be meaningless
+            return fail(ERROR, f"{preop_problem}; not registered")
+        if not cloud.frame_id:
+            return fail(ERROR, "intraop cloud has an empty header.frame_id (a pose needs its frame); not registered")
         try:
             points, n_raw = self._decode(cloud)
         except InputError as exc:
