@@ -117,8 +117,12 @@ class Config:
             value = getattr(self, name)
             if not value >= minimum:  # `not >=` also catches NaN
                 raise InputError(f"{name} must be >= {minimum}, got {value}")
-        if not self.voxel_size_norm > 0:
-            raise InputError(f"voxel_size_norm must be > 0, got {self.voxel_size_norm}")
+        if not 0 < self.voxel_size_norm <= 0.5:  # in a unit sphere a larger voxel leaves a handful of points
+            raise InputError(f"voxel_size_norm must be in (0, 0.5], got {self.voxel_size_norm}")
+        if not 0 <= self.confidence_threshold <= 1:  # a dual-softmax confidence is below 1 (1 rejects all)
+            raise InputError(f"confidence_threshold must be in [0, 1], got {self.confidence_threshold}")
+        if not self.inlier_radius_norm > 0:
+            raise InputError(f"inlier_radius_norm must be > 0, got {self.inlier_radius_norm}")
         if not self.consensus_sigma_norm > 0:
             raise InputError(f"consensus_sigma_norm must be > 0, got {self.consensus_sigma_norm}")
         if not self.temperature > 0:
