@@ -87,6 +87,9 @@ class Config:
     weights_path: str = ""  # empty: the weights bundled with the package
     device: str = "cpu"
     num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    # Linux/glibc: keep freed large buffers in the process heap (alloc.py); faster frames on large
+    # views, identical results, the process keeps its peak memory
+    reuse_freed_memory: bool = True
     seed: int = 0
 
     # --- node logic (register_node, bag replay) ------------------------------------

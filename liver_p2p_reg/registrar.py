@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from .alloc import reuse_freed_memory
 from .cloud_io import as_float_array, clean_points, extent_mm, implausible_extent
 from .confidence import is_ambiguous
 from .config import Config
@@ -102,6 +103,8 @@ class Registrar:
         config = config or Config()
         self.config = config.replace(**overrides) if overrides else config.validate()
         self.cache: dict[str, Any] = {}
+        if self.config.reuse_freed_memory:
+            reuse_freed_memory()  # process-wide, once; see alloc.py
 
     def register(
         self,
