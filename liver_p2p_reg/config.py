@@ -77,7 +77,7 @@ class Config:
     icp_max_iterations: int = 50
     icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
     icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
-    icp_max_points: int = 2000  # ICP uses an even subsample of at most this many target points (speed)
+    icp_max_points: int = 1000  # ICP uses an even subsample of at most this many target points (speed)
     # `-icp` feature pipelines: a short ICP screens up to this many distinct P2P candidates and the
     # one that fits best after it is refined (small smooth views fit several poses almost equally
     # well before ICP); 1: refine only the candidate P2P chose
