@@ -151,6 +151,13 @@ def implausible_extent(extent: float, name: str, min_mm: float, max_mm: float) -
     return ""
 
 
+def require_plausible_extent(points_mm: np.ndarray, name: str, min_mm: float, max_mm: float, hint: str) -> None:
+    """InputError ("<problem> (<hint>)") when `implausible_extent` objects to the cloud's size."""
+    problem = implausible_extent(extent_mm(points_mm), name, min_mm, max_mm)
+    if problem:
+        raise InputError(f"{problem} ({hint})")
+
+
 def save_points(path: str | Path, points: np.ndarray) -> None:
     """Write (N, 3) points to PLY/PCD/XYZ/NPY by extension."""
     path = Path(path)

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from .alloc import reuse_freed_memory
-from .cloud_io import as_float_array, clean_points, extent_mm, implausible_extent
+from .cloud_io import as_float_array, clean_points, require_plausible_extent
 from .confidence import is_ambiguous
 from .config import Config
 from .errors import InputError, LiverP2PError
@@ -96,6 +96,13 @@ def get_method(name: str) -> MethodFn:
     return _REGISTRY[name]
 
 
+# Why a cloud of implausible size is refused (it would still "register", to a meaningless pose).
+UNITS_HINT = (
+    "points are read as millimetres and a liver is 50-300 mm across: convert the cloud, "
+    "or set expected_extent_min_mm / expected_extent_max_mm for other objects"
+)
+
+
 class Registrar:
     """Registers complete preoperative surfaces to partial intraoperative ones (mm in, mm out)."""
 
@@ -123,8 +130,10 @@ class Registrar:
         start = time.perf_counter()
         source = clean_points(source_mm, "source", min_points=self.config.min_points)
         target = clean_points(target_mm, "target", min_points=self.config.min_points)
-        self._check_units(source, "source")
-        self._check_units(target, "target")
+        for points, name in ((source, "source"), (target, "target")):
+            require_plausible_extent(
+                points, name, self.config.expected_extent_min_mm, self.config.expected_extent_max_mm, UNITS_HINT
+            )
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
         name = method or self.config.method
         fn = get_method(name)
@@ -140,16 +149,6 @@ class Registrar:
             result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
         result.runtime_ms["total"] = (time.perf_counter() - start) * 1e3
         return result
-
-    def _check_units(self, points_mm: np.ndarray, name: str) -> None:
-        """Refuse a cloud whose size says it is not in millimetres (it would give a meaningless pose)."""
-        cfg = self.config
-        problem = implausible_extent(extent_mm(points_mm), name, cfg.expected_extent_min_mm, cfg.expected_extent_max_mm)
-        if problem:
-            raise InputError(
-                f"{problem} (points are read as millimetres and a liver is 50-300 mm across: convert the cloud, "
-                "or set expected_extent_min_mm / expected_extent_max_mm for other objects)"
-            )
 
     def warm_up(self, source_mm: np.ndarray, method: str | None = None) -> float:
         """Compute everything the method caches about a new source (its preprocessing, source

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..cloud_io import as_float_array, clean_points, extent_mm, implausible_extent
+from ..cloud_io import as_float_array, clean_points, require_plausible_extent
 from ..config import Config
 from ..errors import InputError
 from ..metrics import transform_points
@@ -94,11 +94,13 @@ def make_case_bag(
     # A bag whose clouds the node would refuse (wrong units) is refused now, with the same words.
     defaults = Config()
     for cloud, what in ((source_mm, "source"), (target_mm, "target")):
-        problem = implausible_extent(
-            extent_mm(cloud), what, defaults.expected_extent_min_mm, defaults.expected_extent_max_mm
+        require_plausible_extent(
+            cloud,
+            what,
+            defaults.expected_extent_min_mm,
+            defaults.expected_extent_max_mm,
+            "bag inputs are read as millimetres",
         )
-        if problem:
-            raise InputError(f"{problem} (bag inputs are read as millimetres)")
     rng = np.random.default_rng(seed)
     types = rosbags_types()
     description = {
