@@ -54,6 +54,9 @@ class Config:
     outlier_std_ratio: float = 2.0
     outlier_neighbors: int = 20
     voxel_size_norm: float = 0.04  # voxel edge in normalized (unit-sphere) units
+    # a target may voxelize to at most this many times the source's voxels: a full view with
+    # sensor noise occupies a few percent more voxels than the model; swapped files are ~2-5x
+    max_target_ratio: float = 1.25
     temperature: float = 0.1  # dual-softmax temperature applied to the score matrix
     confidence_threshold: float = 0.0  # minimum dual-softmax confidence of a kept match
     selection: str = "closest-point"  # P2P candidate selection rule
@@ -122,6 +125,8 @@ class Config:
                 raise InputError(f"{name} must be >= {minimum}, got {value}")
         if not 0 < self.voxel_size_norm <= 0.5:  # in a unit sphere a larger voxel leaves a handful of points
             raise InputError(f"voxel_size_norm must be in (0, 0.5], got {self.voxel_size_norm}")
+        if not self.max_target_ratio >= 1:  # below 1 would refuse a full view of an undeformed liver
+            raise InputError(f"max_target_ratio must be >= 1, got {self.max_target_ratio}")
         if not 0 <= self.confidence_threshold <= 1:  # a dual-softmax confidence is below 1 (1 rejects all)
             raise InputError(f"confidence_threshold must be in [0, 1], got {self.confidence_threshold}")
         if not self.inlier_radius_norm > 0:

@@ -52,7 +52,8 @@ class Prepared:
 def prepare(
     source_mm: np.ndarray, target_mm: np.ndarray, config: Config, cache: dict[str, Any] | None = None
 ) -> Prepared:
-    """The paper's preprocessing; refuses a target larger than the source after voxelization.
+    """The paper's preprocessing; refuses a target much larger than the source after voxelization
+    (`max_target_ratio`: a noisy full view may voxelize a few percent larger; swapped files do not).
 
     With a cache, the source's share (normalization, voxelization) is computed once per model.
     """
@@ -76,9 +77,9 @@ def prepare(
     tgt = voxel_downsample(tgt_full, config.voxel_size_norm)
     if len(src) < 3 or len(tgt) < 3:
         raise InputError(f"too few points after voxelization (source {len(src)}, target {len(tgt)}); need >= 3 each")
-    if len(tgt) > len(src):
+    if len(tgt) > config.max_target_ratio * len(src):
         raise InputError(
-            f"target ({len(tgt)} voxels) is larger than the source ({len(src)} voxels): "
+            f"target ({len(tgt)} voxels) is more than {config.max_target_ratio:g}x the source ({len(src)} voxels): "
             "expected the complete preoperative surface as SOURCE and the partial view as TARGET"
         )
     return Prepared(ns, nt, src_full, tgt_full, src, tgt, src_tree)

@@ -97,7 +97,7 @@ def test_bad_inputs_give_one_line_errors(files: dict, tmp_path: Path, capsys: py
     few = tmp_path / "few.npy"
     np.save(few, files["target"][:20])
     assert "only 20 valid points" in _error(["register", src, str(few)], capsys)
-    assert "larger than the source" in _error(["register", tgt, src, "--method", "fpfh-p2p"], capsys)
+    assert "more than 1.25x the source" in _error(["register", tgt, src, "--method", "fpfh-p2p"], capsys)
     assert "unknown method" in _error(["register", src, tgt, "--method", "magic"], capsys)
     assert "k must be >= 1" in _error(["register", src, tgt, "--k", "0"], capsys)
     assert "needs source and target fiducials" in _error(["register", src, tgt, "--method", "procrustes"], capsys)

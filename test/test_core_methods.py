@@ -114,7 +114,7 @@ def test_fgr_and_icp_baselines_return_rigid_transforms(case) -> None:
 
 def test_swapped_clouds_are_refused(case) -> None:
     source, target, *_ = case
-    with pytest.raises(InputError, match="larger than the source"):
+    with pytest.raises(InputError, match="more than 1.25x the source"):
         Registrar().register(target, source, method="fpfh-p2p")
 
 

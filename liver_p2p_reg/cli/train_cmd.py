@@ -16,6 +16,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.safetensors + OUT/state.json")
     p.add_argument("--out", default="train_out", help="output directory (default: %(default)s)")
     p.add_argument("--steps", type=int, help="override the number of steps in the config")
+    p.add_argument("--max-minutes", type=float, help="override the config's wall-clock limit (0: none)")
     p.add_argument("--export", metavar="PATH", help="no training: copy OUT's best checkpoint to PATH with a model card")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
@@ -39,6 +40,10 @@ def run(args: argparse.Namespace) -> int:
         if args.steps < 1:
             raise InputError(f"--steps must be >= 1, got {args.steps}")
         cfg.steps = args.steps
+    if args.max_minutes is not None:
+        if not args.max_minutes >= 0:
+            raise InputError(f"--max-minutes must be >= 0, got {args.max_minutes}")
+        cfg.max_minutes = float(args.max_minutes)
     if args.device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: torch sees no CUDA device")
     state = train(cfg, args.out, device=args.device, resume=args.resume, progress=not args.no_progress)

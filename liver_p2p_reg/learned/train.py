@@ -6,7 +6,9 @@ import csv
 import json
 import logging
 import math
+import tempfile
 import time
+from contextlib import closing
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -21,11 +23,12 @@ from scipy.spatial.transform import Rotation
 from ..config import Config
 from ..errors import InputError, LiverP2PError
 from ..matching import dual_softmax, score_matrix
-from ..metrics import rms_tre_mm
+from ..phantom.artifacts import DENSITY_MODES, Artifacts
 from ..phantom.crop import CROP_MODES
 from ..pipelines import prepare
 from .descriptors import local_features
 from .model import MatcherNet, ModelConfig
+from .validation import Validator, validation_cases
 from .weights import load_weights, save_weights
 
 log = logging.getLogger(__name__)
@@ -64,6 +67,20 @@ class TrainConfig:
     # A second (fine-tuning) stage starts from these weights instead of a random init; its
     # architecture must equal the one `model` describes. Empty: random init.
     init_weights: str = ""
+    # Real anatomy (phantom/real.py): a second store of FEM-deformed real CT livers, built from
+    # the split's `train` livers (trained on) and `train_dev` livers (checkpoint choice only).
+    # Empty: procedural livers only.
+    real_store_dir: str = ""
+    real_deformations: int = 8
+    real_fraction: float = 0.0  # share of training pairs drawn from the real store
+    real_val_pairs: int = 0  # validation pairs from the train_dev livers (random + camera, 0 / 2 mm)
+    store_workers: int = 1  # processes building the stores (first use only)
+    val_workers: int = 0  # > 1: validate in this many CPU processes (a GPU run's loader cores idle meanwhile)
+    # What a real view adds (phantom/artifacts.py), drawn per training pair.
+    density_modes: list[str] = field(default_factory=lambda: ["uniform"])
+    hole_probability: float = 0.0
+    outlier_fraction: float = 0.0
+    background_fraction: float = 0.0
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrainConfig:
@@ -112,6 +129,14 @@ class TrainConfig:
             "threads": 0,
             "loader_workers": 0,
             "max_minutes": 0,
+            "real_deformations": 1,
+            "real_fraction": 0,
+            "real_val_pairs": 0,
+            "store_workers": 1,
+            "val_workers": 0,
+            "hole_probability": 0,
+            "outlier_fraction": 0,
+            "background_fraction": 0,
         }
         for name, minimum in minimums.items():
             if getattr(self, name) < minimum:
@@ -136,6 +161,15 @@ class TrainConfig:
         ):
             raise InputError(
                 f"training config: noise_levels_mm must be a non-empty list of numbers >= 0, got {self.noise_levels_mm}"
+            )
+        for name in ("real_fraction", "hole_probability", "outlier_fraction", "background_fraction"):
+            if getattr(self, name) > 1:
+                raise InputError(f"training config: {name} must be <= 1, got {getattr(self, name)}")
+        if (self.real_fraction > 0 or self.real_val_pairs > 0) and not self.real_store_dir:
+            raise InputError("training config: real_fraction / real_val_pairs need a real_store_dir")
+        if not self.density_modes or any(m not in DENSITY_MODES for m in self.density_modes):
+            raise InputError(
+                f"training config: density_modes must be a non-empty list of {DENSITY_MODES}, got {self.density_modes}"
             )
         unknown = sorted(set(self.model) - {f.name for f in fields(ModelConfig)})
         if unknown:
@@ -194,30 +228,50 @@ def pair_loss(
     return loss, {"loss": float(loss.detach()), "match": float(match.detach()), "overlap": float(overlap.detach())}
 
 
-class PairStream(torch.utils.data.IterableDataset):
-    """Endless stream of prepared training pairs (deterministic for a seed and start step)."""
+def training_sampler(cfg: TrainConfig, store_dir: str, files: list[Path], seed: int):
+    """A PairSampler over `files` of a store with the config's crops, noise, density and artifacts."""
+    from ..phantom.loader import PairSampler
 
-    def __init__(self, cfg: TrainConfig, files: list[Path], start: int, voxel_size_norm: float) -> None:
+    sampler = PairSampler(
+        store_dir,
+        seed=seed,
+        visibility_range=(cfg.visibility_min, cfg.visibility_max),
+        crop_modes=cfg.crop_modes,
+        noise_levels_mm=cfg.noise_levels_mm,
+        density_modes=cfg.density_modes,
+        artifacts=Artifacts(cfg.hole_probability, cfg.outlier_fraction, cfg.background_fraction),
+    )
+    sampler.files = list(files)  # training livers only (validation livers held out)
+    return sampler
+
+
+class PairStream(torch.utils.data.IterableDataset):
+    """Endless stream of prepared training pairs (deterministic for a seed, start step and worker)."""
+
+    def __init__(
+        self, cfg: TrainConfig, files: list[Path], start: int, voxel_size_norm: float, real_files: list[Path] = ()
+    ) -> None:
         super().__init__()
         self.cfg, self.files, self.start, self.voxel = cfg, files, start, voxel_size_norm
+        self.real_files = list(real_files)
 
     def __iter__(self):
-        from ..phantom.loader import PairSampler
-
         torch.set_num_threads(1)
         cfg = self.cfg
-        sampler = PairSampler(
-            cfg.store_dir,
-            seed=cfg.seed * 1_000_003 + self.start,
-            visibility_range=(cfg.visibility_min, cfg.visibility_max),
-            crop_modes=cfg.crop_modes,
-            noise_levels_mm=cfg.noise_levels_mm,
-        )
-        sampler.files = list(self.files)  # training livers only (validation livers held out)
-        rng = np.random.default_rng([cfg.seed, self.start, 17])
+        info = torch.utils.data.get_worker_info()
+        # Worker 0 (or no workers) keeps the single-stream seeds of earlier runs; other workers
+        # get their own streams (several workers would otherwise yield the same pairs).
+        worker = 0 if info is None else info.id
+        seed = cfg.seed * 1_000_003 + self.start + 7_919 * worker
+        sampler = training_sampler(cfg, cfg.store_dir, self.files, seed)
+        real = None
+        if cfg.real_fraction > 0 and self.real_files:
+            real = training_sampler(cfg, cfg.real_store_dir, self.real_files, seed + 1)
+        rng = np.random.default_rng([cfg.seed, self.start, 17] + ([worker] if worker else []))
         while True:
+            use_real = real is not None and rng.random() < cfg.real_fraction
             try:
-                yield prepare_pair(sampler.sample(), self.voxel, rng)
+                yield prepare_pair((real if use_real else sampler).sample(), self.voxel, rng)
             except LiverP2PError:
                 continue  # e.g. a deformed full view voxelizes larger than the source: draw again
 
@@ -229,7 +283,13 @@ def ensure_store(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], l
     store = Path(cfg.store_dir)
     if not (store / "store.json").is_file():
         build_store(
-            store, cfg.store_livers, cfg.store_deformations, cfg.store_seed, 1, cfg.store_tets, progress=progress
+            store,
+            cfg.store_livers,
+            cfg.store_deformations,
+            cfg.store_seed,
+            cfg.store_workers,
+            cfg.store_tets,
+            progress=progress,
         )
     meta = json.loads((store / "store.json").read_text())
     files = [store / name for name in meta.get("livers", [])]
@@ -238,46 +298,23 @@ def ensure_store(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], l
     return files[: -cfg.val_livers], files[-cfg.val_livers :]
 
 
-def validation_cases(cfg: TrainConfig, val_files: list[Path]) -> list[dict]:
-    """A fixed set of validation pairs from the held-out livers (random crops, no noise)."""
-    from ..phantom.loader import PairSampler
+def ensure_real_store(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], list[Path]]:
+    """Build the real-anatomy store if needed; its (train, train_dev) liver files by the fixed split."""
+    from ..phantom.loader import build_real_store
+    from ..phantom.real import real_liver_id, real_split
 
-    sampler = PairSampler(cfg.store_dir, seed=10_000 + cfg.seed, visibility_range=(0.2, 1.0))
-    sampler.files = list(val_files)
-    return [sampler.sample() for _ in range(cfg.val_pairs)]
+    split = real_split()
+    store = Path(cfg.real_store_dir)
+    stems = split["train"] + split["train_dev"]
+    if not (store / "store.json").is_file() or any(
+        not (store / f"liver_{real_liver_id(s):07d}.npz").is_file() for s in stems
+    ):
+        build_real_store(store, stems, cfg.real_deformations, cfg.store_workers, cfg.store_tets, progress=progress)
 
+    def files(names: list[str]) -> list[Path]:
+        return [store / f"liver_{real_liver_id(s):07d}.npz" for s in names]
 
-def validate(model: MatcherNet, cases: list[dict], device: str) -> dict[str, float]:
-    """Mean RMS-TRE (mm) of learned and learned-p2p, and learned-p2p success at 20 mm."""
-    from ..pipelines import run_feature_pipeline
-    from ..registrar import MethodContext
-    from .provider import LearnedProvider
-
-    model.eval()
-    provider = LearnedProvider(model=model)
-    config = Config(device=device)
-    out: dict[str, list[float]] = {"learned": [], "learned_p2p": [], "low_vis_p2p": []}
-    for case in cases:
-        for name, use_p2p in (("learned", False), ("learned_p2p", True)):
-            ctx = MethodContext()
-            try:
-                res = run_feature_pipeline(
-                    case["src_pcd"], case["tgt_pcd"], config, ctx, provider, use_p2p=use_p2p, refine=False
-                )
-                err = rms_tre_mm(res.T_target_source, case["src_marker"], case["tgt_marker"])
-            except Exception:  # noqa: BLE001 - a failed registration counts as a large error
-                err = 1e3
-            out[name].append(err)
-            if use_p2p and case["visibility"] < 0.35:
-                out["low_vis_p2p"].append(err)
-    model.train()
-    p2p = np.array(out["learned_p2p"])
-    return {
-        "val_learned_mm": float(np.mean(out["learned"])),
-        "val_learned_p2p_mm": float(np.mean(p2p)),
-        "val_success20": float(np.mean(p2p <= 20.0)),
-        "val_low_vis_p2p_mm": float(np.mean(out["low_vis_p2p"])) if out["low_vis_p2p"] else float("nan"),
-    }
+    return files(split["train"]), files(split["train_dev"])
 
 
 def _lr(cfg: TrainConfig, step: int) -> float:
@@ -347,6 +384,7 @@ def train(
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     train_files, val_files = ensure_store(cfg, progress)
+    real_train, real_dev = ensure_real_store(cfg, progress) if cfg.real_store_dir else ([], [])
     voxel = Config().voxel_size_norm
     model = MatcherNet(ModelConfig(**cfg.model)).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -357,8 +395,9 @@ def train(
     elif cfg.init_weights:
         _init_from(model, Path(cfg.init_weights))
     (out / "train_config.json").write_text(json.dumps(asdict(cfg), indent=2))
-    val_cases = validation_cases(cfg, val_files)
-    stream = PairStream(cfg, train_files, state["step"], voxel)
+    scratch = tempfile.mkdtemp(prefix="liver_p2p_val_")  # the weights the validation workers read
+    validator = Validator(validation_cases(cfg, val_files, real_dev), device, cfg.val_workers, Path(scratch))
+    stream = PairStream(cfg, train_files, state["step"], voxel, real_train)
     loader = torch.utils.data.DataLoader(
         stream, batch_size=None, num_workers=cfg.loader_workers, prefetch_factor=4 if cfg.loader_workers else None
     )
@@ -375,10 +414,13 @@ def train(
         "val_learned_p2p_mm",
         "val_success20",
         "val_low_vis_p2p_mm",
+        "val_real_p2p_mm",
+        "val_score_mm",
     ]
     t0 = time.perf_counter() - state["elapsed_s"]
     model.train()
     with (
+        closing(validator),
         open(csv_path, "a", newline="") as fh,
         tqdm(total=cfg.steps, initial=state["step"], desc="train", unit="step", disable=not progress) as bar,
     ):
@@ -406,11 +448,11 @@ def train(
             over_time = cfg.max_minutes > 0 and state["elapsed_s"] > 60 * cfg.max_minutes
             row = {"step": state["step"], "elapsed_s": round(state["elapsed_s"], 1), "lr": _lr(cfg, step), **parts}
             if state["step"] % cfg.val_every == 0 or state["step"] == cfg.steps or over_time:
-                metrics = validate(model, val_cases, device)
+                metrics = validator(model)
                 row.update(metrics)
                 log.info("step %d: %s", state["step"], json.dumps(metrics))
-                if state["best_val_mm"] is None or metrics["val_learned_p2p_mm"] < state["best_val_mm"]:
-                    state["best_val_mm"] = metrics["val_learned_p2p_mm"]
+                if state["best_val_mm"] is None or metrics["val_score_mm"] < state["best_val_mm"]:
+                    state["best_val_mm"] = metrics["val_score_mm"]
                     state["best_step"] = state["step"]
                     state["best_metrics"] = metrics
                     save_weights(

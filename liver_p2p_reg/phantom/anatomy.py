@@ -46,6 +46,24 @@ class LiverShape:
 
 
 @dataclass
+class GridSDF:
+    """A signed distance sampled on a regular grid (mm, < 0 inside), trilinearly interpolated."""
+
+    origin_mm: np.ndarray  # (3,) position of values[0, 0, 0]
+    spacing_mm: float
+    values: np.ndarray  # (nx, ny, nz)
+
+    def __call__(self, points_mm: np.ndarray) -> np.ndarray:
+        from scipy.ndimage import map_coordinates
+
+        pts = np.asarray(points_mm, dtype=np.float64)
+        coords = ((pts.reshape(-1, 3) - self.origin_mm) / self.spacing_mm).T
+        # Outside the grid the value of its outside border (> 0) holds: far points stay outside.
+        out = map_coordinates(self.values, coords, order=1, mode="nearest")
+        return out.reshape(pts.shape[:-1])
+
+
+@dataclass
 class LiverMesh:
     """A closed, watertight liver surface in mm plus what is needed to rebuild its interior."""
 
@@ -55,9 +73,13 @@ class LiverMesh:
     shape: LiverShape | None = field(default=None, repr=False)
     raw_center: np.ndarray = field(default_factory=lambda: np.zeros(3), repr=False)
     scale_xyz: np.ndarray = field(default_factory=lambda: np.ones(3), repr=False)
+    # Surfaces read from a file (real livers, a patient's model) carry a sampled SDF instead of `shape`.
+    sdf: GridSDF | None = field(default=None, repr=False)
 
     def implicit_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """Approximate signed distance (mm, < 0 inside) at points given in this mesh's frame."""
+        if self.sdf is not None:
+            return self.sdf(points_mm)
         if self.shape is None:
             raise InputError("this LiverMesh carries no implicit shape")
         raw = np.asarray(points_mm, dtype=np.float64) / self.scale_xyz + self.raw_center
@@ -200,6 +222,22 @@ def _largest_component(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.
     return vertices[used], remap[faces]
 
 
+def surface_from_grid(
+    values: np.ndarray, origin_mm: np.ndarray, spacing_mm: float, smooth_iterations: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed, outward-facing, Taubin-smoothed surface (mm) of the zero level of a sampled SDF."""
+    values = np.array(values, dtype=np.float64)
+    # A closed surface needs an outside layer on every face of the box.
+    values[[0, -1], :, :] = values[:, [0, -1], :] = values[:, :, [0, -1]] = 1.0
+    verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=(spacing_mm,) * 3)
+    verts = verts.astype(np.float64) + origin_mm
+    faces = faces.astype(np.int64)
+    verts, faces = _largest_component(verts, faces)
+    if mesh_volume_mm3(verts, faces) < 0:  # make triangles face outwards
+        faces = faces[:, ::-1].copy()
+    return _taubin(verts, faces, smooth_iterations), faces
+
+
 def make_liver(seed: int, spacing_mm: float = MESH_SPACING_MM, smooth_iterations: int = 10) -> LiverMesh:
     """Generate liver `seed`: closed watertight surface in mm, centred at its vertex centroid."""
     if not isinstance(seed, int | np.integer) or seed < 0:
@@ -211,16 +249,7 @@ def make_liver(seed: int, spacing_mm: float = MESH_SPACING_MM, smooth_iterations
     hi = np.array([140.0, 95.0, 105.0])
     axes = [np.arange(lo[i], hi[i] + spacing_mm, spacing_mm) for i in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
-    values = shape_sdf(shape, grid)
-    # A closed surface needs an outside layer on every face of the box.
-    values[[0, -1], :, :] = values[:, [0, -1], :] = values[:, :, [0, -1]] = 1.0
-    verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=(spacing_mm,) * 3)
-    verts = verts.astype(np.float64) + lo
-    faces = faces.astype(np.int64)
-    verts, faces = _largest_component(verts, faces)
-    if mesh_volume_mm3(verts, faces) < 0:  # make triangles face outwards
-        faces = faces[:, ::-1].copy()
-    verts = _taubin(verts, faces, smooth_iterations)
+    verts, faces = surface_from_grid(shape_sdf(shape, grid), lo, spacing_mm, smooth_iterations)
     rng = np.random.default_rng([int(seed), 1])
     target = np.array([rng.uniform(*WIDTH_RANGE_MM), rng.uniform(*DEPTH_RANGE_MM), rng.uniform(*HEIGHT_RANGE_MM)])
     raw_center = verts.mean(axis=0)

@@ -17,6 +17,17 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InputError, LiverP2PError
 from ..preprocess import source_normalization, target_normalization, voxel_downsample, voxel_keys
+from .artifacts import (
+    DENSITY_MODES,
+    Artifacts,
+    background_patch,
+    clustered_vertices,
+    depth_falloff,
+    flying_pixels,
+    instrument_holes,
+    mesh_vertex_view,
+    virtual_eye,
+)
 
 CROP_MODES = ("random", "camera")
 VOXEL_SIZE_NORM = 0.04
@@ -162,15 +173,26 @@ def make_target(
     n_samples: int | None = None,
     meter: VisibilityMeter | None = None,
     camera_attempts: int = 24,
+    density: str = "uniform",
+    coarse_mm: np.ndarray | None = None,
+    artifacts: Artifacts | None = None,
 ) -> dict:
     """Resample, crop, move and perturb a deformed surface into a partial target cloud.
 
     Returns tgt_pcd (M, 3), R_gt, t_gt (tgt = R_gt @ deformed + t_gt, before noise), the achieved
     visibility and crop details. Raises LiverP2PError when the request cannot be met within
     +-0.03 (camera views cannot see much more than the anterior half).
+
+    `density` other than uniform, or `artifacts`, then turn the crop into a realistic view
+    (artifacts.py): `coarse_mm` are the deformed vertices of the coarser mesh whose vertices
+    make a `mesh-vertices` view (default: a vertex clustering of `deformed_vertices_mm`). The
+    crop's own visibility is then returned as `visibility_uniform`, and `visibility` is measured
+    on the final view. The uniform, artifact-free path draws exactly what it always drew.
     """
     if crop_mode not in CROP_MODES:
         raise InputError(f"crop mode must be one of {CROP_MODES}, got {crop_mode!r}")
+    if density not in DENSITY_MODES:
+        raise InputError(f"density must be one of {DENSITY_MODES}, got {density!r}")
     if not MIN_VISIBILITY <= visibility <= 1.0:
         raise InputError(f"visibility must be in [{MIN_VISIBILITY}, 1.0], got {visibility}")
     if not 0.0 <= noise_mm <= 50.0:
@@ -205,6 +227,20 @@ def make_target(
     if abs(achieved - visibility) > VISIBILITY_TOLERANCE:
         raise LiverP2PError(f"{crop_mode} crop cannot reach visibility {visibility:.2f} (got {achieved:.2f})")
     keep = order[:k]
+    if density != "uniform" or (artifacts is not None and artifacts.any):
+        view = realistic_view(points, keep, deformed_vertices_mm, triangles, info, density, coarse_mm, artifacts, rng)
+        view_final = np.asarray(
+            view @ R.T + t + rng.uniform(-0.5, 0.5, size=view.shape) * noise_mm, dtype=np.float32
+        ).astype(np.float64)
+        return {
+            "tgt_pcd": view_final[rng.permutation(len(view_final))],
+            "R_gt": R,
+            "t_gt": t,
+            "visibility": float(meter(view_final)),
+            "visibility_uniform": float(achieved),
+            "visibility_requested": float(visibility),
+            "crop_info": info,
+        }
     keep = keep[rng.permutation(len(keep))]  # no ordering cue for learned matchers
     return {
         "tgt_pcd": final[keep],
@@ -214,3 +250,48 @@ def make_target(
         "visibility_requested": float(visibility),
         "crop_info": info,
     }
+
+
+MIN_VIEW_POINTS = 30
+
+
+def realistic_view(
+    points: np.ndarray,
+    keep: np.ndarray,
+    deformed_vertices_mm: np.ndarray,
+    triangles: np.ndarray,
+    info: dict,
+    density: str,
+    coarse_mm: np.ndarray | None,
+    artifacts: Artifacts | None,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """The cropped region as a real view would sample it (deformed liver frame, before pose and noise)."""
+    vn = vertex_normals(deformed_vertices_mm, triangles)
+    vertex_tree = cKDTree(deformed_vertices_mm)
+    view = points[keep]
+    normals = vn[vertex_tree.query(view)[1]]
+    eye = info.get("eye_mm")
+    if eye is None:
+        eye = virtual_eye(view, normals, rng)
+    if density == "mesh-vertices":
+        if coarse_mm is None:
+            coarse_mm = deformed_vertices_mm[clustered_vertices(deformed_vertices_mm, rng)]
+        view = mesh_vertex_view(points, keep, np.asarray(coarse_mm, dtype=np.float64))
+        normals = vn[vertex_tree.query(view)[1]]
+    elif density == "depth-falloff":
+        sel = depth_falloff(view, normals, eye, rng)
+        view, normals = view[sel], normals[sel]
+    if artifacts is not None and len(view) >= MIN_VIEW_POINTS:
+        if rng.random() < artifacts.hole_probability:
+            sel = instrument_holes(view, rng)
+            if len(sel) >= MIN_VIEW_POINTS:
+                view, normals = view[sel], normals[sel]
+        extra = [
+            flying_pixels(view, eye, rng.uniform(0, artifacts.outlier_fraction), rng),
+            background_patch(view, normals, rng.uniform(0, artifacts.background_fraction), rng),
+        ]
+        view = np.concatenate([view, *extra])
+    if len(view) < MIN_VIEW_POINTS:
+        raise LiverP2PError(f"{density} view kept only {len(view)} points")
+    return view

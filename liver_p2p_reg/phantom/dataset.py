@@ -37,6 +37,8 @@ MAX_RANDOM_VISIBILITY = 0.97
 CAMERA_VISIBILITY_BINS = VISIBILITY_BINS[:2]
 MAX_CAMERA_VISIBILITY = 0.36  # requests above this often need more than a camera can see
 RESERVED_SEEDS = range(900, 1000)
+# Liver ids of the real livers (phantom/real.py) are REAL_LIVER_SEED * 10_000 + their number.
+REAL_LIVER_SEED = 500
 MAX_LIVERS_PER_SEED = 10_000
 COMPLETE_MARKER = "complete.json"
 CASE_KEYS = (
@@ -210,6 +212,8 @@ class DatasetSpec:
             raise InputError(f"--noise must be in [0, 50] mm, got {self.noise_mm}")
         if self.seed < 0:
             raise InputError(f"--seed must be >= 0, got {self.seed}")
+        if self.seed == REAL_LIVER_SEED:
+            raise InputError(f"--seed {REAL_LIVER_SEED} names the real livers' ids; pick another")
         if self.seed in RESERVED_SEEDS and not allow_reserved:
             raise InputError(
                 f"--seed {self.seed} is reserved for the named test and validation sets (900-999); pick another"

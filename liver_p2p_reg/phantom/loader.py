@@ -18,9 +18,17 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, LiverP2PError
+from .artifacts import DENSITY_MODES, Artifacts
 from .crop import CROP_MODES, VisibilityMeter, make_target
-from .dataset import GENERATOR_VERSION, MAX_CAMERA_VISIBILITY, MAX_LIVERS_PER_SEED, RESERVED_SEEDS, liver_id_for
-from .simulate import simulate_liver
+from .dataset import (
+    GENERATOR_VERSION,
+    MAX_CAMERA_VISIBILITY,
+    MAX_LIVERS_PER_SEED,
+    REAL_LIVER_SEED,
+    RESERVED_SEEDS,
+    liver_id_for,
+)
+from .simulate import SimulatedLiver, simulate_liver
 
 STORE_VERSION = 1
 
@@ -30,21 +38,98 @@ def _store_liver(args: tuple[int, int, int, str]) -> str:
     path = Path(out) / f"liver_{liver_id:07d}.npz"
     if path.exists():
         return path.name
-    sim = simulate_liver(liver_id, deformations, target_tets=target_tets)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(
-        tmp,
-        liver_id=np.int64(liver_id),
-        vertices_mm=sim.vertices_mm.astype(np.float32),
-        triangles=sim.triangles.astype(np.int32),
-        fiducials_mm=sim.fiducials_mm,
-        surfaces_mm=np.stack([d.surface_mm for d in sim.deformations]).astype(np.float32),
-        deformed_fiducials_mm=np.stack([d.fiducials_mm for d in sim.deformations]),
-        rms_mm=np.array([d.rms_mm for d in sim.deformations]),
-        max_mm=np.array([d.max_mm for d in sim.deformations]),
-    )
-    tmp.replace(path)
+    write_store_liver(path, simulate_liver(liver_id, deformations, target_tets=target_tets))
     return path.name
+
+
+def write_store_liver(path: Path, sim: SimulatedLiver) -> None:
+    """One liver of a store (atomically); livers read from a file also keep their coarse vertices."""
+    arrays = {
+        "liver_id": np.int64(sim.liver_id),
+        "vertices_mm": sim.vertices_mm.astype(np.float32),
+        "triangles": sim.triangles.astype(np.int32),
+        "fiducials_mm": sim.fiducials_mm,
+        "surfaces_mm": np.stack([d.surface_mm for d in sim.deformations]).astype(np.float32),
+        "deformed_fiducials_mm": np.stack([d.fiducials_mm for d in sim.deformations]),
+        "rms_mm": np.array([d.rms_mm for d in sim.deformations]),
+        "max_mm": np.array([d.max_mm for d in sim.deformations]),
+    }
+    if sim.coarse_vertices_mm is not None:
+        arrays["coarse_vertices_mm"] = sim.coarse_vertices_mm.astype(np.float32)
+        arrays["coarse_surfaces_mm"] = np.stack([d.coarse_mm for d in sim.deformations]).astype(np.float32)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+
+
+def _store_real_liver(args: tuple[str, int, int, str]) -> str:
+    from .real import load_real_liver, real_liver_id
+
+    stem, deformations, target_tets, out = args
+    path = Path(out) / f"liver_{real_liver_id(stem):07d}.npz"
+    if not path.exists():
+        liver = load_real_liver(stem)
+        write_store_liver(path, simulate_liver(liver.seed, deformations, target_tets=target_tets, liver=liver))
+    return path.name
+
+
+def build_real_store(
+    store_dir: str | Path,
+    stems: Sequence[str],
+    deformations: int,
+    workers: int = 1,
+    target_tets: int = 10_000,
+    progress: bool = True,
+) -> Path:
+    """FEM-deform the real livers `stems` (../shared/data/livers) into a training store."""
+    from .real import require_real_livers
+
+    require_real_livers()
+    if deformations < 1:
+        raise InputError(f"deformations must be >= 1, got {deformations}")
+    store = Path(store_dir)
+    store.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "store_version": STORE_VERSION,
+        "generator_version": GENERATOR_VERSION,
+        "kind": "real",
+        "real_livers": sorted(stems),
+        "deformations": deformations,
+        "target_tets": target_tets,
+    }
+    _check_same_store(store, meta)
+    jobs = [(stem, deformations, target_tets, str(store)) for stem in sorted(stems)]
+    _run_jobs(_store_real_liver, jobs, workers, progress)
+    return _finish_store(store, meta)
+
+
+def _check_same_store(store: Path, meta: dict) -> None:
+    meta_path = store / "store.json"
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if {k: old.get(k) for k in meta} != meta:
+            raise InputError(f"{store} holds a store with different parameters; use another directory")
+
+
+def _run_jobs(fn, jobs: list, workers: int, progress: bool) -> None:
+    from tqdm import tqdm
+
+    with tqdm(total=len(jobs), desc="livers", unit="liver", disable=not progress) as bar:
+        if workers == 1:
+            for job in jobs:
+                fn(job)
+                bar.update(1)
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                for _ in pool.map(fn, jobs):
+                    bar.update(1)
+
+
+def _finish_store(store: Path, meta: dict) -> Path:
+    files = sorted(p.name for p in store.glob("liver_*.npz") if not p.name.endswith(".tmp.npz"))
+    meta["livers"] = files
+    (store / "store.json").write_text(json.dumps(meta, indent=2))
+    return store
 
 
 def build_store(
@@ -61,8 +146,10 @@ def build_store(
         raise InputError(f"--livers must be in [1, {MAX_LIVERS_PER_SEED}], got {livers}")
     if deformations < 1:
         raise InputError(f"--deformations must be >= 1, got {deformations}")
-    if seed < 0 or seed in RESERVED_SEEDS:
-        raise InputError(f"--seed must be >= 0 and outside 900-999 (test livers), got {seed}")
+    if seed < 0 or seed in RESERVED_SEEDS or seed == REAL_LIVER_SEED:
+        raise InputError(
+            f"--seed must be >= 0, outside 900-999 (test livers) and not {REAL_LIVER_SEED} (real livers), got {seed}"
+        )
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
     store = Path(store_dir)
@@ -74,27 +161,10 @@ def build_store(
         "deformations": deformations,
         "target_tets": target_tets,
     }
-    meta_path = store / "store.json"
-    if meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        if {k: old.get(k) for k in meta} != meta:
-            raise InputError(f"{store} holds a store with different parameters; use another directory")
+    _check_same_store(store, meta)
     jobs = [(liver_id_for(seed, i), deformations, target_tets, str(store)) for i in range(livers)]
-    from tqdm import tqdm
-
-    with tqdm(total=len(jobs), desc="livers", unit="liver", disable=not progress) as bar:
-        if workers == 1:
-            for job in jobs:
-                _store_liver(job)
-                bar.update(1)
-        else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                for _ in pool.map(_store_liver, jobs):
-                    bar.update(1)
-    files = sorted(p.name for p in store.glob("liver_*.npz") if not p.name.endswith(".tmp.npz"))
-    meta["livers"] = files
-    meta_path.write_text(json.dumps(meta, indent=2))
-    return store
+    _run_jobs(_store_liver, jobs, workers, progress)
+    return _finish_store(store, meta)
 
 
 class PairSampler:
@@ -108,6 +178,8 @@ class PairSampler:
         crop_modes: Sequence[str] = ("random",),
         noise_levels_mm: Sequence[float] = (0.0,),
         cache_livers: int = 64,
+        density_modes: Sequence[str] = ("uniform",),
+        artifacts: Artifacts | None = None,
     ) -> None:
         self.store = Path(store_dir)
         meta_path = self.store / "store.json"
@@ -126,6 +198,11 @@ class PairSampler:
         self.visibility_range = (float(lo), float(hi))
         self.crop_modes = tuple(crop_modes)
         self.noise_levels_mm = tuple(float(n) for n in noise_levels_mm) or (0.0,)
+        bad = [m for m in density_modes if m not in DENSITY_MODES]
+        if bad or not density_modes:
+            raise InputError(f"density modes must be among {DENSITY_MODES}, got {list(density_modes)}")
+        self.density_modes = tuple(density_modes)
+        self.artifacts = artifacts
         self.rng = np.random.default_rng([int(seed), 6])
         self.seed = int(seed)
         self.count = 0
@@ -183,9 +260,24 @@ class PairSampler:
                 hi = max(lo, min(hi, MAX_CAMERA_VISIBILITY))
             visibility = float(rng.uniform(lo, hi))
             noise = float(rng.choice(self.noise_levels_mm))
+            # Drawn only when configured, so stores sampled without them keep their old streams.
+            density = str(rng.choice(self.density_modes)) if self.density_modes != ("uniform",) else "uniform"
+            coarse = None
+            if density == "mesh-vertices" and "coarse_surfaces_mm" in liver:
+                coarse = liver["coarse_vertices_mm"] if t == 0 else liver["coarse_surfaces_mm"][t - 1]
             try:
                 target = make_target(
-                    src, tgt.astype(np.float64), liver["triangles"], visibility, mode, noise, rng, meter=meter
+                    src,
+                    tgt.astype(np.float64),
+                    liver["triangles"],
+                    visibility,
+                    mode,
+                    noise,
+                    rng,
+                    meter=meter,
+                    density=density,
+                    coarse_mm=coarse,
+                    artifacts=self.artifacts,
                 )
             except LiverP2PError:
                 continue  # e.g. a camera cannot see that much; draw another pair
@@ -205,6 +297,7 @@ class PairSampler:
                 "deformation_max_mm": float(np.max(np.linalg.norm(d, axis=1))),
                 "noise_mm": noise,
                 "crop_mode": mode,
+                "density": density,
                 "liver_id": int(liver["liver_id"]),
                 "deformation_id": int(t) - 1,
                 "target_id": self.count,

@@ -33,6 +33,7 @@ class Deformation:
     max_mm: float  # largest fiducial displacement after rigid removal
     n_fixed_nodes: int = 0
     rigid_rotation_deg: float = 0.0  # rotation Procrustes removed (small: linear model valid)
+    coarse_mm: np.ndarray | None = None  # (C, 3) the file's own vertices, deformed (livers read from a file)
 
 
 @dataclass
@@ -46,6 +47,7 @@ class SimulatedLiver:
     deformations: list[Deformation] = field(default_factory=list)
     n_tets: int = 0
     n_nodes: int = 0
+    coarse_vertices_mm: np.ndarray | None = None  # (C, 3) a file liver's own vertices (density variants)
 
 
 def select_fiducials(mesh: TetMesh, seed: int, max_count: int = MAX_FIDUCIALS) -> np.ndarray:
@@ -74,11 +76,14 @@ def simulate_liver(
         fiducials_mm=mesh.nodes_mm[fid_ids].copy(),
         n_tets=len(mesh.tets),
         n_nodes=len(mesh.nodes_mm),
+        coarse_vertices_mm=getattr(liver, "coarse_vertices_mm", None),
     )
     if n_deformations == 0:
         return sim
     system = assemble(mesh)
     ids, weights = mesh.embed(liver.vertices_mm)
+    coarse = sim.coarse_vertices_mm
+    coarse_embedding = mesh.embed(coarse) if coarse is not None else None
     for d in range(n_deformations):
         rng = np.random.default_rng([int(seed), 2, d])
         load = random_load_case(mesh, rng)
@@ -87,6 +92,9 @@ def simulate_liver(
         disp = scale * unit
         surface = float32_exact((liver.vertices_mm + mesh.interpolate(disp, ids, weights)) @ R.T + t)
         fids = (mesh.nodes_mm[fid_ids] + disp[fid_ids]) @ R.T + t
+        coarse_mm = None
+        if coarse_embedding is not None:
+            coarse_mm = float32_exact((coarse + mesh.interpolate(disp, *coarse_embedding)) @ R.T + t)
         max_mm = float(np.max(np.linalg.norm(fids - sim.fiducials_mm, axis=1)))
         sim.deformations.append(
             Deformation(
@@ -96,6 +104,7 @@ def simulate_liver(
                 max_mm=max_mm,
                 n_fixed_nodes=len(load.fixed_nodes),
                 rigid_rotation_deg=float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))),
+                coarse_mm=coarse_mm,
             )
         )
     return sim

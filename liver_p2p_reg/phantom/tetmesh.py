@@ -99,7 +99,11 @@ def build_tetmesh(liver: LiverMesh, target_tets: int = 10_000, margin_mm: float 
     axes = [origin[i] + h * (np.arange(n_cells[i]) + 0.5) for i in range(3)]
     centers = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
     active = liver.implicit_mm(centers.reshape(-1, 3)).reshape(tuple(n_cells)) < 0
-    cube_of_vertex = np.clip(np.floor((verts - origin) / h).astype(np.int64), 0, n_cells - 1)
+    # Every surface point the generator will deform must lie in a cube of the mesh: the surface's
+    # vertices and, for a liver read from a file, the file's own (coarse) vertices too.
+    coarse = getattr(liver, "coarse_vertices_mm", None)
+    embedded = verts if coarse is None else np.concatenate([verts, coarse])
+    cube_of_vertex = np.clip(np.floor((embedded - origin) / h).astype(np.int64), 0, n_cells - 1)
     active[cube_of_vertex[:, 0], cube_of_vertex[:, 1], cube_of_vertex[:, 2]] = True
     cubes = np.argwhere(active)  # (C, 3), sorted lexicographically -> deterministic ids
     node_shape = tuple(n_cells + 1)
