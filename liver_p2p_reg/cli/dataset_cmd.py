@@ -22,7 +22,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument(
         "--testset",
         help="generate a named set: insilico-test-v1, insilico-camera-v1, insilico-smoke (test); "
-        "insilico-val-v1, insilico-val-camera-v1 (validation, for tuning)",
+        "insilico-val-v1, insilico-val-camera-v1 (validation, for tuning); real-val-v1, real-val-camera-v1, "
+        "real-val-density-v1 and real-test-* (real CT livers, built from ../shared/data/livers)",
     )
     g.add_argument("--livers", type=int, default=10)
     g.add_argument("--deformations", type=int, default=5, help="FEM deformations per liver")

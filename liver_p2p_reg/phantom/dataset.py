@@ -86,10 +86,13 @@ def make_case(
     noise_mm: float = 0.0,
     seed: int = 0,
     meter: VisibilityMeter | None = None,
+    density: str = "uniform",
 ) -> dict:
     """One registration case from a simulated liver: source = undeformed surface, target = crop.
 
     tgt_pcd = R_gt @ deformed + t_gt (+ noise); tgt_marker = R_gt @ deformed fiducials + t_gt.
+    `density` (crop.make_target) samples the same crop and pose otherwise; `mesh-vertices` uses a
+    liver read from a file's own deformed vertices where it has them.
     """
     if not 0 <= deformation_index < len(sim.deformations):
         raise InputError(f"deformation index {deformation_index} out of range (liver has {len(sim.deformations)})")
@@ -104,6 +107,8 @@ def make_case(
         noise_mm,
         rng,
         meter=meter,
+        density=density,
+        coarse_mm=deformation.coarse_mm if density == "mesh-vertices" else None,
     )
     R, t = target["R_gt"], target["t_gt"]
     return {

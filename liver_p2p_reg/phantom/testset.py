@@ -40,9 +40,16 @@ def default_root() -> Path:
     return Path(os.environ.get(ENV_DATA_ROOT, "data"))
 
 
+def known_sets() -> list[str]:
+    """Every named set: the in silico ones and the real-anatomy ones (realsets.py)."""
+    from .realsets import REAL_SETS
+
+    return sorted(TESTSETS) + sorted(REAL_SETS)
+
+
 def testset_spec(name: str) -> DatasetSpec:
     if name not in TESTSETS:
-        raise InputError(f"unknown test set {name!r}; known: {', '.join(sorted(TESTSETS))}")
+        raise InputError(f"unknown test set {name!r}; known: {', '.join(known_sets())}")
     spec = TESTSETS[name]
     return DatasetSpec(**asdict(spec)).validate(allow_reserved=True)
 
@@ -61,6 +68,10 @@ def ensure_testset(
     name: str = "insilico-test-v1", root: str | Path | None = None, workers: int = 1, progress: bool = True
 ) -> Path:
     """Path of the named test set under `root`, generating (or finishing) it when absent."""
+    from .realsets import REAL_SETS, ensure_real_set
+
+    if name in REAL_SETS:
+        return ensure_real_set(name, Path(root) if root is not None else default_root(), progress=progress)
     spec = testset_spec(name)
     path = Path(root) / name if root is not None else default_root() / name
     if not is_complete(path, spec):
