@@ -37,6 +37,7 @@ class CaseInfo:
     deformation_rms_mm: float
     seed: int
     added_noise_mm: float = 0.0  # sensor noise the benchmark adds to the target (Table II rows)
+    density: str = "uniform"  # how the target samples its surface (phantom/artifacts.py)
 
 
 def visibility_bin(visibility: float) -> int | None:
@@ -86,14 +87,21 @@ def case_info(path: Path) -> CaseInfo:
         crop_mode=str(data.get("crop_mode", "")),
         deformation_rms_mm=float(data.get("deformation_rms_mm", np.nan)),
         seed=int(seed),
+        density=str(data.get("density", "uniform")),
     )
 
 
-def with_noise(infos: list[CaseInfo], levels_mm: list[float]) -> list[CaseInfo]:
-    """Add noisy copies of the lowest-visibility-bin cases (the paper's Table II), one per level > 0."""
+NOISE_BINS = ("lowest", "all")
+
+
+def with_noise(infos: list[CaseInfo], levels_mm: list[float], bins: str = "lowest") -> list[CaseInfo]:
+    """Add noisy copies, one per level > 0, of the lowest-visibility-bin cases (the paper's
+    Table II) or, with bins="all", of every case."""
+    if bins not in NOISE_BINS:
+        raise InputError(f"noise bins must be one of {NOISE_BINS}, got {bins!r}")
     extra = []
     for info in infos:
-        if visibility_bin(info.visibility) != 0:
+        if bins == "lowest" and visibility_bin(info.visibility) != 0:
             continue
         for level in levels_mm:
             if level > 0:

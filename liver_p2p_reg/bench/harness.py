@@ -111,6 +111,7 @@ class BenchmarkSpec:
     ablation_cases_per_bin: int = ABLATION_CASES_PER_BIN
     workers: int = 1
     noise_levels_mm: tuple[float, ...] = ()
+    noise_bins: str = "lowest"  # which cases get the noisy copies (cases.with_noise)
 
     def settings(self) -> dict[str, Any]:
         """The settings recorded in OUT/settings.json; a rerun must match them."""
@@ -125,6 +126,7 @@ class BenchmarkSpec:
             "limit": self.limit,
             "ablation_cases_per_bin": self.ablation_cases_per_bin,
             "noise_levels_mm": list(self.noise_levels_mm),
+            "noise_bins": self.noise_bins,
             "config": self.config.to_dict(),
         }
 
@@ -189,6 +191,7 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
         "noise_mm": case.noise_mm,
         "added_noise_mm": case.added_noise_mm,
         "crop_mode": case.crop_mode,
+        "density": case.density,
         "deformation_rms_mm": case.deformation_rms_mm,
         "initial_rms_tre_mm": initial_rms,
         "seed": seed,

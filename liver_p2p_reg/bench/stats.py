@@ -14,6 +14,7 @@ from .cases import BIN_LABELS, visibility_bin
 Row = dict[str, Any]
 ALPHA = 0.05  # significance level of the rank-sum tests (the paper's)
 SUCCESS_TAU_MM = 20.0  # success = RMS-TRE below this and no failure (the paper's tau)
+SAFETY_TAU_MM = 10.0  # the laparoscopic safety margin: success at this tau is reported beside it
 # Preferred display order; the Procrustes oracle is always first, unknown methods go last.
 METHOD_ORDER = (
     "procrustes",

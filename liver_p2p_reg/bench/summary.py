@@ -15,10 +15,11 @@ from ..confidence import pose_warnings
 from ..config import Config
 from ..errors import InputError
 from . import plots
-from .cases import BIN_EDGES, BIN_LABELS
+from .cases import BIN_EDGES, BIN_LABELS, visibility_bin
 from .harness import ABLATION_K, ORACLE
 from .stats import (
     ALPHA,
+    SAFETY_TAU_MM,
     SUCCESS_TAU_MM,
     Row,
     by_bin,
@@ -107,15 +108,16 @@ class Summary:
         return len({r["case_id"] for r in self.main})
 
     # --- tables ------------------------------------------------------------------------
-    def table_tre(self) -> list[str]:
+    def table_tre(self, rows: list[Row] | None = None) -> list[str]:
+        rows = self.main if rows is None else rows
         header = ["method", *(BIN_LABELS[i] for i in self.bins), "all"]
-        counts = [len({r["case_id"] for r in self.main if _in_bin(i)(r)}) for i in self.bins]
-        rows = [["*cases*", *(str(c) for c in counts), str(self.n_cases())]]
+        counts = [len({r["case_id"] for r in rows if _in_bin(i)(r)}) for i in self.bins]
+        table = [["*cases*", *(str(c) for c in counts), str(len({r["case_id"] for r in rows}))]]
         for m in self.methods:
-            groups = by_bin(select(self.main, method=m))
-            everything = np.array([r["rms_tre_mm"] for r in select(self.main, method=m)], float)
-            rows.append([self.name(m), *(_pm(groups[i]) for i in self.bins), _pm(everything)])
-        return _table(header, rows)
+            groups = by_bin(select(rows, method=m))
+            everything = np.array([r["rms_tre_mm"] for r in select(rows, method=m)], float)
+            table.append([self.name(m), *(_pm(groups[i]) for i in self.bins), _pm(everything)])
+        return _table(header, table)
 
     def table_ratio(self) -> list[str]:
         if ORACLE not in self.methods or not self.bins:
@@ -137,14 +139,47 @@ class Summary:
             rows.append([self.name(m), *cells])
         return _table(header, rows)
 
-    def table_success(self) -> list[str]:
+    def table_success(self, tau_mm: float = SUCCESS_TAU_MM, rows: list[Row] | None = None) -> list[str]:
+        rows = self.main if rows is None else rows
         header = ["method", *(BIN_LABELS[i] for i in self.bins), "all"]
-        rows = []
+        table = []
+        for m in self.methods:
+            mine = select(rows, method=m)
+            cells = [_pct(success_rate(where(mine, _in_bin(i)), tau_mm)) for i in self.bins]
+            table.append([self.name(m), *cells, _pct(success_rate(mine, tau_mm))])
+        return _table(header, table)
+
+    def noise_sections(self) -> list[str]:
+        """Per-bin tables of the rows with benchmark-added noise, when it was added to more than the lowest bin."""
+        noisy = [r for r in main_rows(self.rows, with_added_noise=True) if r.get("added_noise_mm", 0.0) > 0]
+        if not any(visibility_bin(r["visibility"]) not in (0, None) for r in noisy):
+            return []
+        lines = []
+        for level in sorted({r["added_noise_mm"] for r in noisy}):
+            rows, _ = complete_cases([r for r in noisy if r["added_noise_mm"] == level])
+            lines += [f"## With {level:g} mm added sensor noise, per visibility bin", ""]
+            lines += ["RMS-TRE (mm), mean ± std:", "", *self.table_tre(rows), ""]
+            for tau in (SAFETY_TAU_MM, SUCCESS_TAU_MM):
+                lines += [f"Success rate (RMS-TRE < {tau:g} mm):", "", *self.table_success(tau, rows), ""]
+        return lines
+
+    def table_density(self) -> list[str] | None:
+        """Mean RMS-TRE per target density on the same crops and poses (density twins)."""
+        densities = sorted({str(r.get("density", "uniform")) for r in self.main})
+        if len(densities) < 2 or "uniform" not in densities:
+            return None
+        header = ["method", *(f"{d}" for d in densities), *(f"{d} / uniform" for d in densities if d != "uniform")]
+        header += [f"success < {SAFETY_TAU_MM:g} mm {d}" for d in densities]
+        table = []
         for m in self.methods:
             mine = select(self.main, method=m)
-            cells = [_pct(success_rate(where(mine, _in_bin(i)))) for i in self.bins]
-            rows.append([self.name(m), *cells, _pct(success_rate(mine))])
-        return _table(header, rows)
+            by_density = {d: [r for r in mine if str(r.get("density", "uniform")) == d] for d in densities}
+            means = {d: mean_std(np.array([r["rms_tre_mm"] for r in v], float))[0] for d, v in by_density.items()}
+            cells = [_pm(np.array([r["rms_tre_mm"] for r in by_density[d]], float)) for d in densities]
+            cells += [_fmt(means[d] / means["uniform"]) for d in densities if d != "uniform"]
+            cells += [_pct(success_rate(by_density[d], SAFETY_TAU_MM)) for d in densities]
+            table.append([self.name(m), *cells])
+        return _table(header, table)
 
     def table_failures(self) -> list[str]:
         rows = []
@@ -404,6 +439,12 @@ class Summary:
         lines += ["## Mean RMS-TRE relative to the oracle", "", *self.table_ratio(), ""]
         lines += [f"## Success rate (RMS-TRE < {SUCCESS_TAU_MM:g} mm)", "", *self.table_success(), ""]
         lines += [
+            f"## Success rate at the laparoscopic safety margin (RMS-TRE < {SAFETY_TAU_MM:g} mm)",
+            "",
+            *self.table_success(SAFETY_TAU_MM),
+            "",
+        ]
+        lines += [
             "![success rate vs tau](success_vs_tau.png)",
             "",
             "![RMS-TRE vs visibility](tre_vs_visibility.png)",
@@ -434,6 +475,19 @@ class Summary:
             *self.table_wilcoxon(),
             "",
         ]
+        lines += self.noise_sections()
+        density = self.table_density()
+        if density:
+            lines += [
+                "## Target density (the same crops and poses sampled three ways)",
+                "",
+                "uniform: area-uniform samples; mesh-vertices: the vertices of the liver's own decimated mesh "
+                "(deformed with it); depth-falloff: a depth camera's cos(incidence) / depth² density. Bins and "
+                "twins share the crop, pose and fiducials.",
+                "",
+                *density,
+                "",
+            ]
         noise = self.table_noise()
         if noise:
             lines += [f"## Sensor noise at visibility {BIN_LABELS[0]} (Table II form), RMS-TRE mm", "", *noise, ""]
@@ -467,6 +521,12 @@ class Summary:
         lines = [*self.header_lines(), ""]
         lines += ["RMS-TRE (mm) per visibility bin, mean ± std:", "", *self.table_tre(), ""]
         lines += [f"Success rate (RMS-TRE < {SUCCESS_TAU_MM:g} mm):", "", *self.table_success(), ""]
+        lines += [
+            f"Success rate at the laparoscopic safety margin (RMS-TRE < {SAFETY_TAU_MM:g} mm):",
+            "",
+            *self.table_success(SAFETY_TAU_MM),
+            "",
+        ]
         lines += [
             f"Would the node have warned (failed, ambiguous, residual or uncertainty above its threshold)? "
             f"Poses off by {SUCCESS_TAU_MM:g} mm or more should all be warned, few within {GOOD_POSE_MM:g} mm:",

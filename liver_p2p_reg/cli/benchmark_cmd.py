@@ -39,6 +39,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--noise-levels",
         help="comma-separated sensor-noise levels in mm (e.g. 2,4) added to the [0.2,0.3) cases as extra cases (Table II)",
     )
+    p.add_argument(
+        "--noise-bins",
+        choices=("lowest", "all"),
+        default="lowest",
+        help="which cases get the --noise-levels copies: the lowest visibility bin (default) or all",
+    )
     p.add_argument("--data-root", help="where named test sets live (default: $LIVER_P2P_DATA or ./data)")
     p.add_argument("--readme", help="replace the README's BENCHMARK block with the main tables")
     p.add_argument(
@@ -59,6 +65,7 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
         ("--seed", args.seed),
         ("--threads", args.threads),
         ("--noise-levels", args.noise_levels),
+        ("--noise-bins", args.noise_bins if args.noise_bins != "lowest" else None),
     ):
         if value is not None:
             parts += [flag, str(value)]
@@ -119,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     noise_levels = _noise_levels(args.noise_levels)
     folder, dataset_id = resolve_dataset(args.dataset, Path(args.data_root) if args.data_root else None)
     cases = select_cases([case_info(p) for p in list_case_paths(folder)], args.preset, args.limit)
-    cases = with_noise(cases, noise_levels)
+    cases = with_noise(cases, noise_levels, args.noise_bins)
     out = Path(args.out)
     spec = BenchmarkSpec(
         out=out,
@@ -133,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         ablation_cases_per_bin=args.ablation_cases_per_bin,
         workers=args.workers,
         noise_levels_mm=tuple(noise_levels),
+        noise_bins=args.noise_bins,
     )
     check_settings(out, spec.settings())  # refuse a mismatching OUT before touching it
     machine = machine_info(config.device)

@@ -74,6 +74,7 @@ class TrainConfig:
     real_deformations: int = 8
     real_fraction: float = 0.0  # share of training pairs drawn from the real store
     real_val_pairs: int = 0  # validation pairs from the train_dev livers (random + camera, 0 / 2 mm)
+    real_livers_limit: int = 0  # > 0: only the first this many train and train_dev livers (quick runs)
     store_workers: int = 1  # processes building the stores (first use only)
     val_workers: int = 0  # > 1: validate in this many CPU processes (a GPU run's loader cores idle meanwhile)
     # What a real view adds (phantom/artifacts.py), drawn per training pair.
@@ -132,6 +133,7 @@ class TrainConfig:
             "real_deformations": 1,
             "real_fraction": 0,
             "real_val_pairs": 0,
+            "real_livers_limit": 0,
             "store_workers": 1,
             "val_workers": 0,
             "hole_probability": 0,
@@ -304,6 +306,8 @@ def ensure_real_store(cfg: TrainConfig, progress: bool = True) -> tuple[list[Pat
     from ..phantom.real import real_liver_id, real_split
 
     split = real_split()
+    if cfg.real_livers_limit:
+        split = {part: names[: cfg.real_livers_limit] for part, names in split.items()}
     store = Path(cfg.real_store_dir)
     stems = split["train"] + split["train_dev"]
     if not (store / "store.json").is_file() or any(
