@@ -21,9 +21,9 @@ import numpy as np
 
 SETS = {  # name -> extra benchmark arguments
     "real-val-v1": ["--noise-levels", "2", "--noise-bins", "all"],
-    "real-val-camera-v1": ["--noise-levels", "2", "--noise-bins", "all"],
     "insilico-val-v1": ["--noise-levels", "2,4"],
     "insilico-val-camera-v1": [],
+    "real-val-camera-v1": ["--noise-levels", "2", "--noise-bins", "all"],
 }
 REAL, INSILICO = ("real-val-v1", "real-val-camera-v1"), ("insilico-val-v1", "insilico-val-camera-v1")
 METHODS = ("learned-p2p", "learned-p2p-icp")
