@@ -18,6 +18,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, help="override the number of steps in the config")
     p.add_argument("--max-minutes", type=float, help="override the config's wall-clock limit (0: none)")
     p.add_argument("--export", metavar="PATH", help="no training: copy OUT's best checkpoint to PATH with a model card")
+    p.add_argument("--notes", default="", help="with --export: a paragraph added to the model card")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -32,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
         import subprocess
 
         commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-        dest = export_weights(args.out, args.export, commit=commit)
+        dest = export_weights(args.out, args.export, commit=commit, notes=args.notes)
         print(f"exported {dest} (+ {dest.with_suffix('.json').name}, {dest.with_suffix('.md').name})")
         return 0
     cfg = TrainConfig.from_yaml(args.config)

@@ -393,6 +393,8 @@ def train(
     model = MatcherNet(ModelConfig(**cfg.model)).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = {"step": 0, "best_val_mm": None, "elapsed_s": 0.0, "config": asdict(cfg)}
+    state["device"] = device
+    state["hardware"] = torch.cuda.get_device_name(0) if device == "cuda" else "CPU"
     if resume and (out / "state.json").is_file():
         state = _load_checkpoint(out, model, opt)
         log.info("resumed at step %d", state["step"])
@@ -483,7 +485,16 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
     state = json.loads((run / "state.json").read_text())
     cfg = state["config"]
     store_meta_path = Path(cfg["store_dir"]) / "store.json"
-    store_meta = json.loads(store_meta_path.read_text()) if store_meta_path.is_file() else {}
+    # The store's own record where it is on this machine (a GPU run's store stays there); else the config's.
+    store_meta = {
+        "seed": cfg["store_seed"],
+        "deformations": cfg["store_deformations"],
+        "livers": [None] * cfg["store_livers"],
+        "generator_version": None,
+        "store_version": None,
+    }
+    if store_meta_path.is_file():
+        store_meta.update(json.loads(store_meta_path.read_text()))
     model = load_weights(best)
     dest = save_weights(model, dest, {"step": str(state.get("best_step", "")), "commit": commit})
     card = {
@@ -494,7 +505,15 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
         "model_config": model.cfg.to_dict(),
         "training_config": cfg,
         "data": {
-            "source": "procedural in silico livers (liver_p2p_reg.phantom), none from /work/shared/data",
+            "source": "procedural in silico livers (liver_p2p_reg.phantom)"
+            + (
+                " and FEM-deformed real CT livers (../shared/data/livers: Medical Segmentation Decathlon Task03 / "
+                "LiTS, CC BY-SA 4.0; the split's train livers, train_dev for the checkpoint choice; "
+                "liver_p2p_reg/data/real_livers_split.json)"
+                if cfg.get("real_store_dir")
+                else ", none from ../shared/data"
+            ),
+            "real_fraction": cfg.get("real_fraction", 0.0),
             "store_seed": store_meta.get("seed"),
             "generator_version": store_meta.get("generator_version"),
             "store_version": store_meta.get("store_version"),
@@ -508,6 +527,8 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
         "best_step": state.get("best_step"),
         "validation": state.get("best_metrics", {}),
         "wall_clock_min": round(state["elapsed_s"] / 60, 1),
+        "device": state.get("device", "cpu"),
+        "hardware": state.get("hardware", "a shared 2-core CPU"),
         "notes": notes,
     }
     dest.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
@@ -520,6 +541,13 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
         f"- Parameters: {card['parameters']:,}; file size {card['size_bytes'] / 1e6:.2f} MB (safetensors, no pickle).",
         "- Inputs: voxelized, normalized clouds; invariant multi-scale covariance features per point; "
         "attention over FPS nodes with a learned distance-only bias (self) and no positional terms (cross).",
+        (
+            f"- Real anatomy: {100 * cfg.get('real_fraction', 0.0):.0f} % of the pairs from FEM-deformed real CT livers "
+            "(the split's 40 train livers; its 4 train_dev livers in the validation that picks the checkpoint; "
+            "its val and test livers never seen), with the density and artifact augmentations of the config."
+            if cfg.get("real_store_dir")
+            else "- Real anatomy: none."
+        ),
         f"- Training data: procedural livers, store seed {store_meta.get('seed')} "
         f"({len(store_meta.get('livers', []))} livers x {store_meta.get('deformations')} FEM deformations, "
         f"generator v{store_meta.get('generator_version')}), the last {cfg['val_livers']} held out for validation; "
@@ -527,7 +555,7 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
         f"- Loss: dual-softmax matching loss at GT pairs (NN within 0.04 after GT alignment), T={cfg['temperature']}, "
         f"+ {cfg['overlap_weight']} x overlap BCE.",
         f"- Trained {state['step']} steps (best at step {state.get('best_step')}) in "
-        f"{card['wall_clock_min']} min wall clock on a shared 2-core CPU"
+        f"{card['wall_clock_min']} min wall clock on {card['hardware']} (device {card['device']})"
         + (
             f", starting from {cfg['init_weights']} (a second stage; see that file's card)."
             if cfg.get("init_weights")
