@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -111,4 +112,12 @@ def pose_warnings(residual_mm: float, ambiguous: bool, uncertainty_mm: float, co
             f"pose poorly constrained by the visible surface: uncertainty {uncertainty_mm:.1f} mm "
             f"above {config.uncertainty_warn_mm} mm"
         )
+    return out
+
+
+def result_warnings(result: Any, config: Config) -> dict[str, str]:
+    """`pose_warnings` of a RegistrationResult plus the warnings the method itself attached
+    (e.g. prepared weights made for another liver): reason -> message."""
+    out = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config)
+    out.update({f"method{i}": message for i, message in enumerate(getattr(result, "warnings", []))})
     return out

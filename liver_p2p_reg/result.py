@@ -52,6 +52,9 @@ class RegistrationResult:
     screened: list[Candidate] = field(default_factory=list)
     ok: bool = True
     message: str = ""
+    # conditions the user must hear about although a pose was found (e.g. prepared weights made
+    # for another liver: the general ones were used); the node reports them as WARN
+    warnings: list[str] = field(default_factory=list)
     rms_tre_mm: float | None = None  # filled when ground-truth fiducials are given
     max_tre_mm: float | None = None
 
@@ -81,6 +84,7 @@ class RegistrationResult:
             "chosen_candidate": self.chosen,
             "candidates": [c.to_json_dict() for c in self.candidates],
             "screened": [c.to_json_dict() for c in self.screened],
+            "warnings": list(self.warnings),
         }
         if self.rms_tre_mm is not None:
             out["rms_tre_mm"] = _finite_or_none(self.rms_tre_mm)

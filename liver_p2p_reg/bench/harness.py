@@ -84,16 +84,21 @@ class Variant:
 
     method: str
     overrides: tuple[tuple[str, Any], ...] = ()
+    # A named main-table method built on `method` (e.g. `prepared`: per-liver prepared weights in
+    # `overrides`); its rows count as a method of their own, not as an ablation variant.
+    tag: str = ""
 
     @property
     def label(self) -> str:
+        if self.tag:
+            return f"{self.method}[{self.tag}]"
         if not self.overrides:
             return self.method
         return f"{self.method}[{','.join(f'{k}={v}' for k, v in self.overrides)}]"
 
     @property
     def variant(self) -> str:
-        return self.label[len(self.method) :].strip("[]")
+        return "" if self.tag else self.label[len(self.method) :].strip("[]")
 
 
 @dataclass
@@ -112,6 +117,10 @@ class BenchmarkSpec:
     workers: int = 1
     noise_levels_mm: tuple[float, ...] = ()
     noise_bins: str = "lowest"  # which cases get the noisy copies (cases.with_noise)
+    # case_id -> patient-prepared weights of its liver (`--prepare-minutes`): adds `<method>[prepared]`
+    # rows for the learned methods
+    prepared: dict[str, str] = field(default_factory=dict)
+    prepare_minutes: float = 0.0
 
     def settings(self) -> dict[str, Any]:
         """The settings recorded in OUT/settings.json; a rerun must match them."""
@@ -127,6 +136,7 @@ class BenchmarkSpec:
             "ablation_cases_per_bin": self.ablation_cases_per_bin,
             "noise_levels_mm": list(self.noise_levels_mm),
             "noise_bins": self.noise_bins,
+            "prepare_minutes": self.prepare_minutes,
             "config": self.config.to_dict(),
         }
 
@@ -161,6 +171,13 @@ def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
     jobs = []
     for case in spec.cases:
         jobs += [(case, v) for v in main]
+        weights = spec.prepared.get(case.case_id.split("+")[0])  # noisy copies share their case's liver
+        if weights:
+            jobs += [
+                (case, Variant(m, (("weights_path", weights),), tag="prepared"))
+                for m in spec.methods
+                if m.startswith("learned")
+            ]
         if case.case_id in ablation_ids:
             jobs += [(case, v) for v in ablation]
     return jobs

@@ -15,6 +15,7 @@ _SUBCOMMAND_MODULES = (
     "register_cmd",
     "dataset_cmd",
     "train_cmd",
+    "prepare_cmd",
     "benchmark_cmd",
     "bag_cmd",
     "replay_cmd",

@@ -45,6 +45,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default="lowest",
         help="which cases get the --noise-levels copies: the lowest visibility bin (default) or all",
     )
+    p.add_argument(
+        "--prepare-minutes",
+        type=float,
+        default=0.0,
+        help="also run the learned methods with patient-prepared weights (`liver-p2p prepare`, this many "
+        "minutes per liver, each test liver once, cached under DATA_ROOT/prepared): rows `<method>[prepared]`",
+    )
     p.add_argument("--data-root", help="where named test sets live (default: $LIVER_P2P_DATA or ./data)")
     p.add_argument("--readme", help="replace the README's BENCHMARK block with the main tables")
     p.add_argument(
@@ -66,6 +73,7 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
         ("--threads", args.threads),
         ("--noise-levels", args.noise_levels),
         ("--noise-bins", args.noise_bins if args.noise_bins != "lowest" else None),
+        ("--prepare-minutes", args.prepare_minutes or None),
     ):
         if value is not None:
             parts += [flag, str(value)]
@@ -126,7 +134,18 @@ def run(args: argparse.Namespace) -> int:
     noise_levels = _noise_levels(args.noise_levels)
     folder, dataset_id = resolve_dataset(args.dataset, Path(args.data_root) if args.data_root else None)
     cases = select_cases([case_info(p) for p in list_case_paths(folder)], args.preset, args.limit)
+    if args.prepare_minutes < 0:
+        raise InputError(f"--prepare-minutes must be >= 0, got {args.prepare_minutes}")
     cases = with_noise(cases, noise_levels, args.noise_bins)
+    prepared: dict[str, str] = {}
+    if args.prepare_minutes > 0:
+        from ..bench.prepared import prepare_test_livers
+        from ..phantom.testset import default_root
+
+        root = Path(args.data_root) if args.data_root else default_root()
+        prepared = prepare_test_livers(
+            cases, args.prepare_minutes, root / "prepared", progress=not getattr(args, "quiet", False)
+        )
     out = Path(args.out)
     spec = BenchmarkSpec(
         out=out,
@@ -141,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
         noise_levels_mm=tuple(noise_levels),
         noise_bins=args.noise_bins,
+        prepared=prepared,
+        prepare_minutes=args.prepare_minutes,
     )
     check_settings(out, spec.settings())  # refuse a mismatching OUT before touching it
     machine = machine_info(config.device)

@@ -8,7 +8,7 @@ import logging
 from pathlib import Path
 
 from ..cloud_io import load_points, save_points
-from ..confidence import pose_warnings
+from ..confidence import result_warnings
 from ..config import SELECTION_RULES, Config
 from ..errors import InputError
 from ..metrics import transform_points
@@ -36,6 +36,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, help="random seed (RANSAC, mesh sampling)")
     p.add_argument("--config", help="YAML configuration (plain mapping or ROS parameter file)")
     p.add_argument("--device", choices=("cpu", "cuda"), help="torch device")
+    p.add_argument(
+        "--weights",
+        dest="weights_path",
+        metavar="PATH",
+        help="matcher weights: general ones, or a file from `liver-p2p prepare` for this SOURCE's liver",
+    )
     p.add_argument("--source-fiducials", metavar="F", help="(F, 3) fiducials in the source frame (mm)")
     p.add_argument("--target-fiducials", metavar="F", help="the same fiducials in the target frame (mm)")
     p.add_argument("--output", "-o", metavar="PATH", help="also write the JSON result to PATH")
@@ -53,7 +59,7 @@ def _config(args: argparse.Namespace) -> Config:
     config = Config.from_yaml(args.config) if args.config else Config()
     overrides = {
         name: getattr(args, name)
-        for name in ("method", "k", "selection", "seed", "device")
+        for name in ("method", "k", "selection", "seed", "device", "weights_path")
         if getattr(args, name, None) is not None
     }
     return config.replace(**overrides) if overrides else config
@@ -95,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         output.write_text(text + "\n")
     print(text)
     # The node's WARN rules, on stderr: the pose is still returned (exit 0), but flagged.
-    warnings = list(pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config).values())
+    warnings = list(result_warnings(result, config).values())
     for message in warnings:
         logging.getLogger("liver_p2p_reg").warning(message)
     if moved is not None:

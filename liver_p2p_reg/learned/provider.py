@@ -10,6 +10,7 @@ import torch
 from ..registrar import remember_latest
 from .descriptors import local_features
 from .model import MatcherNet
+from .prepared import read_prepared_source
 from .weights import load_weights
 
 
@@ -21,6 +22,16 @@ class LearnedProvider:
     def __init__(self, model: MatcherNet | None = None, weights_path: str = "", device: str = "cpu") -> None:
         self.model = model if model is not None else load_weights(weights_path or None, device)
         self.device = device
+        # A patient-prepared file also carries its liver's signature and precomputed source features.
+        self.prepared = read_prepared_source(weights_path) if weights_path and model is None else None
+
+    def source_features(self, src: np.ndarray) -> np.ndarray:
+        """Input features of the voxelized normalized source: the prepared ones when it is the same cloud."""
+        pre = self.prepared
+        if pre is not None and pre.vox_norm is not None and pre.vox_norm.shape == src.shape:
+            if np.allclose(pre.vox_norm, src, rtol=0.0, atol=1e-9):
+                return pre.f_src
+        return local_features(src)
 
     def describe(
         self, source_norm: torch.Tensor, target_norm: torch.Tensor, cache: dict[str, Any]
@@ -30,7 +41,7 @@ class LearnedProvider:
         dev = source_norm.device
 
         def encode_source() -> tuple:
-            f_src = torch.as_tensor(local_features(src), dtype=torch.float32, device=dev)
+            f_src = torch.as_tensor(self.source_features(src), dtype=torch.float32, device=dev)
             with torch.no_grad():
                 return f_src, self.model.encode(source_norm.float(), f_src)
 

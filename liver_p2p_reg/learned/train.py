@@ -82,6 +82,7 @@ class TrainConfig:
     hole_probability: float = 0.0
     outlier_fraction: float = 0.0
     background_fraction: float = 0.0
+    source_undeformed: bool = False  # sources are always the undeformed shape (patient preparation)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrainConfig:
@@ -242,6 +243,7 @@ def training_sampler(cfg: TrainConfig, store_dir: str, files: list[Path], seed: 
         noise_levels_mm=cfg.noise_levels_mm,
         density_modes=cfg.density_modes,
         artifacts=Artifacts(cfg.hole_probability, cfg.outlier_fraction, cfg.background_fraction),
+        source_undeformed=cfg.source_undeformed,
     )
     sampler.files = list(files)  # training livers only (validation livers held out)
     return sampler

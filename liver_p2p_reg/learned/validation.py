@@ -44,8 +44,8 @@ def validation_cases(cfg: Any, val_files: list[Path], real_dev_files: list[Path]
     return cases
 
 
-def score_case(model: Any, case: dict, device: str) -> tuple[float, float]:
-    """RMS-TRE (mm) of `learned` and `learned-p2p` (no ICP) on one pair."""
+def score_case(model: Any, case: dict, device: str, variants: tuple[bool, ...] = (False, True)) -> tuple[float, ...]:
+    """RMS-TRE (mm) of `learned` (False) and `learned-p2p` (True; no ICP) on one pair."""
     from ..pipelines import run_feature_pipeline
     from ..registrar import MethodContext
     from .provider import LearnedProvider
@@ -53,7 +53,7 @@ def score_case(model: Any, case: dict, device: str) -> tuple[float, float]:
     provider = LearnedProvider(model=model)
     config = Config(device=device)
     errors = []
-    for use_p2p in (False, True):
+    for use_p2p in variants:
         try:
             res = run_feature_pipeline(
                 case["src_pcd"], case["tgt_pcd"], config, MethodContext(), provider, use_p2p=use_p2p, refine=False
@@ -61,7 +61,7 @@ def score_case(model: Any, case: dict, device: str) -> tuple[float, float]:
             errors.append(rms_tre_mm(res.T_target_source, case["src_marker"], case["tgt_marker"]))
         except Exception:  # noqa: BLE001 - a failed registration counts as a large error
             errors.append(FAILED_MM)
-    return errors[0], errors[1]
+    return tuple(errors)
 
 
 def summarize(errors: list[tuple[float, float]], cases: list[dict]) -> dict[str, float]:

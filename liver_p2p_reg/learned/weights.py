@@ -45,7 +45,11 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise WeightsError(f"matcher weights {path} are unreadable (not a valid safetensors file): {exc}") from None
-    if meta.get("format") != FORMAT:
+    from .prepared import PREPARED_FORMAT
+
+    if meta.get("format") == PREPARED_FORMAT:  # a patient-prepared file: its network part
+        tensors = {k: v for k, v in tensors.items() if not k.startswith("prepared.")}
+    elif meta.get("format") != FORMAT:
         raise WeightsError(f"matcher weights {path} have format {meta.get('format')!r}, expected {FORMAT!r}")
     try:
         cfg = ModelConfig(**json.loads(meta["model_config"]))

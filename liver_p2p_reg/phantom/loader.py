@@ -180,6 +180,7 @@ class PairSampler:
         cache_livers: int = 64,
         density_modes: Sequence[str] = ("uniform",),
         artifacts: Artifacts | None = None,
+        source_undeformed: bool = False,
     ) -> None:
         self.store = Path(store_dir)
         meta_path = self.store / "store.json"
@@ -203,6 +204,8 @@ class PairSampler:
             raise InputError(f"density modes must be among {DENSITY_MODES}, got {list(density_modes)}")
         self.density_modes = tuple(density_modes)
         self.artifacts = artifacts
+        # Patient preparation: the source is always the undeformed (preoperative) shape.
+        self.source_undeformed = source_undeformed
         self.rng = np.random.default_rng([int(seed), 6])
         self.seed = int(seed)
         self.count = 0
@@ -245,7 +248,10 @@ class PairSampler:
             rng = self.rng
             liver = self._liver(self.files[int(rng.integers(len(self.files)))])
             n_shapes = 1 + len(liver["surfaces_mm"])
-            s, t = rng.choice(n_shapes, size=2, replace=False)
+            if self.source_undeformed:
+                s, t = 0, int(rng.integers(1, n_shapes))
+            else:
+                s, t = rng.choice(n_shapes, size=2, replace=False)
             src = liver["vertices_mm"] if s == 0 else liver["surfaces_mm"][s - 1]
             tgt = liver["vertices_mm"] if t == 0 else liver["surfaces_mm"][t - 1]
             src_fid = liver["fiducials_mm"] if s == 0 else liver["deformed_fiducials_mm"][s - 1]

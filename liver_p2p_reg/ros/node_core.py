@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..cloud_io import extent_mm, implausible_extent
-from ..confidence import pose_warnings
+from ..confidence import result_warnings
 from ..config import Config
 from ..errors import InputError, LiverP2PError
 from ..metrics import transform_points
@@ -364,7 +364,7 @@ class NodeCore:
         message = f"{verb}: residual {result.residual_mm:.2f} mm"
         if result.rms_tre_mm is not None:
             message += f", RMS-TRE {result.rms_tre_mm:.2f} mm"
-        warnings += pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, self.config).values()
+        warnings += result_warnings(result, self.config).values()
         if warnings:
             level = max(level, WARN)
             message += " (" + "; ".join(warnings) + ")"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..confidence import pose_warnings
+from ..confidence import result_warnings
 from ..config import Config
 from ..errors import InputError
 from ..registrar import Registrar, get_method
@@ -165,7 +165,7 @@ def _plot_frame(
     result = output.result
     warnings = None
     if output.level != OK:  # the node's reasons, else (e.g. a units warning) its whole message
-        reasons = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, core.config)
+        reasons = result_warnings(result, core.config)
         warnings = list(reasons.values()) or [output.summary]
     plot_registration(
         core.preop_mm,

@@ -1,0 +1,163 @@
+"""Patient-specific preparation: a small liver prepared in seconds, its file, the liver check and bad meshes."""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from liver_p2p_reg import Config, Registrar
+from liver_p2p_reg.learned.prepare import PrepareSize, prepare_liver
+from liver_p2p_reg.learned.prepared import read_prepared_source, signature_mismatch, source_signature
+from liver_p2p_reg.learned.train import pair_loss, prepare_pair
+from liver_p2p_reg.learned.weights import load_weights
+from liver_p2p_reg.phantom.anatomy import make_liver
+from liver_p2p_reg.phantom.crop import make_target
+from liver_p2p_reg.phantom.loader import PairSampler
+
+SMALL = PrepareSize(train_deformations=3, val_deformations=1, views=4, tets=1500)
+STEPS = 40
+
+
+@pytest.fixture(scope="module")
+def liver():
+    return make_liver(21)
+
+
+@pytest.fixture(scope="module")
+def prepared(liver, tmp_path_factory):
+    out = tmp_path_factory.mktemp("prep") / "patient.safetensors"
+    card = prepare_liver(
+        liver.vertices_mm, liver.triangles, liver.vertices_mm, out, 5.0, name="liver21", steps=STEPS,
+        progress=False, size=SMALL,
+    )  # fmt: skip
+    return out, card
+
+
+def _views_loss(weights: Path | None, store: Path) -> float:
+    model = load_weights(weights)
+    sampler = PairSampler(store, seed=99, visibility_range=(0.2, 0.5), crop_modes=("random", "camera"))
+    sampler.files = [store / "liver_train.npz"]
+    rng = np.random.default_rng(0)
+    pairs = [prepare_pair(sampler.sample(), 0.04, rng) for _ in range(6)]
+    with torch.no_grad():
+        return float(np.mean([pair_loss(model, p, 0.1, 0.5)[1]["match"] for p in pairs]))
+
+
+def test_preparation_lowers_the_matching_loss_on_its_own_views(prepared) -> None:
+    out, card = prepared
+    store = out.with_name(out.name + ".work") / "store"
+    assert card["steps"] == STEPS and card["mesh_name"] == "liver21" and len(card["mesh_sha256"]) == 64
+    assert _views_loss(out, store) < 0.97 * _views_loss(None, store)
+
+
+def test_prepared_file_loads_without_pickle_and_reproduces_its_output(prepared, liver, monkeypatch) -> None:
+    out, _ = prepared
+    rng = np.random.default_rng(3)
+    view = make_target(liver.vertices_mm, liver.vertices_mm, liver.triangles, 0.3, "camera", 1.0, rng)["tgt_pcd"]
+    first = Registrar(Config(method="learned-p2p", weights_path=str(out))).register(liver.vertices_mm, view)
+
+    def no_pickle(*args, **kwargs):
+        raise AssertionError("pickle used")
+
+    monkeypatch.setattr(pickle, "load", no_pickle)
+    monkeypatch.setattr(pickle, "loads", no_pickle)
+    again = Registrar(Config(method="learned-p2p", weights_path=str(out))).register(liver.vertices_mm, view)
+    np.testing.assert_array_equal(first.T_target_source, again.T_target_source)
+    assert not first.warnings
+    source = read_prepared_source(out)
+    assert source.vox_norm is not None and source.f_src.shape[0] == source.vox_norm.shape[0]
+    assert source.card["validation_after"]["learned_p2p_mean_mm"] > 0
+
+
+def test_precomputed_source_features_are_the_ones_the_network_would_compute(prepared, liver) -> None:
+    from liver_p2p_reg.learned.descriptors import local_features
+
+    source = read_prepared_source(prepared[0])
+    np.testing.assert_array_equal(source.f_src, local_features(source.vox_norm).astype(np.float32))
+
+
+def test_another_liver_gets_the_general_weights_and_a_warning(prepared) -> None:
+    out, _ = prepared
+    other = make_liver(22).vertices_mm
+    rng = np.random.default_rng(4)
+    n = len(other) // 3
+    view = other[np.argsort(other[:, 1])[-n:]] + rng.normal(scale=0.3, size=(n, 3))
+    result = Registrar(Config(method="learned-p2p", weights_path=str(out))).register(other, view)
+    assert len(result.warnings) == 1 and "another liver" in result.warnings[0]
+    general = Registrar(Config(method="learned-p2p")).register(other, view)
+    np.testing.assert_array_equal(result.T_target_source, general.T_target_source)
+
+
+def test_the_same_liver_moved_still_matches_its_signature(liver) -> None:
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    moved = liver.vertices_mm @ rot.T + [30.0, -5.0, 12.0]
+    assert signature_mismatch(source_signature(liver.vertices_mm), source_signature(moved)) == ""
+    assert signature_mismatch(source_signature(liver.vertices_mm), source_signature(make_liver(22).vertices_mm))
+
+
+def test_node_core_reports_the_mismatch_as_warn(prepared) -> None:
+    from liver_p2p_reg.ros.node_core import WARN, NodeCore
+
+    out, _ = prepared
+    other = make_liver(22).vertices_mm
+    core = NodeCore(Config(method="learned-p2p", weights_path=str(out), track_previous_pose=False, mode="on_demand"))
+    core.set_preop(other, frame_id="ct")
+    view = other[np.argsort(other[:, 1])[-len(other) // 3 :]]
+    core.on_intraop_points(view, frame_id="camera", stamp_ns=1)
+    output = core.reregister()
+    assert output.pose is not None and output.level == WARN and "another liver" in output.summary
+
+
+def _write_obj(path: Path, v: np.ndarray, f: np.ndarray) -> Path:
+    lines = [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (lambda v, f: (v, f[:-4]), "open mesh"),
+        (lambda v, f: (v / 1000.0, f), "metres?"),
+        (lambda v, f: (v, np.concatenate([f, f[:1]])), "non-manifold"),
+    ],
+)
+def test_cli_bad_meshes_get_one_line(tmp_path, liver, make, words) -> None:
+    v, f = make(liver.vertices_mm, liver.triangles)
+    mesh = _write_obj(tmp_path / "bad.obj", v, f)
+    cmd = [
+        sys.executable,
+        "-m",
+        "liver_p2p_reg",
+        "prepare",
+        str(mesh),
+        "--minutes",
+        "1",
+        "--out",
+        str(tmp_path / "p.safetensors"),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip() and "INFO" not in line]
+    assert len(lines) == 1 and words in lines[0], proc.stderr
+
+
+def test_cli_refuses_to_overwrite_and_bad_budgets(tmp_path, liver) -> None:
+    mesh = _write_obj(tmp_path / "liver.obj", liver.vertices_mm, liver.triangles)
+    existing = tmp_path / "p.safetensors"
+    existing.write_bytes(b"keep me")
+    base = [sys.executable, "-m", "liver_p2p_reg", "prepare", str(mesh), "--out"]
+    for extra, words in (
+        ([str(existing), "--minutes", "1"], "exists; pass --force"),
+        ([str(tmp_path / "q.safetensors"), "--minutes", "0"], "--minutes must be > 0"),
+        ([str(tmp_path / "q.pt"), "--minutes", "1"], "must end in .safetensors"),
+    ):
+        proc = subprocess.run(base + extra, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and words in proc.stderr, proc.stderr
+    assert existing.read_bytes() == b"keep me"
