@@ -35,8 +35,6 @@ from .stats import (
     where,
 )
 
-README_START = "<!-- BENCHMARK:START -->"
-README_END = "<!-- BENCHMARK:END -->"
 SLOW_MEDIAN_MS = 5000.0  # methods slower than this per case (median) are marked "slow"
 LOW_DEFORMATION_MM = (0.0, 6.0)  # the paper's Table III deformation ranges (fiducial RMS, mm)
 HIGH_DEFORMATION_MM = (6.0, 12.0)
@@ -520,6 +518,8 @@ class Summary:
     def readme_block(self, summary_link: str) -> str:
         lines = [*self.header_lines(), ""]
         lines += ["RMS-TRE (mm) per visibility bin, mean ± std:", "", *self.table_tre(), ""]
+        if ORACLE in self.methods:
+            lines += ["Mean RMS-TRE relative to the oracle:", "", *self.table_ratio(), ""]
         lines += [f"Success rate (RMS-TRE < {SUCCESS_TAU_MM:g} mm):", "", *self.table_success(), ""]
         lines += [
             f"Success rate at the laparoscopic safety margin (RMS-TRE < {SAFETY_TAU_MM:g} mm):",
@@ -534,6 +534,10 @@ class Summary:
             *self.table_confidence(self.main),
             "",
         ]
+        lines += [line.replace("## ", "") for line in self.noise_sections()]
+        density = self.table_density()
+        if density:
+            lines += ["Target density (the same crops and poses sampled three ways):", "", *density, ""]
         lines += ["Runtime per case:", "", *self.table_runtime(), ""]
         cpu = self.machine.get("cpu", "")
         lines += [
@@ -554,16 +558,22 @@ def write_summary(
     return summary
 
 
-def replace_readme_block(readme: Path, block: str) -> None:
-    """Replace the text between the BENCHMARK markers of `readme` with `block`."""
+def readme_markers(name: str = "BENCHMARK") -> tuple[str, str]:
+    """The comment lines around a generated README block."""
+    return f"<!-- {name}:START -->", f"<!-- {name}:END -->"
+
+
+def replace_readme_block(readme: Path, block: str, name: str = "BENCHMARK") -> None:
+    """Replace the text between the `name` markers of `readme` with `block`."""
+    start_marker, end_marker = readme_markers(name)
     try:
         text = readme.read_text()
     except OSError as exc:
         raise InputError(f"cannot read {readme}: {exc.strerror or exc}") from None
-    start, end = text.find(README_START), text.find(README_END)
+    start, end = text.find(start_marker), text.find(end_marker)
     if start < 0 or end < 0 or end < start:
-        raise InputError(f"{readme} lacks the {README_START} ... {README_END} markers")
-    new = text[: start + len(README_START)] + "\n" + block.strip() + "\n" + text[end:]
+        raise InputError(f"{readme} lacks the {start_marker} ... {end_marker} markers")
+    new = text[: start + len(start_marker)] + "\n" + block.strip() + "\n" + text[end:]
     tmp = readme.with_name(readme.name + ".tmp")
     tmp.write_text(new)
     os.replace(tmp, readme)

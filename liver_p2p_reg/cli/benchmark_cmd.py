@@ -55,6 +55,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--data-root", help="where named test sets live (default: $LIVER_P2P_DATA or ./data)")
     p.add_argument("--readme", help="replace the README's BENCHMARK block with the main tables")
     p.add_argument(
+        "--readme-block",
+        default="BENCHMARK",
+        metavar="NAME",
+        help="with --readme: the block between <!-- NAME:START --> and <!-- NAME:END --> (default: %(default)s)",
+    )
+    p.add_argument(
         "--summary-only", action="store_true", help="run nothing: rewrite summary.md (and --readme) from OUT/cases.csv"
     )
     p.set_defaults(func=run)
@@ -81,6 +87,8 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
         parts += ["--ablations", "--ablation-cases-per-bin", str(args.ablation_cases_per_bin)]
     if args.readme:
         parts += ["--readme", args.readme]
+        if args.readme_block != "BENCHMARK":
+            parts += ["--readme-block", args.readme_block]
     return " ".join(shlex.quote(p) for p in parts)
 
 
@@ -182,7 +190,8 @@ def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dic
     summary = write_summary(out, rows, settings, machine, command)
     if args.readme:
         readme = Path(args.readme)
-        replace_readme_block(readme, summary.readme_block(relative_link(out / "summary.md", readme.parent)))
+        block = summary.readme_block(relative_link(out / "summary.md", readme.parent))
+        replace_readme_block(readme, block, getattr(args, "readme_block", "BENCHMARK"))
     if not getattr(args, "quiet", False):
         n_failed = sum(r["failed"] for r in rows)
         print(f"{len(rows)} rows ({n_failed} failed) in {out / 'cases.csv'}; summary: {out / 'summary.md'}")

@@ -148,9 +148,12 @@ def _probe_rate(work: Path, cfg: Any) -> float:
     shutil.rmtree(probe, ignore_errors=True)
     train(replace(cfg, steps=PROBE_STEPS, val_every=10**9, checkpoint_every=10**9), probe, progress=False)
     with open(probe / "log.csv", newline="") as fh:
-        rows = [(int(r["step"]), float(r["elapsed_s"])) for r in csv.DictReader(fh) if not r["val_score_mm"]]
+        # A row's elapsed time is taken before that step's validation, so the last row counts too.
+        rows = [(int(r["step"]), float(r["elapsed_s"])) for r in csv.DictReader(fh)]
     shutil.rmtree(probe, ignore_errors=True)
     (s0, t0), (s1, t1) = rows[0], rows[-1]
+    if s1 <= s0:  # a single logged row: the whole run, start-up included (slower, so safe)
+        s0, t0 = 0, 0.0
     return (s1 - s0) / max(1e-3, t1 - t0)
 
 
