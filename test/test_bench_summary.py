@@ -11,10 +11,10 @@ from scipy.stats import ranksums
 
 from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
 from liver_p2p_reg.bench.summary import Summary, readme_markers, replace_readme_block
-
-README_START, README_END = readme_markers()
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+
+README_START, README_END = readme_markers()
 
 
 def _row(case: int, method: str, vis: float, tre: float, runtime_ms: float = 10.0, failed: bool = False) -> dict:
