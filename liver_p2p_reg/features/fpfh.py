@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # only `describe` needs torch; the Open3D baselines use `raw`
+    import torch
 
 from ..o3d import o3d_module
 from ..registrar import remember_latest
@@ -66,5 +68,7 @@ class FPFHProvider:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         src = self.raw(source_norm.detach().cpu().numpy().astype(np.float64), cache)
         tgt = self.raw(target_norm.detach().cpu().numpy().astype(np.float64), None)
+        import torch
+
         to_t = lambda a: torch.as_tensor(hellinger_normalize(a), dtype=source_norm.dtype, device=source_norm.device)  # noqa: E731
         return to_t(src), to_t(tgt)

@@ -2,22 +2,34 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..config import Config
 from ..pipelines import run_feature_pipeline
 from ..registrar import MethodContext, method
 from ..result import RegistrationResult
-from .provider import LearnedProvider
+
+if TYPE_CHECKING:
+    from .provider import LearnedProvider
 
 
-def _provider(config: Config, ctx: MethodContext) -> LearnedProvider:
-    """One loaded network per (weights, device), kept in the Registrar's cache."""
-    key = f"learned_provider:{config.weights_path}:{config.device}"
-    provider = ctx.cache.get(key)
-    if provider is None:
-        provider = ctx.cache[key] = LearnedProvider(weights_path=config.weights_path, device=config.device)
-    return provider
+def _provider(config: Config, ctx: MethodContext) -> Callable[[], LearnedProvider]:
+    """Makes the provider, one per (weights, device) in the Registrar's cache; the pipeline calls
+    it once the inputs are checked, so torch and the weights load only for a valid registration."""
+
+    def make() -> LearnedProvider:
+        from .provider import LearnedProvider
+
+        key = f"learned_provider:{config.weights_path}:{config.device}"
+        provider = ctx.cache.get(key)
+        if provider is None:
+            provider = ctx.cache[key] = LearnedProvider(weights_path=config.weights_path, device=config.device)
+        return provider
+
+    return make
 
 
 @method("learned")

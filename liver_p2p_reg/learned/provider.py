@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -10,7 +11,25 @@ import torch
 from ..registrar import remember_latest
 from .descriptors import local_features
 from .model import MatcherNet
-from .weights import load_weights
+from .weights import BUNDLED_WEIGHTS, load_weights
+
+# Weights loaded in this process, by (file, its size and mtime, device): every Registrar (a
+# batch, a replay of several bags, the node after a re-configuration) shares one loaded network.
+# Inference never changes it (eval mode, no_grad); a changed file is loaded anew.
+_LOADED: dict[tuple, MatcherNet] = {}
+
+
+def shared_model(weights_path: str = "", device: str = "cpu") -> MatcherNet:
+    """The network of these weights on this device, loaded once per process."""
+    path = Path(weights_path) if weights_path else BUNDLED_WEIGHTS
+    try:
+        stat = path.stat()
+        key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, str(device))
+    except OSError:
+        return load_weights(weights_path or None, device)  # raises its one-line WeightsError
+    if key not in _LOADED:
+        _LOADED[key] = load_weights(weights_path or None, device)
+    return _LOADED[key]
 
 
 class LearnedProvider:
@@ -19,7 +38,7 @@ class LearnedProvider:
     name = "learned"
 
     def __init__(self, model: MatcherNet | None = None, weights_path: str = "", device: str = "cpu") -> None:
-        self.model = model if model is not None else load_weights(weights_path or None, device)
+        self.model = model if model is not None else shared_model(weights_path, device)
         self.device = device
 
     def describe(
