@@ -90,7 +90,7 @@ def _noise_levels(text: str | None) -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..bench.cases import case_info, list_case_paths, resolve_dataset, select_cases, with_noise
+    from ..bench.cases import case_info, list_case_paths, planned_cases, resolve_dataset, select_cases, with_noise
     from ..bench.harness import BenchmarkSpec, check_settings, run_benchmark
     from ..bench.sysinfo import machine_info
     from ..registrar import available_methods
@@ -117,8 +117,11 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:  # here too (the harness checks it), before the test set is generated
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     noise_levels = _noise_levels(args.noise_levels)
-    folder, dataset_id = resolve_dataset(args.dataset, Path(args.data_root) if args.data_root else None)
-    cases = select_cases([case_info(p) for p in list_case_paths(folder)], args.preset, args.limit)
+    plan = planned_cases(args.dataset, args.preset, args.limit)  # a named set: only the livers these cases need
+    root = Path(args.data_root) if args.data_root else None
+    folder, dataset_id = resolve_dataset(args.dataset, root, livers=plan[0] if plan else None)
+    paths = list_case_paths(folder) if plan is None else [folder / n for n in plan[1] if (folder / n).is_file()]
+    cases = select_cases([case_info(p) for p in paths], args.preset, args.limit)
     cases = with_noise(cases, noise_levels)
     out = Path(args.out)
     spec = BenchmarkSpec(
