@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from .errors import InputError
-
 # The modules that define methods and the names each registers (a test checks this against the
 # registry). `registrar.get_method` imports only the module a method needs (the learned ones need
 # torch, the Open3D baselines do not), and the command line checks a name before importing anything.
@@ -26,9 +24,3 @@ METHOD_MODULES: dict[str, tuple[str, ...]] = {
 def method_names() -> list[str]:
     """Names of the methods, from the table above: nothing is imported (for early argument checks)."""
     return sorted(name for names in METHOD_MODULES.values() for name in names)
-
-
-def check_method_name(name: str) -> None:
-    """InputError listing the choices when `name` is no method; imports nothing."""
-    if name not in method_names():
-        raise InputError(f"unknown method {name!r}; choose one of: {', '.join(method_names())}")

@@ -19,7 +19,7 @@ from .alloc import reuse_freed_memory
 from .cloud_io import as_float_array, clean_points, require_plausible_extent
 from .config import Config
 from .errors import InputError, LiverP2PError
-from .method_names import METHOD_MODULES, check_method_name, method_names  # noqa: F401 (re-exported)
+from .method_names import METHOD_MODULES, method_names
 from .metrics import rms_tre_mm, tre_mm
 from .result import RegistrationResult
 
@@ -82,6 +82,17 @@ def _load_methods() -> None:
     for module in METHOD_MODULES:
         _import_method_module(module)
     _loaded = True
+
+
+def known_methods() -> list[str]:
+    """The table's methods and any registered besides (plug-ins, tests), without importing a method module."""
+    return sorted(set(method_names()) | set(_REGISTRY))
+
+
+def check_method_name(name: str) -> None:
+    """InputError listing the choices when `name` is no known method; imports no method module."""
+    if name not in known_methods():
+        raise InputError(f"unknown method {name!r}; choose one of: {', '.join(known_methods())}")
 
 
 def available_methods() -> list[str]:

@@ -149,7 +149,7 @@ def load_initial_transform(path: Path) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..method_names import check_method_name
+    from ..registrar import check_method_name
 
     quiet = bool(getattr(args, "quiet", False))
     targets = [Path(t) for t in args.targets]

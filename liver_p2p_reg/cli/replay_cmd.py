@@ -25,13 +25,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ros.bag_io import is_bag_path
-    from ..ros.replay import format_flags, format_table, replay_bags
+    from ..registrar import check_method_name
 
     config = Config.from_yaml(args.config) if args.config else Config()
     changes = {k: v for k, v in (("method", args.method), ("mode", args.mode)) if v}
     if changes:
         config = config.replace(**changes)
+    check_method_name(config.method)  # before reading any bag or importing torch
+    from ..ros.bag_io import is_bag_path
+    from ..ros.replay import format_flags, format_table, replay_bags
+
     paths = [Path(b) for b in args.bags]
     for path in paths:
         if not path.exists():
