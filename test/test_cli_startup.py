@@ -96,6 +96,34 @@ def test_learned_method_on_ply_files_needs_no_open3d(files: dict) -> None:
     assert rc == 0 and "open3d" in heavy and "torch" not in heavy and "sklearn" not in heavy
 
 
+def test_default_method_gets_the_icp_normals_from_a_child_and_the_same_pose(files: dict) -> None:
+    """learned-p2p-icp: Open3D (the ICP's source normals) is imported by a child process while this one
+    imports torch (prefetch.py); the pose is bit for bit the one computed in one process."""
+    out = files["dir"] / "default.json"
+    rc, heavy, _ = probe("-q", "register", files["source"], files["target"], "-o", str(out), "--force")
+    assert rc == 0 and "torch" in heavy and "open3d" not in heavy
+    from liver_p2p_reg import Config, Registrar
+    from liver_p2p_reg.cloud_io import load_points
+
+    alone = Registrar(Config()).register(load_points(files["source"]), load_points(files["target"]))
+    written = json.loads(out.read_text())
+    assert written["transform"] == alone.T_target_source.tolist()
+    assert written["screened"] == [c.to_json_dict() for c in alone.screened]
+
+
+def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
+    from liver_p2p_reg.cloud_io import load_points
+    from liver_p2p_reg.features.fpfh import outward_normals
+    from liver_p2p_reg.prefetch import BackgroundNormals, take_prefetched
+
+    points = load_points(files["source"]) / 100.0
+    job = BackgroundNormals(points, 0.1)
+    assert take_prefetched(points + 0.0, 0.2, 30) is None  # other parameters: not this job
+    child = take_prefetched(points.copy(), 0.1, 30)
+    assert child is not None and child.tobytes() == outward_normals(points, 0.1).tobytes()
+    assert not job.folder.exists()  # cleaned up once taken
+
+
 def test_the_method_table_names_exactly_the_registered_methods() -> None:
     from liver_p2p_reg.method_names import METHOD_MODULES, method_names
     from liver_p2p_reg.registrar import _REGISTRY, available_methods

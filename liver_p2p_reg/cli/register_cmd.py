@@ -151,7 +151,6 @@ def load_initial_transform(path: Path) -> Any:
 def run(args: argparse.Namespace) -> int:
     from ..registrar import check_method_name
 
-    quiet = bool(getattr(args, "quiet", False))
     targets = [Path(t) for t in args.targets]
     several = len(targets) > 1
     outputs = _output_paths(args.output, targets, args.force, "--output", (), ".json")
@@ -176,21 +175,63 @@ def run(args: argparse.Namespace) -> int:
     initial_T = load_initial_transform(Path(args.initial_transform)) if args.initial_transform else None
     source = load_points(source_path, seed=config.seed)
     views = [load_points(t, seed=config.seed) for t in targets]  # every file is read before any work
-    fid_s = fid_t = None
-    if args.source_fiducials is not None:
-        fid_s = load_points(args.source_fiducials)
-        fid_t = load_points(args.target_fiducials)  # Registrar refuses NaN/inf pairs
+    fiducials = (None, None)
+    if args.source_fiducials is not None:  # the Registrar refuses NaN/inf pairs
+        fiducials = (load_points(args.source_fiducials), load_points(args.target_fiducials))
+    prefetch = _prefetch_icp_normals(source, config)
+    try:
+        return _register_all(
+            args,
+            config,
+            source_path,
+            source,
+            list(zip(targets, views, strict=True)),
+            fiducials,
+            initial_T,
+            (outputs, plots, moved),
+        )
+    finally:
+        if prefetch is not None:
+            prefetch.close()
 
+
+def _prefetch_icp_normals(source, config):
+    """Start computing the ICP's source normals in a child process (prefetch.py), which imports
+    Open3D there while this process imports torch: learned `-icp` methods only, the ones that need
+    both. The child works on exactly the points the pipeline will (the Registrar's finite points,
+    normalized as `pipelines.prepare` does); should they differ, the pipeline computes its own."""
+    if not (config.method.startswith("learned") and config.method.endswith("-icp")):
+        return None
+    import numpy as np
+
+    from ..prefetch import BackgroundNormals
+    from ..preprocess import source_normalization
+
+    finite = source[np.isfinite(source).all(axis=1)]
+    try:
+        full = source_normalization(finite).apply(finite)
+    except InputError:
+        return None  # the registration reports it
+    return BackgroundNormals(full, config.normal_radius_norm)
+
+
+def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths) -> int:
+    """Register SOURCE to every view in one Registrar; write and print each result as it comes."""
     from ..registrar import Registrar
 
-    for paths in (outputs, plots, moved):  # several targets: the folders, now that every check passed
-        if several and paths[0] is not None:
-            paths[0].parent.mkdir(exist_ok=True)
+    quiet = bool(getattr(args, "quiet", False))
+    several = len(views) > 1
+    fid_s, fid_t = fiducials
+    outputs, plots, moved = paths
+
+    for per_target in (outputs, plots, moved):  # several targets: the folders, now that every check passed
+        if several and per_target[0] is not None:
+            per_target[0].parent.mkdir(exist_ok=True)
     registrar = Registrar(config)
     json_to_stdout = args.output is None or args.json
     summary_stream = sys.stderr if json_to_stdout else sys.stdout
     failed = 0
-    for i, (target_path, target) in enumerate(zip(targets, views, strict=True)):
+    for i, (target_path, target) in enumerate(views):
         try:
             result = registrar.register(
                 source,

@@ -18,8 +18,14 @@ def outward_normals(points: np.ndarray, radius: float, max_nn: int = 30) -> np.n
 
     A liver surface is mostly convex, so "away from the centroid" is outward for the whole
     source and for a partial cap (its centroid lies on the concave side). This makes the
-    normals — and so FPFH — independent of the cloud's pose.
+    normals — and so FPFH — independent of the cloud's pose. A one-shot command may have had
+    them computed by a child process already (prefetch.py): the same function on the same points.
     """
+    from ..prefetch import take_prefetched
+
+    ready = take_prefetched(points, radius, max_nn)
+    if ready is not None:
+        return ready
     o3d = o3d_module()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
