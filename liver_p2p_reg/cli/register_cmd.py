@@ -200,8 +200,8 @@ def _prefetch_icp_normals(source, config):
     Open3D there while this process imports torch: learned `-icp` methods only, the ones that need
     both. The child works on exactly the points the pipeline will (the Registrar's finite points,
     normalized as `pipelines.prepare` does); should they differ, the pipeline computes its own."""
-    if not (config.method.startswith("learned") and config.method.endswith("-icp")):
-        return None
+    if not (config.method.startswith("learned") and config.method.endswith("-icp")) or "open3d" in sys.modules:
+        return None  # another method, or Open3D is here already (an STL/OBJ source): nothing to gain
     import numpy as np
 
     from ..prefetch import BackgroundNormals
