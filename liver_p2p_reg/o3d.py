@@ -22,15 +22,28 @@ def o3d_module() -> ModuleType:
     module = sys.modules.get("open3d")
     if module is not None:
         return module
-    placeholders = {name: ModuleType(name) for name in _UNUSED_SUBPACKAGES if name not in sys.modules}
-    sys.modules.update(placeholders)
     try:
-        import open3d
+        try:
+            open3d = _import_core()
+        except (ImportError, AttributeError):  # an Open3D whose __init__ needs those parts: the plain import
+            import open3d
     except ImportError as exc:
         raise LiverP2PError(
             f"Open3D is not usable ({exc}); install `open3d-cpu<0.20` (headless) or `open3d` "
             "(needs the system's libusb-1.0-0)"
         ) from None
+    # Its C++ warnings are printed in colour on stdout, where they would corrupt JSON output and
+    # interleave with tables; the readers' own problems reach the user as one-line InputErrors.
+    open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
+    return open3d
+
+
+def _import_core() -> ModuleType:
+    """`import open3d` with empty placeholders standing in for its unused subpackages meanwhile."""
+    placeholders = {name: ModuleType(name) for name in _UNUSED_SUBPACKAGES if name not in sys.modules}
+    sys.modules.update(placeholders)
+    try:
+        import open3d
     finally:
         for name, placeholder in placeholders.items():
             if sys.modules.get(name) is placeholder:
@@ -38,9 +51,6 @@ def o3d_module() -> ModuleType:
                 parent, _, child = name.rpartition(".")
                 if getattr(sys.modules.get(parent), child, None) is placeholder:
                     delattr(sys.modules[parent], child)
-    # Its C++ warnings are printed in colour on stdout, where they would corrupt JSON output and
-    # interleave with tables; the readers' own problems reach the user as one-line InputErrors.
-    open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
     return open3d
 
 
