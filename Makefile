@@ -32,6 +32,9 @@ test: $(STAMP) ## lint, format check and the whole test suite
 lint: $(STAMP) ## ruff lint only
 	$(VENV)/bin/ruff check .
 
+bench: $(STAMP) ## smoke benchmark: 24 cases of insilico-test-v1 (builds 3 of its 12 livers on first use) -> out/bench
+	$(PY) -m liver_p2p_reg benchmark --dataset insilico-test-v1 --preset smoke --methods procrustes,fpfh-ransac-icp,learned-p2p-icp --out out/bench
+
 format: $(STAMP) ## reformat the code with ruff
 	$(VENV)/bin/ruff format .
 

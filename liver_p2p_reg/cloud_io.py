@@ -11,11 +11,14 @@ import numpy as np
 
 from .errors import InputError
 from .o3d import o3d_module
+from .ply_pcd import read_pcd, read_ply, write_pcd, write_ply
 
 LOG = logging.getLogger("liver_p2p_reg")
 
-POINT_FORMATS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".stl", ".obj", ".off", ".npy", ".npz", ".vtk")
-MESH_FORMATS = (".stl", ".obj", ".off", ".ply", ".vtk")
+# What `load_points` reads (the README's "Inputs are ..." sentence lists exactly these; a test checks).
+POINT_FORMATS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".stl", ".obj", ".off", ".npy", ".npz")
+MESH_FORMATS = (".stl", ".obj", ".off", ".ply")
+TEXT_FORMATS = (".xyz", ".xyzn", ".pts")  # x y z [more columns] per line; .pts may start with a point count
 # NPZ keys tried in order when the caller names none (public P2P dataset names first).
 NPZ_POINT_KEYS = ("points", "src_pcd", "tgt_pcd", "xyz", "vertices")
 MESH_SAMPLES_PER_MM2 = 0.5  # surface sampling density for meshes (about 1.4 mm spacing)
@@ -28,21 +31,13 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> n
     Meshes (files with triangles) are sampled uniformly over their surface, together with
     their vertices, so coarse meshes still give a dense surface. Raises InputError.
     """
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"file not found: {path}")
-    if path.is_dir():
-        raise InputError(f"expected a file, got a directory: {path}")
+    path = check_point_file(path)
     suffix = path.suffix.lower()
-    if suffix not in POINT_FORMATS:
-        raise InputError(f"unsupported format {suffix or '(none)'!r} for {path}; use one of {', '.join(POINT_FORMATS)}")
     try:
         if suffix in (".npy", ".npz"):
             points = _load_numpy(path, key)
-        elif suffix in (".xyz", ".xyzn", ".pts"):
-            with warnings.catch_warnings():  # an empty file is reported below, in one line
-                warnings.simplefilter("ignore", UserWarning)
-                points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments=("#", "//"))[:, :3]
+        elif suffix in TEXT_FORMATS:
+            points = _load_text(path)
         else:
             if suffix == ".ply":
                 with path.open("rb") as f:
@@ -65,14 +60,34 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> n
     return points[:, :3]
 
 
-def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Load vertices (V, 3) and triangles (F, 3) with Open3D; a point-cloud file gives F = 0."""
-    o3d = o3d_module()  # heavy import, only when reading such files
+def check_point_file(path: str | Path) -> Path:
+    """The path, if it names an existing file of a format `load_points` reads; else InputError (reads nothing)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"file not found: {path}")
+    if path.is_dir():
+        raise InputError(f"expected a file, got a directory: {path}")
+    suffix = path.suffix.lower()
+    if suffix not in POINT_FORMATS:
+        raise InputError(f"unsupported format {suffix or '(none)'!r} for {path}; use one of {', '.join(POINT_FORMATS)}")
+    return path
 
+
+def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Load vertices (V, 3) and triangles (F, 3); a point-cloud file gives F = 0.
+
+    PLY and PCD are read in numpy (the same values Open3D gives, without its import); STL, OBJ,
+    OFF and PLY/PCD layouts those readers leave out are read by Open3D.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if not path.exists():
         raise InputError(f"file not found: {path}")
+    if suffix == ".ply" and (mesh := read_ply(path)) is not None and len(mesh[0]) > 0:
+        return mesh
+    if suffix == ".pcd" and (cloud := read_pcd(path)) is not None and len(cloud) > 0:
+        return cloud, np.zeros((0, 3), np.int64)
+    o3d = o3d_module()  # heavy import, only for the formats above
     if suffix in MESH_FORMATS:
         mesh = o3d.io.read_triangle_mesh(str(path))
         if len(mesh.triangles) > 0:
@@ -167,14 +182,22 @@ def save_points(path: str | Path, points: np.ndarray) -> None:
         np.save(path, points)
     elif suffix in (".xyz", ".pts"):
         np.savetxt(path, points, fmt="%.6f")
-    elif suffix in (".ply", ".pcd"):
-        o3d = o3d_module()
-
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        if not o3d.io.write_point_cloud(str(path), cloud):
-            raise InputError(f"cannot write {path}")
+    elif suffix == ".ply":
+        write_ply(path, points)
+    elif suffix == ".pcd":
+        write_pcd(path, points)
     else:
         raise InputError(f"cannot write format {suffix!r}; use .ply, .pcd, .xyz or .npy")
+
+
+def _load_text(path: Path) -> np.ndarray:
+    """x y z (and ignored further columns) per line; a first line holding only a count is skipped (.pts)."""
+    with warnings.catch_warnings():  # an empty file is reported by the caller, in one line
+        warnings.simplefilter("ignore", UserWarning)
+        with path.open("rb") as f:
+            first = f.readline().split()
+        skip = 1 if len(first) == 1 and first[0].isdigit() else 0
+        return np.loadtxt(path, dtype=np.float64, ndmin=2, comments=("#", "//"), skiprows=skip)[:, :3]
 
 
 def _load_numpy(path: Path, key: str | None) -> np.ndarray:

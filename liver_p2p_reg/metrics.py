@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -26,6 +25,8 @@ def rms_tre_mm(T: np.ndarray, source_fiducials_mm: np.ndarray, target_fiducials_
 
 def mean_closest_point_mm(target_mm: np.ndarray, moved_source_mm: np.ndarray) -> float:
     """Mean distance from each target point to its closest transformed-source point."""
+    from scipy.spatial import cKDTree  # here, so importing the metrics costs no scipy
+
     dist, _ = cKDTree(moved_source_mm).query(target_mm, k=1)
     return float(np.mean(dist))
 

@@ -5,20 +5,17 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 from . import baselines
 from .confidence import pose_uncertainty
 from .config import Config
 from .errors import InputError, RegistrationError
-from .features.base import FeatureProvider
 from .features.fpfh import FPFHProvider
 from .metrics import transform_points
-from .p2p import P2PSettings, geometric_radii, p2p_register
 from .preprocess import (
     Normalization,
     denormalize_transform,
@@ -30,6 +27,10 @@ from .preprocess import (
 from .refine import source_search_index, trimmed_icp
 from .registrar import MethodContext, method, remember_latest
 from .result import Candidate, RegistrationResult
+
+if TYPE_CHECKING:  # torch and the P2P module are imported where used: the Open3D baselines need neither
+    from .features.base import FeatureProvider
+    from .p2p import P2PSettings
 
 
 @dataclass
@@ -174,6 +175,8 @@ def _screen_candidates(
 
 def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
     """Map the Config onto the P2P module's settings."""
+    from .p2p import P2PSettings, geometric_radii
+
     return P2PSettings(
         k=config.k,
         temperature=config.temperature,
@@ -197,21 +200,33 @@ def run_feature_pipeline(
     target_mm: np.ndarray,
     config: Config,
     ctx: MethodContext,
-    provider: FeatureProvider,
+    provider: FeatureProvider | Callable[[], FeatureProvider],
     *,
     use_p2p: bool,
     refine: bool,
 ) -> RegistrationResult:
-    """preprocess -> features -> dual-softmax matching [-> P2P] [-> refine] -> result in mm."""
+    """preprocess -> features -> dual-softmax matching [-> P2P] [-> refine] -> result in mm.
+
+    `provider` may be a function making one: it is called after the inputs passed `prepare`, so
+    a bad input (swapped clouds, too few points) is reported before torch or a model is loaded.
+    """
     times: dict[str, float] = {}
     t = time.perf_counter()
     prep = prepare(source_mm, target_mm, config, ctx.cache)
+    prepare_ms = _lap(t)
+    import torch
+
+    from .p2p import p2p_register
+
     if config.device == "cuda" and not torch.cuda.is_available():
         raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
+    if callable(provider):  # first call in a process: the model's loading counts in "total" only
+        provider = provider()
+    t = time.perf_counter()
     device = torch.device(config.device)
     src = torch.as_tensor(prep.source, dtype=torch.float32, device=device)
     tgt = torch.as_tensor(prep.target, dtype=torch.float32, device=device)
-    times["preprocess"] = _lap(t)
+    times["preprocess"] = prepare_ms + _lap(t)
     t = time.perf_counter()
     with torch.no_grad():
         x_src, x_tgt = provider.describe(src, tgt, ctx.cache)

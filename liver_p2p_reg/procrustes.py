@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported by the functions using it: `rigid_fit_np` callers need no torch
+    import torch
 
 MIN_CORRESPONDENCES = 3
 # Second singular value relative to the first below this means (near-)collinear points.
@@ -19,6 +23,8 @@ def weighted_procrustes(
     Returns R (B, 3, 3), t (B, 3), ok (B,) bool — ok is False with fewer than 3 positive
     weights or a collinear set; R, t are then the identity/zero and must not be used.
     """
+    import torch
+
     squeeze = source.dim() == 2
     if squeeze:
         source, target = source[None], target[None]
@@ -54,6 +60,8 @@ def weighted_procrustes(
 
 def to_homogeneous(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """(…, 3, 3) and (…, 3) -> (…, 4, 4)."""
+    import torch
+
     T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
     T[..., :3, :3] = R
     T[..., :3, 3] = t

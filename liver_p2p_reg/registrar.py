@@ -17,9 +17,9 @@ import numpy as np
 
 from .alloc import reuse_freed_memory
 from .cloud_io import as_float_array, clean_points, require_plausible_extent
-from .confidence import is_ambiguous
 from .config import Config
 from .errors import InputError, LiverP2PError
+from .method_names import METHOD_MODULES, method_names
 from .metrics import rms_tre_mm, tre_mm
 from .result import RegistrationResult
 
@@ -54,8 +54,6 @@ def remember_latest(
 
 MethodFn = Callable[[np.ndarray, np.ndarray, Config, MethodContext], RegistrationResult]
 _REGISTRY: dict[str, MethodFn] = {}
-# Modules that define methods; imported on first use so `import liver_p2p_reg` stays light.
-_METHOD_MODULES = ("liver_p2p_reg.pipelines", "liver_p2p_reg.learned.pipeline")
 _loaded = False
 
 
@@ -69,17 +67,32 @@ def method(name: str) -> Callable[[MethodFn], MethodFn]:
     return wrap
 
 
+def _import_method_module(module: str) -> None:
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name is None or not module.startswith(exc.name):  # a real missing dependency
+            raise
+
+
 def _load_methods() -> None:
     global _loaded
     if _loaded:
         return
-    for module in _METHOD_MODULES:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name is None or not module.startswith(exc.name):  # a real missing dependency
-                raise
+    for module in METHOD_MODULES:
+        _import_method_module(module)
     _loaded = True
+
+
+def known_methods() -> list[str]:
+    """The table's methods and any registered besides (plug-ins, tests), without importing a method module."""
+    return sorted(set(method_names()) | set(_REGISTRY))
+
+
+def check_method_name(name: str) -> None:
+    """InputError listing the choices when `name` is no known method; imports no method module."""
+    if name not in known_methods():
+        raise InputError(f"unknown method {name!r}; choose one of: {', '.join(known_methods())}")
 
 
 def available_methods() -> list[str]:
@@ -89,8 +102,13 @@ def available_methods() -> list[str]:
 
 
 def get_method(name: str) -> MethodFn:
-    """Look a method up by name; unknown names raise InputError listing the choices."""
-    _load_methods()
+    """Look a method up by name (importing only its module); unknown names raise InputError listing the choices."""
+    if name not in _REGISTRY:
+        module = next((m for m, names in METHOD_MODULES.items() if name in names), None)
+        if module is not None:
+            _import_method_module(module)
+    if name not in _REGISTRY:
+        _load_methods()  # a method registered outside the table, or the full list for the message
     if name not in _REGISTRY:
         raise InputError(f"unknown method {name!r}; choose one of: {', '.join(sorted(_REGISTRY))}")
     return _REGISTRY[name]
@@ -141,6 +159,8 @@ class Registrar:
         result = fn(source, target, self.config, ctx)
         result.method = name
         # After an ICP screening its refined hypotheses are the better evidence of a rival pose.
+        from .confidence import is_ambiguous  # scipy: imported with the first registration, not with the API
+
         cfg = self.config
         hypotheses = result.screened or result.candidates
         result.ambiguous = is_ambiguous(hypotheses, source, cfg.ambiguity_residual_ratio, cfg.ambiguity_pose_mm)

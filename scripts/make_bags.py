@@ -239,8 +239,16 @@ def write_readme(rows: list[ReplayRow], config: Config, out_dir: Path, max_frame
         ]
     flagged = [row for row in rows if row.status != "OK"]
     if flagged:
-        lines += ["", "Why a bag is not OK (the diagnostic message of its worst frame):", ""]
-        lines += [f"- `{row.bag}`: {row.status}: {row.message}" for row in flagged]
+        lines += [
+            "",
+            "Why a bag is not OK: the node's diagnostic message on the first frame at the bag's worst status",
+            "(the RMS-TRE in it is that frame's; the table gives the mean and the worst over the frames, and",
+            "the overlay PNG of `liver-p2p demo` / `replay --plots` shows the last registered frame, named in its title):",
+            "",
+        ]
+        lines += [
+            f"- `{row.bag}`: {row.status} (frame {row.message_frame} of {row.frames}): {row.message}" for row in flagged
+        ]
     lines.append("")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines))

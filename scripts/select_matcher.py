@@ -114,7 +114,9 @@ def main() -> int:
             run_benchmarks(name, weights, args)
     table, text = verdict(candidates, args.out_root)
     report = ["# Matcher selection on the validation sets (rule: RULE.md)", "", *table, "", text, ""]
-    report += ["Command: `python scripts/select_matcher.py " + " ".join(f"--candidate {c}" for c in args.candidate) + "`"]
+    report += [
+        "Command: `python scripts/select_matcher.py " + " ".join(f"--candidate {c}" for c in args.candidate) + "`"
+    ]
     print("\n".join(report))
     if args.report:
         Path(args.report).write_text("\n".join(report) + "\n")

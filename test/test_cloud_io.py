@@ -97,3 +97,91 @@ def test_clean_points_drops_nan_and_refuses_empty(rng: np.random.Generator) -> N
         clean_points(pts[:10], "target", min_points=100)
     with pytest.raises(InputError, match=r"\(N, 3\)"):
         clean_points(np.zeros((5, 2)), "target")
+
+
+def _ply(path: Path, fmt: str, vtype: str, vertices: np.ndarray, faces: np.ndarray | None, extra: bool) -> Path:
+    """A PLY file written by hand (not by either reader under test)."""
+    header = ["ply", f"format {fmt} 1.0", "comment hand-made", f"element vertex {len(vertices)}"]
+    header += [f"property {vtype} {a}" for a in "xyz"] + (["property uchar red", "property float nx"] if extra else [])
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    text = "\n".join([*header, "end_header"]) + "\n"
+    if fmt == "ascii":
+        rows = [" ".join([*(repr(float(x)) for x in v), *(["7", "0.25"] if extra else [])]) for v in vertices]
+        rows += [] if faces is None else [f"3 {a} {b} {c}" for a, b, c in faces]
+        path.write_text(text + "\n".join(rows) + "\n")
+        return path
+    order = "<" if fmt == "binary_little_endian" else ">"
+    kind = order + {"float": "f4", "double": "f8"}[vtype]
+    fields = [(a, kind) for a in "xyz"] + ([("red", "u1"), ("nx", order + "f4")] if extra else [])
+    table = np.zeros(len(vertices), dtype=fields)
+    for i, a in enumerate("xyz"):
+        table[a] = vertices[:, i]
+    body = table.tobytes()
+    if faces is not None:
+        face_table = np.zeros(len(faces), dtype=[("n", "u1"), ("v", order + "i4", (3,))])
+        face_table["n"], face_table["v"] = 3, faces
+        body += face_table.tobytes()
+    path.write_bytes(text.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+@pytest.mark.parametrize("vtype", ["float", "double"])
+@pytest.mark.parametrize(("with_faces", "extra"), [(True, False), (False, True)])
+def test_ply_is_read_to_the_same_bits_as_open3d_reads_it(
+    tmp_path: Path, rng: np.random.Generator, fmt: str, vtype: str, with_faces: bool, extra: bool
+) -> None:
+    """The numpy reader (no Open3D import) must not change a single input bit: results stay identical."""
+    from liver_p2p_reg.o3d import o3d_module
+    from liver_p2p_reg.ply_pcd import read_ply
+
+    vertices = _blob(rng, 300) + rng.normal(size=(300, 3)) * 1e-7  # digits beyond float32
+    faces = rng.integers(0, 300, size=(200, 3)) if with_faces else None
+    path = _ply(tmp_path / "m.ply", fmt, vtype, vertices, faces, extra)
+    mesh = o3d_module().io.read_triangle_mesh(str(path))
+    ours = read_ply(path)
+    assert ours is not None
+    assert ours[0].tobytes() == np.asarray(mesh.vertices).tobytes()
+    assert np.array_equal(ours[1], np.asarray(mesh.triangles).reshape(-1, 3))
+
+
+@pytest.mark.parametrize("ascii", [True, False])
+def test_pcd_is_read_to_the_same_bits_as_open3d_reads_it(tmp_path: Path, rng: np.random.Generator, ascii: bool) -> None:
+    from liver_p2p_reg.o3d import o3d_module
+    from liver_p2p_reg.ply_pcd import read_pcd
+
+    o3d = o3d_module()
+    path = str(tmp_path / "c.pcd")
+    o3d.io.write_point_cloud(path, o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_blob(rng))), write_ascii=ascii)
+    assert read_pcd(Path(path)).tobytes() == np.asarray(o3d.io.read_point_cloud(path).points).tobytes()
+
+
+def test_layouts_the_numpy_reader_leaves_out_go_to_open3d_quietly(tmp_path: Path, capfd: pytest.CaptureFixture) -> None:
+    from liver_p2p_reg.ply_pcd import read_ply
+
+    # A quad mesh (Open3D triangulates polygons) and a vertex-only file Open3D reads with a warning.
+    quad = tmp_path / "quad.ply"
+    quad.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0\n100 0 0\n100 100 0\n0 100 0\n4 0 1 2 3\n"
+    )
+    assert read_ply(quad) is None
+    points = load_points(quad)
+    assert len(points) > 1000 and np.allclose(points[:, 2], 0)  # two triangles, sampled
+    listed = tmp_path / "listed.ply"  # a list property on the vertices: also Open3D's job
+    listed.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        "property list uchar int tags\nend_header\n0 0 0 1 5\n50 0 0 1 5\n0 50 0 1 5\n"
+    )
+    assert read_ply(listed) is None
+    assert load_points(listed).shape == (3, 3)
+    assert capfd.readouterr().out == ""  # Open3D's coloured warnings stay silent
+
+
+def test_pts_with_a_point_count_line(tmp_path: Path, rng: np.random.Generator) -> None:
+    pts = _blob(rng, 50)
+    path = tmp_path / "cloud.pts"
+    path.write_text(f"{len(pts)}\n" + "".join(f"{x!r} {y!r} {z!r} 0.5\n" for x, y, z in pts.tolist()))
+    np.testing.assert_array_equal(load_points(path), pts)

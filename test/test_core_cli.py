@@ -35,9 +35,11 @@ def test_register_prints_and_writes_json(files: dict, tmp_path: Path, capsys: py
     argv = ["register", files["source.ply"], files["target.xyz"], "--method", "fpfh-ransac-icp", "--seed", "1"]
     argv += ["--source-fiducials", files["fid_s.npy"], "--target-fiducials", files["fid_t.npy"], "--output", str(out)]
     assert main(argv) == 0
-    printed = json.loads(capsys.readouterr().out)
+    summary = capsys.readouterr().out  # with --output, stdout gets a line for a person, not the JSON
     written = json.loads(out.read_text())
-    assert printed == written
+    assert summary.count("\n") == 1 and summary.startswith("target.xyz: OK fpfh-ransac-icp: residual")
+    assert f"JSON -> {out}" in summary and "RMS-TRE" in summary
+    assert written["status"] == "OK" and written["warnings"] == [] and written["target"] == files["target.xyz"]
     T = np.array(written["transform"])
     assert T.shape == (4, 4)
     assert rms_tre_mm(T, files["fid_s"], files["fid_t"]) < 2.0
@@ -47,7 +49,8 @@ def test_register_prints_and_writes_json(files: dict, tmp_path: Path, capsys: py
     # An existing output is not overwritten without --force.
     assert main(argv) == 2
     assert "exists; pass --force" in capsys.readouterr().err
-    assert main([*argv, "--force"]) == 0
+    assert main([*argv, "--force", "--json"]) == 0  # --json: the JSON on stdout too
+    assert json.loads(capsys.readouterr().out) == json.loads(out.read_text())
 
 
 def test_p2p_output_lists_candidates(files: dict, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,9 +16,25 @@ from liver_p2p_reg.phantom.dataset import read_case, read_manifest
 from liver_p2p_reg.phantom.testset import TESTSETS, ensure_testset
 
 
-def test_smoke_testset_generates_once_and_is_balanced(tmp_path, monkeypatch, capsys) -> None:
+def test_smoke_testset_generates_once_and_is_balanced(tmp_path, monkeypatch, capsys, caplog) -> None:
     monkeypatch.setenv("LIVER_P2P_DATA", str(tmp_path / "root"))
+    caplog.set_level(logging.INFO, logger="liver_p2p_reg")
+    # First only the liver a small benchmark preset needs, announced with its size ...
+    path = ensure_testset("insilico-smoke", progress=False, livers=[1])
+    assert "building test set insilico-smoke" in caplog.text and "1 of the 2 livers, 8 cases, about 3 MB" in caplog.text
+    first = sorted(path.glob("case_*.npz"))
+    assert (
+        len(first) == 8
+        and all("L9010001" in p.name for p in first)
+        and not testset.is_complete(path, TESTSETS["insilico-smoke"])
+    )
+    first_mtimes = [p.stat().st_mtime_ns for p in first]
+    caplog.clear()
+    assert ensure_testset("insilico-smoke", progress=False, livers=[1]) == path and caplog.text == ""  # done: nothing
+    # ... then the rest: the first liver's cases are kept, not rebuilt.
     path = ensure_testset("insilico-smoke", progress=False)
+    assert "all livers, 16 cases" in caplog.text
+    assert [p.stat().st_mtime_ns for p in first] == first_mtimes
     assert path == tmp_path / "root" / "insilico-smoke"
     cases = testset.testset_cases(path)
     assert cases == sorted(cases) and len(cases) == 16
@@ -73,3 +91,18 @@ def test_validation_sets_use_livers_no_test_set_or_training_store_can_have() -> 
         with pytest.raises(InputError, match="reserved"):
             testset.DatasetSpec(livers=1, deformations=1, targets=1, seed=spec.seed).validate()
         assert testset.testset_spec(name).seed == spec.seed
+
+
+def test_smoke_preset_picks_its_cases_from_the_design_and_needs_few_livers() -> None:
+    from liver_p2p_reg.bench.cases import BIN_LABELS, CaseInfo, first_per_bin, planned_cases, visibility_bin
+
+    livers, names = planned_cases("insilico-test-v1", "smoke", None)
+    assert livers == [0, 6, 11] and len(names) == 3 * len(BIN_LABELS)
+    design = testset.expected_cases("insilico-test-v1")
+    bins = {name: visibility_bin(v) for _, name, v in design}
+    assert sorted(bins[n] for n in names) == sorted(list(range(len(BIN_LABELS))) * 3)
+    # The same cases `first_per_bin` picks from the whole set when none is skipped (test-v1 skips none).
+    infos = [CaseInfo(Path(n).stem, Path(n), v, 0.0, "", 0.0, 0) for _, n, v in design]
+    assert sorted(c.case_id + ".npz" for c in first_per_bin(infos, 3)) == sorted(names)
+    assert planned_cases("insilico-test-v1", "full", 5) == ([0], [n for _, n, _ in design[:5]])
+    assert planned_cases("/no/such/folder", "smoke", None) is None

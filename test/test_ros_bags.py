@@ -182,5 +182,8 @@ def test_replay_plots_the_last_registered_frame_and_keeps_existing_plots(tmp_pat
     # Every frame failing (the oracle without ground truth) gives no pose, so no picture either.
     source, target, _, _ = synthetic_case()
     bare = make_case_bag(tmp_path / "bare_bag", source, target)
+    capsys.readouterr()
     assert main(["replay", str(bare), "--method", "procrustes", "--plots", str(tmp_path / "none")]) == 1
     assert not (tmp_path / "none" / "bare_bag.png").exists()
+    # Which frame the message (and its RMS-TRE) is: the first at the bag's worst status.
+    assert "bare_bag: ERROR (frame 1 of 5, the first at ERROR): " in capsys.readouterr().out

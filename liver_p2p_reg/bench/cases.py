@@ -124,10 +124,11 @@ def add_target_noise(target_mm: np.ndarray, info: CaseInfo) -> np.ndarray:
     return target_mm + rng.uniform(-0.5, 0.5, size=target_mm.shape) * info.added_noise_mm
 
 
-def resolve_dataset(dataset: str, data_root: Path | None) -> tuple[Path, str]:
+def resolve_dataset(dataset: str, data_root: Path | None, livers: list[int] | None = None) -> tuple[Path, str]:
     """A folder of case NPZs, or a named test set generated (once) under `data_root`.
 
-    Returns the folder and the dataset's identity recorded in the run settings.
+    `livers`: of a named set, build only these livers (`planned_cases`). Returns the folder and
+    the dataset's identity recorded in the run settings.
     """
     path = Path(dataset)
     if path.is_dir():
@@ -140,7 +141,32 @@ def resolve_dataset(dataset: str, data_root: Path | None) -> tuple[Path, str]:
         raise InputError(
             f"named test set {dataset!r} needs the phantom generator (liver_p2p_reg.phantom.testset)"
         ) from None
-    return Path(testset.ensure_testset(dataset, root=data_root)), dataset
+    return Path(testset.ensure_testset(dataset, root=data_root, livers=livers)), dataset
+
+
+def planned_cases(dataset: str, preset: str, limit: int | None) -> tuple[list[int], list[str]] | None:
+    """Of a named test set: the livers to build and the case files the preset and --limit select.
+
+    Chosen from the set's design (every case it makes, with its requested visibility bin), not
+    from what is on disk, so `--preset smoke` builds a few livers instead of the whole set and
+    picks the same cases whether or not the rest exists. None for a dataset folder.
+    """
+    if Path(dataset).is_dir() or Path(dataset).suffix or "/" in dataset:
+        return None
+    try:
+        from ..phantom.realsets import REAL_SETS
+        from ..phantom.testset import expected_cases
+    except ImportError:
+        return None
+    if dataset in REAL_SETS:  # built whole, from the real livers
+        return None
+    design = expected_cases(dataset)
+    liver_of = {name: liver for liver, name, _ in design}
+    infos = [
+        CaseInfo(Path(name).stem, Path(name), visibility, 0.0, "", float("nan"), 0) for _, name, visibility in design
+    ]
+    chosen = [str(info.path) for info in select_cases(infos, preset, limit)]
+    return sorted({liver_of[name] for name in chosen}), chosen
 
 
 def list_case_paths(folder: Path) -> list[Path]:

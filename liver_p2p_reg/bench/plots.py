@@ -8,9 +8,39 @@ import numpy as np
 
 from ..plotting import pyplot
 from .cases import BIN_EDGES, BIN_LABELS
-from .stats import Row, by_bin, main_rows, order_methods, select, success_curve, where
+from .stats import METHOD_ORDER, Row, by_bin, main_rows, order_methods, select, success_curve, where
 
 TAUS_MM = np.linspace(0.0, 40.0, 81)
+ORACLE = "procrustes"
+# One colour per method, the same in every figure: the oracle black and dashed, the default method
+# red and thicker, the others from this list (distinct from both and from each other) by their
+# place in METHOD_ORDER, then alphabetically.
+OTHER_COLOURS = (
+    "tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive",
+    "tab:cyan", "navy", "gold", "lime", "teal", "magenta",
+)  # fmt: skip
+
+
+def method_style(method: str, default_method: str | None = None) -> dict:
+    """Matplotlib line style of a method: colour, line style and width (see OTHER_COLOURS)."""
+    if default_method is None:
+        from ..config import Config
+
+        default_method = Config().method
+    if method == ORACLE:
+        return {"color": "black", "linestyle": "--", "linewidth": 1.5}
+    if method == default_method:
+        return {"color": "tab:red", "linestyle": "-", "linewidth": 2.5}
+    others = [m for m in order_methods(set(METHOD_ORDER) | {method}) if m not in (ORACLE, default_method)]
+    return {"color": OTHER_COLOURS[others.index(method) % len(OTHER_COLOURS)], "linestyle": "-", "linewidth": 1.5}
+
+
+def _label(method: str, default_method: str | None = None) -> str:
+    if default_method is None:
+        from ..config import Config
+
+        default_method = Config().method
+    return {ORACLE: f"{ORACLE} (oracle)", default_method: f"{default_method} (default)"}.get(method, method)
 
 
 def success_vs_tau(rows: list[Row], path: Path) -> Path:
@@ -27,9 +57,7 @@ def success_vs_tau(rows: list[Row], path: Path) -> Path:
         for m in order_methods({r["method"] for r in rows}):
             mine = select(subset, method=m)
             if mine:
-                ax.plot(
-                    TAUS_MM, 100 * success_curve(mine, TAUS_MM), label=m, linestyle="--" if m == "procrustes" else "-"
-                )
+                ax.plot(TAUS_MM, 100 * success_curve(mine, TAUS_MM), label=_label(m), **method_style(m))
         ax.set_title(title)
         ax.set_xlabel("threshold tau (mm)")
         ax.grid(alpha=0.3)
@@ -50,7 +78,7 @@ def tre_vs_visibility(rows: list[Row], path: Path) -> Path:
     for m in order_methods({r["method"] for r in rows}):
         groups = by_bin(select(rows, method=m))
         means = [float(np.mean(g)) if g.size else np.nan for g in groups]
-        ax.plot(centres, means, marker="o", label=m, linestyle="--" if m == "procrustes" else "-")
+        ax.plot(centres, means, marker="o", label=_label(m), **method_style(m))
     ax.set_yscale("log")
     # Plain millimetre tick labels (2, 5, 10, 50) read better than 10^x on a log axis.
     from matplotlib.ticker import FormatStrFormatter
@@ -73,8 +101,8 @@ def k_ablation(curves: dict[str, dict[int, tuple[float, float]]], path: Path) ->
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for m, per_k in sorted(curves.items()):
         ks = sorted(per_k)
-        axes[0].plot(ks, [per_k[k][0] for k in ks], marker="o", label=m)
-        axes[1].plot(ks, [per_k[k][1] for k in ks], marker="o", label=m)
+        axes[0].plot(ks, [per_k[k][0] for k in ks], marker="o", label=_label(m), **method_style(m))
+        axes[1].plot(ks, [per_k[k][1] for k in ks], marker="o", label=_label(m), **method_style(m))
     for ax, title in zip(axes, (f"visibility {BIN_LABELS[0]}", "all ablation cases"), strict=False):
         ax.set_title(title)
         ax.set_xlabel("K (patch candidates)")

@@ -1,4 +1,8 @@
-"""The `liver-p2p` command line: dispatches to one module per subcommand."""
+"""The `liver-p2p` command line: dispatches to one module per subcommand.
+
+Building the parser imports no heavy library (torch, Open3D, scipy, matplotlib): `--help` and
+argument errors answer at once; each subcommand imports what it needs when it runs.
+"""
 
 from __future__ import annotations
 
@@ -24,9 +28,20 @@ _SUBCOMMAND_MODULES = (
 )
 
 
+class OneLineErrorParser(argparse.ArgumentParser):
+    """argparse's parser with its errors on one line (exit 2), like every other error of the command.
+
+    argparse prints the whole usage block before the message; the usage is one `--help` away.
+    Sub-parsers are made of the same class, so the subcommands' errors are one line too.
+    """
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser (also used to generate documentation)."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrorParser(
         prog="liver-p2p",
         description="Automatic complete-to-partial rigid registration of liver surfaces (P2P).",
     )
@@ -49,11 +64,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit status (0 ok, 1 internal error, 2 bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.ERROR if args.quiet else logging.INFO,
-        format="liver-p2p: %(levelname)s: %(message)s",
-        stream=sys.stderr,
-    )
+    # Our messages at INFO; other libraries' (scikit-fem's solver lines, ...) only from WARNING up,
+    # so they do not interleave with progress bars and tables.
+    logging.basicConfig(level=logging.WARNING, format="liver-p2p: %(levelname)s: %(message)s", stream=sys.stderr)
+    logging.getLogger("liver_p2p_reg").setLevel(logging.ERROR if args.quiet else logging.INFO)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from ..cloud_io import load_points
 from ..errors import InputError
+
+if TYPE_CHECKING:  # imported when a subcommand runs, so `liver-p2p --help` stays instant
+    import numpy as np
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -81,6 +82,8 @@ def run_make(args: argparse.Namespace) -> int:
         return _make(args, load_case_npz(args.case))
     if not (args.source and args.target):
         raise InputError("bag make needs --case NPZ, or --source and --target files")
+    from ..cloud_io import load_points
+
     case: dict = {
         "source_mm": load_points(args.source, seed=args.seed),
         "target_mm": load_points(args.target, seed=args.seed),
@@ -113,6 +116,8 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def _load_pairs(path: Path) -> np.ndarray:
+    import numpy as np
+
     if not path.is_file():
         raise InputError(f"fiducials file not found: {path}")
     try:

@@ -113,10 +113,10 @@ def _noise_levels(text: str | None) -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..bench.cases import case_info, list_case_paths, resolve_dataset, select_cases, with_noise
+    from ..bench.cases import case_info, list_case_paths, planned_cases, resolve_dataset, select_cases, with_noise
     from ..bench.harness import BenchmarkSpec, check_settings, run_benchmark
     from ..bench.sysinfo import machine_info
-    from ..registrar import available_methods
+    from ..registrar import available_methods, known_methods  # known_methods imports no torch or Open3D
 
     if args.summary_only:
         return _summary_only(args)
@@ -128,9 +128,9 @@ def run(args: argparse.Namespace) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else available_methods()
     if not methods:
         raise InputError("no methods to run (--methods is empty; is any method module installed?)")
-    unknown = [m for m in methods if m not in available_methods()]
+    unknown = [m for m in methods if m not in known_methods()]
     if unknown:  # before a named test set is generated, which can take minutes
-        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(available_methods())}")
+        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(known_methods())}")
     if config.device == "cuda" and not _cuda_available():
         raise InputError("--device cuda: no CUDA device is available to torch here")
     if args.readme and not Path(args.readme).is_file():
@@ -140,19 +140,24 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:  # here too (the harness checks it), before the test set is generated
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     noise_levels = _noise_levels(args.noise_levels)
-    folder, dataset_id = resolve_dataset(args.dataset, Path(args.data_root) if args.data_root else None)
-    cases = select_cases([case_info(p) for p in list_case_paths(folder)], args.preset, args.limit)
     if args.prepare_minutes < 0:
         raise InputError(f"--prepare-minutes must be >= 0, got {args.prepare_minutes}")
+    plan = planned_cases(args.dataset, args.preset, args.limit)  # a named set: only the livers these cases need
+    root = Path(args.data_root) if args.data_root else None
+    folder, dataset_id = resolve_dataset(args.dataset, root, livers=plan[0] if plan else None)
+    paths = list_case_paths(folder) if plan is None else [folder / n for n in plan[1] if (folder / n).is_file()]
+    cases = select_cases([case_info(p) for p in paths], args.preset, args.limit)
     cases = with_noise(cases, noise_levels, args.noise_bins)
     prepared: dict[str, str] = {}
     if args.prepare_minutes > 0:
         from ..bench.prepared import prepare_test_livers
         from ..phantom.testset import default_root
 
-        root = Path(args.data_root) if args.data_root else default_root()
         prepared = prepare_test_livers(
-            cases, args.prepare_minutes, root / "prepared", progress=not getattr(args, "quiet", False)
+            cases,
+            args.prepare_minutes,
+            (root or default_root()) / "prepared",
+            progress=not getattr(args, "quiet", False),
         )
     out = Path(args.out)
     spec = BenchmarkSpec(

@@ -39,7 +39,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..o3d import quiet_open3d
-    from ..ros.replay import format_table, replay_bags
+    from ..ros.replay import format_flags, format_table, replay_bags
 
     quiet_open3d()  # RANSAC's C++ warnings would interleave with the table on stdout
 
@@ -54,8 +54,7 @@ def run(args: argparse.Namespace) -> int:
     rows = replay_bags(paths, config, out_dir=Path(args.out), progress=True, overwrite=True, plot_dir=Path(args.out))
     print(format_table(rows))
     print(f"Output bags and an overlay PNG of each bag's last registered frame: {args.out}/")
-    for row in rows:  # why a bag is not OK, in the node's own words (its worst frame's diagnostic)
-        if row.status != "OK":
-            print(f"{row.bag}: {row.status}: {row.message}")
+    for line in format_flags(rows):  # why a bag is not OK, in the node's own words, and which frame that is
+        print(line)
     failed = [r for r in rows if str(getattr(r, "status", "OK")) not in ("OK", "WARN")]
     return 1 if failed else 0

@@ -1,36 +1,44 @@
-"""`liver-p2p register SOURCE TARGET`: register two point-cloud files and print the JSON result."""
+"""`liver-p2p register SOURCE TARGET...`: register one preoperative surface to one or more views.
+
+Everything that can be checked (arguments, output paths, input files, method name) is checked
+before torch, Open3D or a model is loaded; those load with the first registration.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
+import sys
 from pathlib import Path
+from typing import Any
 
-from ..cloud_io import load_points, save_points
-from ..confidence import result_warnings
-from ..config import SELECTION_RULES, Config
-from ..errors import InputError
-from ..metrics import transform_points
-from ..o3d import quiet_open3d
-from ..overlay import plot_registration
-from ..registrar import Registrar
+from ..config import SELECTION_RULES
+from ..errors import InputError, LiverP2PError
 
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 MOVED_SUFFIXES = (".ply", ".pcd", ".xyz", ".npy")
+LOG = logging.getLogger("liver_p2p_reg")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    from ..config import Config
+    from ..method_names import method_names
+
     p = subparsers.add_parser(
         "register",
-        help="register a complete preoperative surface (SOURCE) to a partial view (TARGET)",
-        description="Estimate the rigid transform mapping SOURCE (complete, mm) into TARGET (partial, mm). "
-        "Prints the result as JSON; the node's warnings (residual, ambiguity, uncertainty above their "
-        "thresholds) go to stderr.",
+        help="register a complete preoperative surface (SOURCE) to one or more partial views (TARGET...)",
+        description="Estimate the rigid transform mapping SOURCE (complete, mm) into each TARGET (partial, mm), "
+        "in one process (start-up and SOURCE's preparation are paid once). The JSON result goes to --output, "
+        "else to stdout (one object per line with several targets); a short summary per target goes to "
+        "stdout when the JSON went to a file, else to stderr. The node's warnings (residual, ambiguity, "
+        "uncertainty above their thresholds) go to stderr; the pose is still returned (exit 0).",
     )
     p.add_argument("source", metavar="SOURCE", help="complete preoperative surface (PLY/PCD/XYZ/STL/OBJ/NPY/NPZ, mm)")
-    p.add_argument("target", metavar="TARGET", help="partial intraoperative surface (same formats, mm)")
-    p.add_argument("--method", help=f"registration method (default: {Config().method}; a wrong name lists them)")
+    p.add_argument("targets", metavar="TARGET", nargs="+", help="partial intraoperative surface(s) (same formats, mm)")
+    p.add_argument(
+        "--method", help=f"registration method (default: {Config().method}); one of: {', '.join(method_names())}"
+    )
     p.add_argument("--k", type=int, help="number of P2P patch candidates (default: 5)")
     p.add_argument("--selection", choices=SELECTION_RULES, help="P2P candidate selection rule")
     p.add_argument("--seed", type=int, help="random seed (RANSAC, mesh sampling)")
@@ -44,18 +52,40 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--source-fiducials", metavar="F", help="(F, 3) fiducials in the source frame (mm)")
     p.add_argument("--target-fiducials", metavar="F", help="the same fiducials in the target frame (mm)")
-    p.add_argument("--output", "-o", metavar="PATH", help="also write the JSON result to PATH")
+    p.add_argument(
+        "--initial-transform",
+        metavar="FILE",
+        help="prior pose for --method track (ICP from it, no global search): a 4x4 matrix as text or NPY, "
+        "or a JSON result of an earlier registration",
+    )
+    p.add_argument(
+        "--output",
+        "-o",
+        metavar="PATH",
+        help="write the JSON result to PATH; with several targets PATH is a folder (PATH/<target name>.json)",
+    )
+    p.add_argument("--json", action="store_true", help="also print the JSON result on stdout when --output is given")
     p.add_argument(
         "--plot",
         metavar="PNG",
-        help="also draw the moved SOURCE over TARGET (three views, distances, fiducial errors) to PNG/PDF/SVG",
+        help="also draw the moved SOURCE over TARGET (three views, distances, fiducial errors) to PNG/PDF/SVG "
+        "(with several targets: a folder, one <target name>.png each)",
     )
-    p.add_argument("--moved", metavar="PATH", help="also write SOURCE moved into TARGET's frame (PLY/PCD/XYZ/NPY, mm)")
+    p.add_argument(
+        "--moved",
+        metavar="PATH",
+        help="also write SOURCE moved into TARGET's frame (PLY/PCD/XYZ/NPY, mm; with several targets: a folder, "
+        "one <target name>.ply each)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite --output / --plot / --moved files that exist")
+    # Also accepted after the subcommand; SUPPRESS keeps a `liver-p2p -q register ...` in effect.
+    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="only print errors")
     p.set_defaults(func=run)
 
 
-def _config(args: argparse.Namespace) -> Config:
+def _config(args: argparse.Namespace):
+    from ..config import Config
+
     config = Config.from_yaml(args.config) if args.config else Config()
     overrides = {
         name: getattr(args, name)
@@ -79,34 +109,182 @@ def _output_path(value: str | None, force: bool, option: str, suffixes: tuple[st
     return path
 
 
+def _output_paths(
+    value: str | None, targets: list[Path], force: bool, option: str, suffixes: tuple[str, ...], default_suffix: str
+) -> list[Path | None]:
+    """One output path per target: the path itself for one target, FOLDER/<target name><suffix> for several."""
+    if not value:
+        return [None] * len(targets)
+    if len(targets) == 1:
+        return [_output_path(value, force, option, suffixes)]
+    folder = Path(value)
+    if folder.suffix or (folder.exists() and not folder.is_dir()):
+        raise InputError(f"{option} {folder}: with several targets, give a folder (one <target name> file each)")
+    if not folder.is_dir() and not folder.parent.is_dir():
+        raise InputError(f"output folder does not exist: {folder.parent}")
+    paths = [folder / f"{t.stem}{default_suffix}" for t in targets]
+    seen: dict[Path, Path] = {}
+    for target, path in zip(targets, paths, strict=True):
+        if path in seen:
+            raise InputError(f"{seen[path]} and {target} would both write {path}; register them in separate calls")
+        seen[path] = target
+        if path.exists() and not force:
+            raise InputError(f"{path} exists; pass --force to overwrite it")
+    return paths
+
+
+def load_initial_transform(path: Path) -> Any:
+    """A 4x4 pose from a JSON result (its "transform"), a JSON/NPY matrix or a whitespace text matrix."""
+    import numpy as np
+
+    if not path.is_file():
+        raise InputError(f"file not found: {path}")
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(path.read_text())
+            matrix = np.asarray(data["transform"] if isinstance(data, dict) else data, dtype=np.float64)
+        elif path.suffix.lower() == ".npy":
+            matrix = np.load(path, allow_pickle=False)
+        else:
+            matrix = np.loadtxt(path, dtype=np.float64, ndmin=2, delimiter=None, comments="#")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"cannot read --initial-transform {path}: {str(exc).splitlines()[0]}") from None
+    if matrix.shape != (4, 4):
+        raise InputError(f"--initial-transform {path}: expected a 4x4 matrix, got shape {matrix.shape}")
+    return matrix
+
+
 def run(args: argparse.Namespace) -> int:
-    output = _output_path(args.output, args.force, "--output")
-    plot = _output_path(args.plot, args.force, "--plot", PLOT_SUFFIXES)
-    moved = _output_path(args.moved, args.force, "--moved", MOVED_SUFFIXES)
+    from ..registrar import check_method_name
+
+    targets = [Path(t) for t in args.targets]
+    several = len(targets) > 1
+    outputs = _output_paths(args.output, targets, args.force, "--output", (), ".json")
+    plots = _output_paths(args.plot, targets, args.force, "--plot", PLOT_SUFFIXES, ".png")
+    moved = _output_paths(args.moved, targets, args.force, "--moved", MOVED_SUFFIXES, ".ply")
     if (args.source_fiducials is None) != (args.target_fiducials is None):
         raise InputError("give both --source-fiducials and --target-fiducials, or neither")
+    if several and args.target_fiducials is not None:
+        raise InputError("--source-fiducials/--target-fiducials go with a single TARGET")
     config = _config(args)
-    quiet_open3d()  # stdout carries the JSON result only
-    source = load_points(args.source, seed=config.seed)
-    target = load_points(args.target, seed=config.seed)
-    fid_s = fid_t = None
-    if args.source_fiducials is not None:
-        fid_s = load_points(args.source_fiducials)
-        fid_t = load_points(args.target_fiducials)  # Registrar refuses NaN/inf pairs
-    result = Registrar(config).register(
-        source, target, method=config.method, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t
-    )
-    text = json.dumps(result.to_json_dict(), indent=2)
-    if output is not None:
-        output.write_text(text + "\n")
-    print(text)
-    # The node's WARN rules, on stderr: the pose is still returned (exit 0), but flagged.
-    warnings = list(result_warnings(result, config).values())
-    for message in warnings:
-        logging.getLogger("liver_p2p_reg").warning(message)
+    check_method_name(config.method)
+    if config.method == "track" and args.initial_transform is None:
+        raise InputError("--method track refines a prior pose: give it with --initial-transform FILE")
+    if args.initial_transform is not None and config.method != "track":
+        raise InputError("--initial-transform is used by --method track only")
+    from ..cloud_io import check_point_file, load_points
+
+    source_path = check_point_file(args.source)
+    for path in [*targets, args.source_fiducials, args.target_fiducials]:
+        if path is not None:
+            check_point_file(path)
+    initial_T = load_initial_transform(Path(args.initial_transform)) if args.initial_transform else None
+    source = load_points(source_path, seed=config.seed)
+    views = [load_points(t, seed=config.seed) for t in targets]  # every file is read before any work
+    fiducials = (None, None)
+    if args.source_fiducials is not None:  # the Registrar refuses NaN/inf pairs
+        fiducials = (load_points(args.source_fiducials), load_points(args.target_fiducials))
+    prefetch = _prefetch_icp_normals(source, config)
+    try:
+        return _register_all(
+            args,
+            config,
+            source_path,
+            source,
+            list(zip(targets, views, strict=True)),
+            fiducials,
+            initial_T,
+            (outputs, plots, moved),
+        )
+    finally:
+        if prefetch is not None:
+            prefetch.close()
+
+
+def _prefetch_icp_normals(source, config):
+    """Start computing the ICP's source normals in a child process (prefetch.py), which imports
+    Open3D there while this process imports torch: learned `-icp` methods only, the ones that need
+    both. The child works on exactly the points the pipeline will (the Registrar's finite points,
+    normalized as `pipelines.prepare` does); should they differ, the pipeline computes its own."""
+    if not (config.method.startswith("learned") and config.method.endswith("-icp")) or "open3d" in sys.modules:
+        return None  # another method, or Open3D is here already (an STL/OBJ source): nothing to gain
+    import numpy as np
+
+    from ..prefetch import BackgroundNormals
+    from ..preprocess import source_normalization
+
+    finite = source[np.isfinite(source).all(axis=1)]
+    try:
+        full = source_normalization(finite).apply(finite)
+    except InputError:
+        return None  # the registration reports it
+    return BackgroundNormals(full, config.normal_radius_norm)
+
+
+def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths) -> int:
+    """Register SOURCE to every view in one Registrar; write and print each result as it comes."""
+    from ..registrar import Registrar
+
+    quiet = bool(getattr(args, "quiet", False))
+    several = len(views) > 1
+    fid_s, fid_t = fiducials
+    outputs, plots, moved = paths
+
+    for per_target in (outputs, plots, moved):  # several targets: the folders, now that every check passed
+        if several and per_target[0] is not None:
+            per_target[0].parent.mkdir(exist_ok=True)
+    registrar = Registrar(config)
+    json_to_stdout = args.output is None or args.json
+    summary_stream = sys.stderr if json_to_stdout else sys.stdout
+    failed = 0
+    for i, (target_path, target) in enumerate(views):
+        try:
+            result = registrar.register(
+                source,
+                target,
+                method=config.method,
+                source_fiducials_mm=fid_s,
+                target_fiducials_mm=fid_t,
+                initial_T_mm=initial_T,
+            )
+        except LiverP2PError as exc:
+            if not several:
+                raise
+            print(f"liver-p2p: error: {target_path}: {exc}", file=sys.stderr, flush=True)
+            failed += 1
+            continue
+        warnings = _warnings(result, config)
+        payload = {"source": str(source_path), "target": str(target_path), **result.to_json_dict()}
+        payload.update(status="WARN" if warnings else "OK", warnings=warnings)
+        if outputs[i] is not None:
+            outputs[i].write_text(json.dumps(payload, indent=2) + "\n")
+        if json_to_stdout:
+            print(json.dumps(payload) if several else json.dumps(payload, indent=2), flush=True)
+        for message in warnings:  # the node's WARN rules: the pose is still returned, but flagged
+            LOG.warning("%s%s", f"{target_path}: " if several else "", message)
+        written = _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved[i], plots[i])
+        if not quiet:
+            print(_summary(target_path, payload, outputs[i], written), file=summary_stream, flush=True)
+    return 2 if failed else 0
+
+
+def _warnings(result, config) -> list[str]:
+    from ..confidence import result_warnings
+
+    return list(result_warnings(result, config).values())
+
+
+def _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved: Path | None, plot: Path | None):
+    written = []
     if moved is not None:
+        from ..cloud_io import save_points
+        from ..metrics import transform_points
+
         save_points(moved, transform_points(result.T_target_source, source))
+        written.append(moved)
     if plot is not None:
+        from ..overlay import plot_registration
+
         plot_registration(
             source,
             target,
@@ -117,4 +295,22 @@ def run(args: argparse.Namespace) -> int:
             source_fiducials_mm=fid_s,
             target_fiducials_mm=fid_t,
         )
-    return 0
+        written.append(plot)
+    return written
+
+
+def _summary(target: Path, payload: dict, output: Path | None, written: list[Path]) -> str:
+    """One line a person reads: status, fit, confidence, time and where the results went."""
+    parts = [f"residual {payload['residual_mm']:.2f} mm"]
+    if payload.get("uncertainty_mm") is not None:
+        parts.append(f"uncertainty {payload['uncertainty_mm']:.1f} mm")
+    if payload.get("rms_tre_mm") is not None:
+        parts.append(f"RMS-TRE {payload['rms_tre_mm']:.2f} mm")
+    if payload.get("visibility") is not None:
+        parts.append(f"visibility {payload['visibility']:.2f}")
+    parts.append(f"{payload['runtime_ms']['total']:.0f} ms")
+    where = [f"JSON -> {output}" if output is not None else "JSON on stdout", *(str(p) for p in written)]
+    line = f"{target.name}: {payload['status']} {payload['method']}: {', '.join(parts)}; {', '.join(where)}"
+    if payload["warnings"]:
+        line += f" ({len(payload['warnings'])} warning{'s' if len(payload['warnings']) > 1 else ''} on stderr)"
+    return line

@@ -25,13 +25,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ros.bag_io import is_bag_path
-    from ..ros.replay import format_table, replay_bags
+    from ..registrar import check_method_name
 
     config = Config.from_yaml(args.config) if args.config else Config()
     changes = {k: v for k, v in (("method", args.method), ("mode", args.mode)) if v}
     if changes:
         config = config.replace(**changes)
+    check_method_name(config.method)  # before reading any bag or importing torch
+    from ..ros.bag_io import is_bag_path
+    from ..ros.replay import format_flags, format_table, replay_bags
+
     paths = [Path(b) for b in args.bags]
     for path in paths:
         if not path.exists():
@@ -42,15 +45,14 @@ def run(args: argparse.Namespace) -> int:
         paths,
         config,
         out_dir=args.out,
-        progress=True,
+        progress=not getattr(args, "quiet", False),
         overwrite=args.force,
         max_frames=args.max_frames,
         plot_dir=args.plots,
     )
     print(format_table(rows))
-    for row in rows:
-        if row.status != "OK":
-            print(f"{row.bag}: {row.status}: {row.message}")
+    for line in format_flags(rows):
+        print(line)
     if args.json:
         Path(args.json).write_text(json.dumps([row.__dict__ for row in rows], indent=2, default=str))
     return 1 if any(row.status == "ERROR" for row in rows) else 0

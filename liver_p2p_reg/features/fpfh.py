@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # only `describe` needs torch; the Open3D baselines use `raw`
+    import torch
 
 from ..o3d import o3d_module
 from ..registrar import remember_latest
@@ -16,8 +18,14 @@ def outward_normals(points: np.ndarray, radius: float, max_nn: int = 30) -> np.n
 
     A liver surface is mostly convex, so "away from the centroid" is outward for the whole
     source and for a partial cap (its centroid lies on the concave side). This makes the
-    normals — and so FPFH — independent of the cloud's pose.
+    normals — and so FPFH — independent of the cloud's pose. A one-shot command may have had
+    them computed by a child process already (prefetch.py): the same function on the same points.
     """
+    from ..prefetch import take_prefetched
+
+    ready = take_prefetched(points, radius, max_nn)
+    if ready is not None:
+        return ready
     o3d = o3d_module()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
@@ -66,5 +74,7 @@ class FPFHProvider:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         src = self.raw(source_norm.detach().cpu().numpy().astype(np.float64), cache)
         tgt = self.raw(target_norm.detach().cpu().numpy().astype(np.float64), None)
+        import torch
+
         to_t = lambda a: torch.as_tensor(hellinger_normalize(a), dtype=source_norm.dtype, device=source_norm.device)  # noqa: E731
         return to_t(src), to_t(tgt)

@@ -2,19 +2,24 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..config import Config
 from ..pipelines import run_feature_pipeline
 from ..registrar import MethodContext, method, remember_latest
 from ..result import RegistrationResult
-from .prepared import signature_mismatch, source_signature
-from .provider import LearnedProvider
+
+if TYPE_CHECKING:
+    from .provider import LearnedProvider
 
 
-def _provider(config: Config, ctx: MethodContext, weights_path: str | None = None) -> LearnedProvider:
-    """One loaded network per (weights, device), kept in the Registrar's cache."""
-    weights_path = config.weights_path if weights_path is None else weights_path
+def _cached_provider(config: Config, ctx: MethodContext, weights_path: str) -> LearnedProvider:
+    """One provider per (weights, device) in the Registrar's cache."""
+    from .provider import LearnedProvider
+
     key = f"learned_provider:{weights_path}:{config.device}"
     provider = ctx.cache.get(key)
     if provider is None:
@@ -22,25 +27,38 @@ def _provider(config: Config, ctx: MethodContext, weights_path: str | None = Non
     return provider
 
 
+def _provider(config: Config, ctx: MethodContext, source_mm: np.ndarray, warnings: list[str]) -> Callable:
+    """Makes the provider; the pipeline calls it once the inputs are checked, so torch and the
+    weights load only for a valid registration. Prepared weights serve only their own liver:
+    for another one the general weights are used and `warnings` says why."""
+
+    def make() -> LearnedProvider:
+        from .prepared import signature_mismatch, source_signature
+
+        provider = _cached_provider(config, ctx, config.weights_path)
+        if provider.prepared is None:
+            return provider
+        actual = remember_latest(ctx.cache, "source-signature", source_mm, (), lambda: source_signature(source_mm))
+        mismatch = signature_mismatch(provider.prepared.signature, actual)
+        if not mismatch:
+            return provider
+        name = provider.prepared.card.get("mesh_name", config.weights_path)
+        warnings.append(
+            f"prepared weights {config.weights_path} were made for another liver ({name}: {mismatch}); "
+            "general weights used"
+        )
+        return _cached_provider(config, ctx, "")
+
+    return make
+
+
 def _run(
     source_mm: np.ndarray, target_mm: np.ndarray, config: Config, ctx: MethodContext, use_p2p: bool, refine: bool
 ) -> RegistrationResult:
-    """The feature pipeline with the configured weights; prepared weights only for their own liver."""
-    provider = _provider(config, ctx)
-    warning = ""
-    if provider.prepared is not None:
-        actual = remember_latest(ctx.cache, "source-signature", source_mm, (), lambda: source_signature(source_mm))
-        mismatch = signature_mismatch(provider.prepared.signature, actual)
-        if mismatch:
-            name = provider.prepared.card.get("mesh_name", config.weights_path)
-            warning = (
-                f"prepared weights {config.weights_path} were made for another liver ({name}: {mismatch}); "
-                "general weights used"
-            )
-            provider = _provider(config, ctx, weights_path="")
+    warnings: list[str] = []
+    provider = _provider(config, ctx, source_mm, warnings)
     result = run_feature_pipeline(source_mm, target_mm, config, ctx, provider, use_p2p=use_p2p, refine=refine)
-    if warning:
-        result.warnings.append(warning)
+    result.warnings += warnings
     return result
 
 

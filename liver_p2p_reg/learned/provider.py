@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -11,7 +12,25 @@ from ..registrar import remember_latest
 from .descriptors import local_features
 from .model import MatcherNet
 from .prepared import read_prepared_source
-from .weights import load_weights
+from .weights import BUNDLED_WEIGHTS, load_weights
+
+# Weights loaded in this process, by (file, its size and mtime, device): every Registrar (a
+# batch, a replay of several bags, the node after a re-configuration) shares one loaded network.
+# Inference never changes it (eval mode, no_grad); a changed file is loaded anew.
+_LOADED: dict[tuple, MatcherNet] = {}
+
+
+def shared_model(weights_path: str = "", device: str = "cpu") -> MatcherNet:
+    """The network of these weights on this device, loaded once per process."""
+    path = Path(weights_path) if weights_path else BUNDLED_WEIGHTS
+    try:
+        stat = path.stat()
+        key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, str(device))
+    except OSError:
+        return load_weights(weights_path or None, device)  # raises its one-line WeightsError
+    if key not in _LOADED:
+        _LOADED[key] = load_weights(weights_path or None, device)
+    return _LOADED[key]
 
 
 class LearnedProvider:
@@ -20,7 +39,7 @@ class LearnedProvider:
     name = "learned"
 
     def __init__(self, model: MatcherNet | None = None, weights_path: str = "", device: str = "cpu") -> None:
-        self.model = model if model is not None else load_weights(weights_path or None, device)
+        self.model = model if model is not None else shared_model(weights_path, device)
         self.device = device
         # A patient-prepared file also carries its liver's signature and precomputed source features.
         self.prepared = read_prepared_source(weights_path) if weights_path and model is None else None

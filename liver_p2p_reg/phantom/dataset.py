@@ -316,8 +316,13 @@ def generate_dataset(
     progress: bool = True,
     allow_reserved_seed: bool = False,
     on_liver_done: Callable[[int], None] | None = None,
+    livers: Sequence[int] | None = None,
 ) -> Path:
-    """Generate (or finish) a dataset in `out`; returns the manifest path (manifest.csv)."""
+    """Generate (or finish) a dataset in `out`; returns the manifest path (manifest.csv).
+
+    `livers`: only these liver indices (the cases a small benchmark preset uses); the set is then
+    left unfinished (no completion marker) and a later full run adds the other livers.
+    """
     spec.validate(allow_reserved=allow_reserved_seed)
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
@@ -333,10 +338,13 @@ def generate_dataset(
     spec_path.write_text(json.dumps(asdict(spec), indent=2))
     (out / COMPLETE_MARKER).unlink(missing_ok=True)
     rows_by_liver: dict[int, list[dict]] = {}
-    jobs = [(spec, i, str(out)) for i in range(spec.livers)]
+    indices = sorted(set(livers)) if livers is not None else list(range(spec.livers))
+    if any(not 0 <= i < spec.livers for i in indices):
+        raise InputError(f"liver indices must lie in [0, {spec.livers}), got {indices}")
+    jobs = [(spec, i, str(out)) for i in indices]
     from tqdm import tqdm
 
-    bar = tqdm(total=spec.livers, desc="livers", unit="liver", disable=not progress)
+    bar = tqdm(total=len(jobs), desc="livers", unit="liver", disable=not progress)
     if workers == 1:
         for job in jobs:
             rows_by_liver[job[1]] = _generate_liver(job)
@@ -348,6 +356,11 @@ def generate_dataset(
                 bar.update(1)
     bar.close()
     rows = [row for i in sorted(rows_by_liver) for row in rows_by_liver[i]]
+    if len(indices) < spec.livers:  # part of the set: keep the livers earlier partial runs made; not complete
+        ids = {liver_id_for(spec.seed, i) for i in indices}
+        old = read_manifest(out) if (out / "manifest.csv").is_file() else []
+        rows = sorted([r for r in old if r["liver_id"] not in ids] + rows, key=lambda r: r["file"])
+        return write_manifest(out, rows)
     manifest = write_manifest(out, rows)
     expected = [
         case_name(liver_id_for(spec.seed, i), d, t)

@@ -20,7 +20,15 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..errors import InputError
-from .dataset import COMPLETE_MARKER, DatasetSpec, generate_dataset, read_manifest
+from .dataset import (
+    COMPLETE_MARKER,
+    DatasetSpec,
+    case_name,
+    generate_dataset,
+    liver_id_for,
+    read_manifest,
+    requested_visibility,
+)
 
 TESTSETS: dict[str, DatasetSpec] = {
     "insilico-test-v1": DatasetSpec(livers=12, deformations=5, targets=8, crop="random", seed=900, split="test"),
@@ -32,6 +40,7 @@ TESTSETS: dict[str, DatasetSpec] = {
     "insilico-val-camera-v1": DatasetSpec(livers=6, deformations=5, targets=4, crop="camera", seed=990, split="val"),
 }
 ENV_DATA_ROOT = "LIVER_P2P_DATA"
+APPROX_MB_PER_CASE = 0.32  # insilico-test-v1: 154 MB for 480 cases (announced before a build)
 log = logging.getLogger(__name__)
 
 
@@ -64,10 +73,33 @@ def is_complete(path: Path, spec: DatasetSpec) -> bool:
     return all((path / r["file"]).is_file() for r in read_manifest(path))
 
 
+def expected_cases(name: str) -> list[tuple[int, str, float]]:
+    """(liver index, case file name, requested visibility) of every case the named set makes, in
+    file-name order, known without generating anything (a case whose visibility cannot be reached
+    is skipped by the generator and then missing on disk)."""
+    spec = testset_spec(name)
+    out = []
+    for i in range(spec.livers):
+        liver_id = liver_id_for(spec.seed, i)
+        for d in range(spec.deformations):
+            for t in range(spec.targets):
+                out.append((i, case_name(liver_id, d, t), requested_visibility(spec, liver_id, d, t)))
+    return sorted(out, key=lambda c: c[1])
+
+
 def ensure_testset(
-    name: str = "insilico-test-v1", root: str | Path | None = None, workers: int = 1, progress: bool = True
+    name: str = "insilico-test-v1",
+    root: str | Path | None = None,
+    workers: int = 1,
+    progress: bool = True,
+    livers: list[int] | None = None,
 ) -> Path:
-    """Path of the named test set under `root`, generating (or finishing) it when absent."""
+    """Path of the named test set under `root`, generating (or finishing) it when absent.
+
+    `livers`: build only these livers' cases (what a small benchmark preset needs); a later call
+    without it finishes the set. What is built, and about how big, is announced first. The
+    real-anatomy sets (realsets.py) are built whole.
+    """
     from .realsets import REAL_SETS, ensure_real_set
 
     if name in REAL_SETS:
@@ -76,7 +108,30 @@ def ensure_testset(
     path = Path(root) / name if root is not None else default_root() / name
     if not is_complete(path, spec):
         _remove_stale(path, spec)
-        generate_dataset(path, spec, workers=workers, progress=progress, allow_reserved_seed=True)
+        wanted = sorted(set(livers)) if livers is not None else list(range(spec.livers))
+        if livers is not None:  # livers an earlier partial build made are done (their manifest rows exist)
+            done = {r["liver_id"] for r in read_manifest(path)} if (path / "manifest.csv").is_file() else set()
+            wanted = [i for i in wanted if liver_id_for(spec.seed, i) not in done]
+            if not wanted:
+                return path
+        n_cases = len(wanted) * spec.deformations * spec.targets
+        part = "all" if len(wanted) == spec.livers else f"{len(wanted)} of the {spec.livers}"
+        log.info(
+            "building test set %s in %s: %s livers, %d cases, about %.0f MB (once; later runs reuse it)",
+            name,
+            path,
+            part,
+            n_cases,
+            n_cases * APPROX_MB_PER_CASE,
+        )
+        generate_dataset(
+            path,
+            spec,
+            workers=workers,
+            progress=progress,
+            allow_reserved_seed=True,
+            livers=None if len(wanted) == spec.livers else wanted,
+        )
     return path
 
 

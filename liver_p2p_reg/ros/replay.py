@@ -57,7 +57,8 @@ class ReplayRow:
     runtime_ms: list[float] = field(default_factory=list)  # per registration, total
     tracked: int = 0  # registrations tracked from the previous pose (continuous mode)
     status: str = "OK"  # worst diagnostic level over the registrations
-    message: str = ""
+    message: str = ""  # the node's message on the first frame at that level ...
+    message_frame: int = 0  # ... and that frame's number (1-based intraop frame; 0: none)
     output: str = ""  # output bag path ("" when not written)
     info: dict = field(default_factory=dict)  # the bag's case description (custom_data)
 
@@ -83,18 +84,20 @@ def replay_bag(
     types = rosbags_output_types()
     writer = BagWriter(out_path, overwrite=overwrite) if out_path else None
     outputs: list[CoreOutput] = []
+    output_frames: list[int] = []  # the intraop frame (1-based) each output answers
     frames = 0
     last_ns = 0
     latest: dict[str, object] = {}  # the last intraop cloud / fiducials received (the core registers the latest)
-    last_posed: tuple[CoreOutput, object, object] | None = None  # (output, its cloud, its fiducials)
+    last_posed: tuple[CoreOutput, object, object, int] | None = None  # (output, its cloud, fiducials, frame)
 
     def emit(output: CoreOutput | None, stamp_ns: int, log_ns: int) -> None:
         nonlocal last_posed
         if output is None:
             return
         outputs.append(output)
+        output_frames.append(frames)  # the core registers the latest cloud: the one just received
         if output.pose is not None and output.result is not None:
-            last_posed = (output, latest.get("cloud"), latest.get("fiducials"))
+            last_posed = (output, latest.get("cloud"), latest.get("fiducials"), frames)
         if writer is None:
             return
         if output.pose is not None:
@@ -147,8 +150,10 @@ def replay_bag(
         except ValueError:
             info = {}
     if plot_path is not None and last_posed is not None:
-        _plot_frame(plot_path, core, *last_posed, title=path.name)
-    return _summarize(path, frames, outputs, str(out_path or ""), info)
+        output, cloud, fiducials, frame = last_posed
+        title = f"{path.name}, frame {frame} of {frames} (the last registered)"
+        _plot_frame(plot_path, core, output, cloud, fiducials, title=title)
+    return _summarize(path, frames, outputs, str(out_path or ""), info, output_frames)
 
 
 def _plot_frame(
@@ -185,7 +190,9 @@ def _stamp(msg: object) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def _summarize(path: Path, frames: int, outputs: list[CoreOutput], out: str, info: dict) -> ReplayRow:
+def _summarize(
+    path: Path, frames: int, outputs: list[CoreOutput], out: str, info: dict, output_frames: list[int]
+) -> ReplayRow:
     results = [o.result for o in outputs if o.pose is not None and o.result is not None]
     worst = max((o.level for o in outputs), default=ERROR)
     if frames == 0:
@@ -196,7 +203,7 @@ def _summarize(path: Path, frames: int, outputs: list[CoreOutput], out: str, inf
     def mean(values: list[float]) -> float:
         return float(np.mean(values)) if values else float("nan")
 
-    messages = [o.summary for o in outputs if o.level == worst]
+    messages = [(o.summary, f) for o, f in zip(outputs, output_frames, strict=True) if o.level == worst]
     return ReplayRow(
         bag=path.name,
         frames=frames,
@@ -210,7 +217,8 @@ def _summarize(path: Path, frames: int, outputs: list[CoreOutput], out: str, inf
         runtime_ms=runtimes,
         tracked=sum(r.method == "track" for r in results),
         status=LEVEL_NAMES[worst] if results or worst != OK else "ERROR",
-        message=messages[0] if messages else ("no intraop frames" if frames == 0 else ""),
+        message=messages[0][0] if messages else ("no intraop frames" if frames == 0 else ""),
+        message_frame=messages[0][1] if messages else 0,
         output=out,
         info=info,
     )
@@ -268,13 +276,26 @@ def _fmt(value: float, digits: int = 2) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
 
+def format_flags(rows: Sequence[ReplayRow]) -> list[str]:
+    """Why each bag is not OK, in the node's words, saying which frame the message (and its RMS-TRE) is."""
+    return [
+        f"{r.bag}: {r.status} (frame {r.message_frame} of {r.frames}, the first at {r.status}): {r.message}"
+        if r.message_frame
+        else f"{r.bag}: {r.status}: {r.message}"
+        for r in rows
+        if r.status != "OK"
+    ]
+
+
 def format_table(rows: Sequence[ReplayRow]) -> str:
-    """Markdown-style table: bag, frames, visibility, RMS-TRE, residual, uncertainty, runtime (p50), status."""
+    """Markdown-style table: bag, frames, visibility, RMS-TRE (mean and worst frame), residual,
+    uncertainty, runtime (p50), status."""
     header = [
         "bag",
         "frames",
         "visibility",
-        "RMS-TRE mm",
+        "RMS-TRE mm (mean)",
+        "(worst frame)",
         "residual mm",
         "uncertainty mm",
         "runtime ms (p50)",
@@ -286,6 +307,7 @@ def format_table(rows: Sequence[ReplayRow]) -> str:
             f"{r.registered}/{r.frames}",
             _fmt(r.visibility),
             _fmt(r.rms_tre_mm),
+            _fmt(r.max_rms_tre_mm),
             _fmt(r.residual_mm),
             _fmt(r.uncertainty_mm, 1),
             _fmt(r.runtime_ms_p50, 0),

@@ -1,0 +1,191 @@
+"""PLY and PCD reading/writing in numpy: the values Open3D's readers give, without importing Open3D.
+
+Open3D's own PLY (rply) and PCD readers hand every coordinate over as a float64: binary
+float32 values widened, ASCII words parsed as doubles whatever the declared type. These
+readers do the same, so a cloud loads to the same bits with or without Open3D. Layouts they do
+not cover (polygons other than triangles, list properties on vertices, compressed PCD, ...)
+return None, and the caller falls back to Open3D.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+PLY_SCALARS = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+FACE_LISTS = ("vertex_indices", "vertex_index")
+MAX_HEADER_BYTES = 1 << 16
+
+
+class _Unsupported(Exception):
+    """A layout these readers leave to Open3D."""
+
+
+def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(vertices (V, 3) float64, triangles (F, 3) int64) of a PLY file; None: let Open3D read it."""
+    data = path.read_bytes()
+    try:
+        header, body = _split_header(data, b"end_header")
+        fmt, elements = _ply_header(header)
+        if fmt == "ascii":
+            return _ply_ascii(body, elements)
+        return _ply_binary(body, elements, PLY_FORMATS[fmt])
+    except (_Unsupported, ValueError, IndexError, KeyError):
+        return None
+
+
+def _split_header(data: bytes, end: bytes) -> tuple[list[str], bytes]:
+    stop = data.find(end, 0, MAX_HEADER_BYTES)
+    if stop < 0:
+        raise _Unsupported("no end of header")
+    newline = data.find(b"\n", stop)
+    if newline < 0:
+        raise _Unsupported("header not terminated")
+    lines = data[:stop].decode("ascii").splitlines()
+    return lines, data[newline + 1 :]
+
+
+def _ply_header(lines: list[str]) -> tuple[str, list[tuple[str, int, list[tuple[str, ...]]]]]:
+    """Format and [(element, count, [(kind, name, dtype[, index dtype]), ...]), ...]."""
+    if not lines or lines[0].strip() != "ply":
+        raise _Unsupported("not a PLY header")
+    fmt = ""
+    elements: list[tuple[str, int, list[tuple[str, ...]]]] = []
+    for line in lines[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+            if fmt not in PLY_FORMATS:
+                raise _Unsupported(fmt)
+        elif words[0] == "element":
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            if words[1] == "list":
+                elements[-1][2].append(("list", words[4], PLY_SCALARS[words[3]], PLY_SCALARS[words[2]]))
+            else:
+                elements[-1][2].append(("scalar", words[2], PLY_SCALARS[words[1]]))
+        else:
+            raise _Unsupported(line)
+    names = [e[0] for e in elements]
+    if (
+        not fmt
+        or names[:1] != ["vertex"]
+        or any(n not in ("vertex", "face") for n in names)
+        or len(set(names)) < len(names)
+    ):
+        raise _Unsupported("elements other than one vertex and one face element")
+    vertex_props = elements[0][2]
+    if any(p[0] != "scalar" for p in vertex_props) or [p[1] for p in vertex_props if p[1] in "xyz"] != ["x", "y", "z"]:
+        raise _Unsupported("vertex without scalar x, y, z")
+    if len(elements) == 2:
+        face_props = elements[1][2]
+        if len(face_props) != 1 or face_props[0][0] != "list" or face_props[0][1] not in FACE_LISTS:
+            raise _Unsupported("face element other than one vertex index list")
+    return fmt, elements
+
+
+def _xyz_columns(props: list[tuple[str, ...]]) -> list[int]:
+    names = [p[1] for p in props]
+    return [names.index("x"), names.index("y"), names.index("z")]
+
+
+def _ply_ascii(body: bytes, elements: list) -> tuple[np.ndarray, np.ndarray]:
+    lines = body.decode("ascii").splitlines()
+    _, n_vertices, props = elements[0]
+    rows = [line.split() for line in lines[:n_vertices]]
+    if len(rows) != n_vertices or any(len(r) != len(props) for r in rows):
+        raise _Unsupported("vertex rows do not match the header")
+    # float() parses like rply's strtod: the nearest double, whatever the declared type.
+    vertices = np.array([[float(r[i]) for i in _xyz_columns(props)] for r in rows], dtype=np.float64).reshape(-1, 3)
+    triangles = np.zeros((0, 3), np.int64)
+    if len(elements) == 2:
+        n_faces = elements[1][1]
+        faces = [line.split() for line in lines[n_vertices : n_vertices + n_faces]]
+        if len(faces) != n_faces or any(len(f) != 4 or f[0] != "3" for f in faces):
+            raise _Unsupported("faces other than triangles")
+        triangles = np.array([[int(float(v)) for v in f[1:]] for f in faces], dtype=np.int64).reshape(-1, 3)
+    return vertices, triangles
+
+
+def _ply_binary(body: bytes, elements: list, order: str) -> tuple[np.ndarray, np.ndarray]:
+    _, n_vertices, props = elements[0]
+    vertex_type = np.dtype([(f"p{i}", order + p[2]) for i, p in enumerate(props)])
+    table = np.frombuffer(body, dtype=vertex_type, count=n_vertices)
+    vertices = np.stack([table[f"p{i}"].astype(np.float64) for i in _xyz_columns(props)], axis=1)
+    triangles = np.zeros((0, 3), np.int64)
+    if len(elements) == 2:
+        _, n_faces, ((_, _, index_type, count_type),) = elements[1]
+        face_type = np.dtype([("n", order + count_type), ("v", order + index_type, (3,))])
+        rest = body[n_vertices * vertex_type.itemsize :]
+        if len(rest) < n_faces * face_type.itemsize:
+            raise _Unsupported("truncated or non-triangle faces")
+        faces = np.frombuffer(rest, dtype=face_type, count=n_faces)
+        if n_faces and not (faces["n"] == 3).all():
+            raise _Unsupported("faces other than triangles")
+        triangles = faces["v"].astype(np.int64)
+    return vertices, triangles
+
+
+def read_pcd(path: Path) -> np.ndarray | None:
+    """(N, 3) float64 x, y, z of an ASCII or binary PCD file; None: let Open3D read it."""
+    data = path.read_bytes()
+    try:
+        stop = data.find(b"DATA", 0, MAX_HEADER_BYTES)
+        newline = data.find(b"\n", stop)
+        if stop < 0 or newline < 0:
+            return None
+        fields: dict[str, list[str]] = {}
+        for line in data[:newline].decode("ascii").splitlines():
+            words = line.split()
+            if words and not words[0].startswith("#"):
+                fields[words[0].upper()] = words[1:]
+        names, sizes, types = fields["FIELDS"], fields["SIZE"], fields["TYPE"]
+        counts = fields.get("COUNT", ["1"] * len(names))
+        n_points = int(fields["POINTS"][0])
+        body = data[newline + 1 :]
+        if any(c != "1" for c in counts) or [n for n in names if n in "xyz"] != ["x", "y", "z"]:
+            return None
+        columns = [names.index(axis) for axis in "xyz"]
+        if fields["DATA"][0] == "ascii":
+            rows = [line.split() for line in body.decode("ascii").splitlines() if line.strip()][:n_points]
+            if len(rows) != n_points or any(len(r) != len(names) for r in rows):
+                return None
+            return np.array([[float(r[i]) for i in columns] for r in rows], dtype=np.float64).reshape(-1, 3)
+        if fields["DATA"][0] != "binary":
+            return None  # binary_compressed (LZF)
+        kinds = {"F": "f", "I": "i", "U": "u"}
+        record = np.dtype([(f"p{i}", "<" + kinds[t] + s) for i, (t, s) in enumerate(zip(types, sizes, strict=True))])
+        table = np.frombuffer(body, dtype=record, count=n_points)
+        return np.stack([table[f"p{i}"].astype(np.float64) for i in columns], axis=1)
+    except (ValueError, IndexError, KeyError, TypeError, UnicodeDecodeError):
+        return None
+
+
+def write_ply(path: Path, points: np.ndarray) -> None:
+    """Binary little-endian PLY of float64 x, y, z (what Open3D writes for a plain cloud)."""
+    points = np.ascontiguousarray(points, dtype="<f8")
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment written by liver_p2p_reg\n"
+        f"element vertex {len(points)}\nproperty double x\nproperty double y\nproperty double z\nend_header\n"
+    )
+    path.write_bytes(header.encode("ascii") + points.tobytes())
+
+
+def write_pcd(path: Path, points: np.ndarray) -> None:
+    """Binary PCD (v0.7) of float32 x, y, z, as Open3D writes it (Open3D reads 8-byte floats in PCD as zeros)."""
+    points = np.ascontiguousarray(points, dtype="<f4")
+    n = len(points)
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"
+        f"COUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+    )
+    path.write_bytes(header.encode("ascii") + points.tobytes())

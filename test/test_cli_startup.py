@@ -1,0 +1,224 @@
+"""A fast, quiet start: what each command imports, errors before heavy work, one-line argparse errors."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_core_methods import partial_case
+
+from liver_p2p_reg.cli import main
+from liver_p2p_reg.cloud_io import save_points
+
+HEAVY = ("torch", "open3d", "scipy", "matplotlib", "sklearn")
+# Runs the command line in a fresh interpreter and reports what it imported and how it exited.
+PROBE = f"""import sys
+from liver_p2p_reg.cli import main
+try:
+    rc = main(sys.argv[1:])
+except SystemExit as exc:
+    rc = exc.code
+heavy = sorted(m for m in {HEAVY} if m in sys.modules)
+print("PROBE", rc, ",".join(heavy), file=sys.stderr)
+"""
+
+
+def probe(*argv: str, cwd: Path | None = None) -> tuple[int, set[str], list[str]]:
+    """(exit status, heavy modules imported, other stderr lines) of `liver-p2p ARGV` in a new process."""
+    proc = subprocess.run([sys.executable, "-c", PROBE, *argv], capture_output=True, text=True, timeout=300, cwd=cwd)
+    lines = proc.stderr.splitlines()
+    tag = [line for line in lines if line.startswith("PROBE ")]
+    assert tag, proc.stderr
+    _, rc, heavy = (tag[-1].split(" ") + [""])[:3]
+    return int(rc), set(filter(None, heavy.split(","))), [line for line in lines if not line.startswith("PROBE ")]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    tmp = tmp_path_factory.mktemp("startup")
+    source, target, *_ = partial_case(np.random.default_rng(3))
+    save_points(tmp / "source.ply", source)
+    save_points(tmp / "target.ply", target)
+    return {"dir": tmp, "source": str(tmp / "source.ply"), "target": str(tmp / "target.ply")}
+
+
+def test_help_imports_no_heavy_library() -> None:
+    for argv in (["--help"], ["register", "--help"], ["benchmark", "--help"], ["bag", "make", "--help"]):
+        rc, heavy, _ = probe(*argv)
+        assert (rc, heavy) == (0, set()), argv
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["register", "{source}", "{target}", "--seed", "abc"], "argument --seed: invalid int value: 'abc'"),
+        (["register", "{source}"], "the following arguments are required: TARGET"),
+        (["register", "{dir}/missing.ply", "{target}"], "file not found"),
+        (["register", "{source}", "{dir}/missing.ply"], "file not found"),
+        (["register", "{source}", "{target}", "--method", "magic"], "unknown method 'magic'"),
+        (["register", "{source}", "{target}", "--k", "0"], "k must be >= 1"),
+        (["register", "{source}", "{target}", "-o", "{source}"], "exists; pass --force"),
+        (["register", "{source}", "{target}", "--method", "track"], "--initial-transform"),
+        (["bogus"], "invalid choice: 'bogus'"),
+    ],
+)
+def test_argument_errors_are_one_line_before_any_heavy_import(files: dict, argv: list[str], message: str) -> None:
+    rc, heavy, err = probe(*(a.format(**files) for a in argv))
+    assert rc == 2 and heavy == set()
+    assert len(err) == 1 and err[0].startswith("liver-p2p") and ": error: " in err[0] and message in err[0], err
+
+
+def test_seed_abc_is_one_line_in_process(files: dict, capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["register", files["source"], files["target"], "--seed", "abc"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "usage:" not in err and "see `liver-p2p register --help`" in err
+
+
+def test_swapped_clouds_are_refused_before_torch_is_imported(files: dict) -> None:
+    """The default (learned) method: the complete/partial check comes before torch and the weights."""
+    rc, heavy, err = probe("register", files["target"], files["source"])
+    assert rc == 2 and "larger than the source" in err[-1]
+    assert "torch" not in heavy and "open3d" not in heavy
+
+
+def test_learned_method_on_ply_files_needs_no_open3d(files: dict) -> None:
+    """PLY/PCD are read without Open3D; only the `-icp` refinement (normals) and the Open3D methods import it."""
+    rc, heavy, _ = probe("-q", "register", files["source"], files["target"], "--method", "learned-p2p")
+    assert rc == 0 and "torch" in heavy and "open3d" not in heavy
+    rc, heavy, _ = probe("-q", "register", files["source"], files["target"], "--method", "fpfh-ransac")
+    assert rc == 0 and "open3d" in heavy and "torch" not in heavy and "sklearn" not in heavy
+
+
+def test_default_method_gets_the_icp_normals_from_a_child_and_the_same_pose(files: dict) -> None:
+    """learned-p2p-icp: Open3D (the ICP's source normals) is imported by a child process while this one
+    imports torch (prefetch.py); the pose is bit for bit the one computed in one process."""
+    out = files["dir"] / "default.json"
+    rc, heavy, _ = probe("-q", "register", files["source"], files["target"], "-o", str(out), "--force")
+    assert rc == 0 and "torch" in heavy and "open3d" not in heavy
+    from liver_p2p_reg import Config, Registrar
+    from liver_p2p_reg.cloud_io import load_points
+
+    alone = Registrar(Config()).register(load_points(files["source"]), load_points(files["target"]))
+    written = json.loads(out.read_text())
+    assert written["transform"] == alone.T_target_source.tolist()
+    assert written["screened"] == [c.to_json_dict() for c in alone.screened]
+
+
+def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
+    from liver_p2p_reg.cloud_io import load_points
+    from liver_p2p_reg.features.fpfh import outward_normals
+    from liver_p2p_reg.prefetch import BackgroundNormals, take_prefetched
+
+    points = load_points(files["source"]) / 100.0
+    job = BackgroundNormals(points, 0.1)
+    assert take_prefetched(points + 0.0, 0.2, 30) is None  # other parameters: not this job
+    child = take_prefetched(points.copy(), 0.1, 30)
+    assert child is not None and child.tobytes() == outward_normals(points, 0.1).tobytes()
+    assert not job.folder.exists()  # cleaned up once taken
+
+
+def test_the_method_table_names_exactly_the_registered_methods() -> None:
+    from liver_p2p_reg.method_names import METHOD_MODULES, method_names
+    from liver_p2p_reg.registrar import _REGISTRY, available_methods
+
+    assert method_names() == available_methods()
+    for module, names in METHOD_MODULES.items():
+        assert {_REGISTRY[n].__module__ for n in names} == {module}
+
+
+def test_one_loaded_network_serves_every_registrar(files: dict) -> None:
+    from liver_p2p_reg import Config, Registrar
+    from liver_p2p_reg.cloud_io import load_points
+
+    source, target = load_points(files["source"]), load_points(files["target"])
+    registrars = [Registrar(Config(method="learned")) for _ in range(2)]
+    for registrar in registrars:
+        registrar.register(source, target)
+    models = [next(v for k, v in r.cache.items() if k.startswith("learned_provider:")).model for r in registrars]
+    assert models[0] is models[1]
+
+
+def test_cli_logging_keeps_other_libraries_below_warning() -> None:
+    """scikit-fem's INFO lines would interleave with the dataset/benchmark progress bars."""
+    assert main(["config"]) == 0
+    assert logging.getLogger("skfem").getEffectiveLevel() >= logging.WARNING
+    assert logging.getLogger("liver_p2p_reg.phantom.testset").getEffectiveLevel() == logging.INFO
+
+
+def test_open3d_core_import_is_quiet_and_leaves_its_other_parts_importable() -> None:
+    code = (
+        "import sys\n"
+        "from liver_p2p_reg.o3d import o3d_module\n"
+        "o3d = o3d_module()\n"
+        "assert 'sklearn' not in sys.modules and 'dash' not in sys.modules\n"
+        "assert o3d.utility.get_verbosity_level() == o3d.utility.VerbosityLevel.Error\n"
+        "import open3d.ml, open3d.visualization\n"
+        "assert callable(open3d.visualization.draw_plotly)\n"
+        "print('ok')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.stdout.strip() == "ok", proc.stderr
+
+
+def test_readme_names_only_bags_that_exist_and_the_formats_the_reader_takes() -> None:
+    import re
+
+    from liver_p2p_reg.cloud_io import POINT_FORMATS
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    named = set(re.findall(r"bags/([A-Za-z0-9_.]+[A-Za-z0-9])", readme)) - {"README.md"}
+    assert named and all((root / "bags" / name).is_dir() for name in named), named
+    sentence = readme[readme.index("Inputs are ") :].split(" (meshes")[0]
+    assert re.findall(r"\.[a-z]+", sentence) == list(POINT_FORMATS)
+
+
+def test_every_phony_make_target_has_a_rule() -> None:
+    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    phony = next(line for line in makefile.splitlines() if line.startswith(".PHONY:")).split(":")[1].split()
+    for target in phony:
+        assert f"\n{target}:" in makefile, target
+
+
+def test_every_method_has_its_own_colour_and_the_default_is_not_the_oracles() -> None:
+    from liver_p2p_reg.bench.plots import method_style
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.method_names import method_names
+
+    colours = {m: method_style(m)["color"] for m in method_names()}
+    assert len(set(colours.values())) == len(colours)
+    oracle, default = method_style("procrustes"), method_style(Config().method)
+    assert oracle["linestyle"] == "--" and default["linestyle"] == "-" and oracle["color"] != default["color"]
+
+
+def test_json_result_keeps_its_keys(files: dict, capsys: pytest.CaptureFixture) -> None:
+    """Scripts read these keys; the new ones (source, target, status, warnings) are additions."""
+    assert main(["register", files["source"], files["target"], "--method", "fpfh-p2p"]) == 0
+    keys = set(json.loads(capsys.readouterr().out))
+    assert {"transform", "method", "residual_mm", "runtime_ms", "candidates", "uncertainty_mm", "ambiguous"} <= keys
+    assert {"source", "target", "status", "warnings"} <= keys
+
+
+def test_overlay_labels_what_each_distance_is() -> None:
+    """The residual line and the histogram measure different things: both say which; far points are counted."""
+    from liver_p2p_reg.overlay import HISTOGRAM_MAX_MM, draw_registration
+    from liver_p2p_reg.plotting import pyplot
+    from liver_p2p_reg.result import RegistrationResult
+
+    source, target, *_ = partial_case(np.random.default_rng(2))
+    far = target[:7] + [0.0, 0.0, 80.0]  # seven points far off the surface
+    result = RegistrationResult(np.eye(4), "track", residual_mm=2.5, uncertainty_mm=3.0)
+    fig = draw_registration(source, np.vstack([source[: len(target)], far]), result, residual_warn_mm=4.0)
+    labels = fig.axes[3].get_legend_handles_labels()[1]
+    assert any(label.startswith("residual_mm 2.50 (voxelized, outliers removed)") for label in labels)
+    assert any(label.startswith("mean of these") for label in labels)
+    assert f"\u2265 {HISTOGRAM_MAX_MM:g} mm: 7 points" in labels
+    assert "track = ICP refinement of the previous pose" in fig._suptitle.get_text()
+    pyplot().close(fig)
