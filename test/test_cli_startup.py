@@ -84,7 +84,7 @@ def test_seed_abc_is_one_line_in_process(files: dict, capsys: pytest.CaptureFixt
 def test_swapped_clouds_are_refused_before_torch_is_imported(files: dict) -> None:
     """The default (learned) method: the complete/partial check comes before torch and the weights."""
     rc, heavy, err = probe("register", files["target"], files["source"])
-    assert rc == 2 and "larger than the source" in err[-1]
+    assert rc == 2 and "more than 1.25x the source" in err[-1]
     assert "torch" not in heavy and "open3d" not in heavy
 
 
