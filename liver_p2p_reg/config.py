@@ -37,6 +37,9 @@ MINIMUMS: dict[str, float] = {
     "track_max_frames": 1,
     "residual_warn_mm": 0,
     "uncertainty_warn_mm": 0,
+    "free_space_band_mm": 0,
+    "free_space_weight": 0,
+    "free_space_warn": 0,
     "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
 }
 
@@ -87,6 +90,15 @@ class Config:
     weights_path: str = ""  # empty: the weights bundled with the package
     device: str = "cpu"
     num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    # --- free space: used when the target's sensor origin is known (node, --sensor-origin, camera crops)
+    # moved preop surface more than this in front of the observed surface, along the sensor's rays,
+    # violates free space (the band tolerates deformation and noise; freespace.py)
+    free_space_band_mm: float = 10.0
+    # P2P selection, ICP screening and the ambiguity test rank hypotheses by
+    # residual x (1 + this x violation), violation = share of the view's footprint the pose
+    # contradicts; chosen on validation camera crops by docs/freespace/rule.md
+    free_space_weight: float = 2.0
+    free_space_warn: float = 0.25  # a pose contradicting more than this share of the view's footprint -> WARN
     # Linux/glibc: keep freed large buffers in the process heap (alloc.py); faster frames on large
     # views, identical results, the process keeps its peak memory
     reuse_freed_memory: bool = True
@@ -113,6 +125,9 @@ class Config:
     ambiguity_pose_mm: float = 15.0  # ... and a pose differing by this much -> ambiguous
     expected_extent_min_mm: float = 20.0  # clouds smaller than this look like wrong units
     expected_extent_max_mm: float = 600.0  # clouds larger than this look like wrong units
+    # intraop clouds arrive in their sensor's own frame (the ROS convention), so the sensor sits at
+    # (0, 0, 0) there and free space is checked; false for clouds transformed into another frame
+    sensor_at_frame_origin: bool = True
 
     def validate(self) -> Config:
         """Check ranges and choices; raise InputError with a one-line message if bad."""

@@ -37,6 +37,7 @@ class CaseInfo:
     deformation_rms_mm: float
     seed: int
     added_noise_mm: float = 0.0  # sensor noise the benchmark adds to the target (Table II rows)
+    has_sensor_origin: bool = False  # the case stores where its camera stood (camera crops)
 
 
 def visibility_bin(visibility: float) -> int | None:
@@ -86,7 +87,15 @@ def case_info(path: Path) -> CaseInfo:
         crop_mode=str(data.get("crop_mode", "")),
         deformation_rms_mm=float(data.get("deformation_rms_mm", np.nan)),
         seed=int(seed),
+        has_sensor_origin=sensor_origin_mm(data) is not None,
     )
+
+
+def sensor_origin_mm(data: dict[str, Any]) -> np.ndarray | None:
+    """The camera position a case stores (mm, target frame); None when it has none (random crops, older files)."""
+    from ..phantom.dataset import sensor_origin_mm as stored_origin  # the generator owns the key
+
+    return stored_origin(data)
 
 
 def with_noise(infos: list[CaseInfo], levels_mm: list[float]) -> list[CaseInfo]:

@@ -39,6 +39,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--noise-levels",
         help="comma-separated sensor-noise levels in mm (e.g. 2,4) added to the [0.2,0.3) cases as extra cases (Table II)",
     )
+    p.add_argument(
+        "--sensor-aware",
+        action="store_true",
+        help="also run every method with each case's stored camera position (free-space scoring), "
+        "as rows `METHOD[fs]` beside the plain ones; needs camera crops (e.g. insilico-camera-v1)",
+    )
     p.add_argument("--data-root", help="where named test sets live (default: $LIVER_P2P_DATA or ./data)")
     p.add_argument("--readme", help="replace the README's BENCHMARK block with the main tables")
     p.add_argument(
@@ -64,6 +70,8 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
             parts += [flag, str(value)]
     if args.ablations:
         parts += ["--ablations", "--ablation-cases-per-bin", str(args.ablation_cases_per_bin)]
+    if args.sensor_aware:
+        parts += ["--sensor-aware"]
     if args.readme:
         parts += ["--readme", args.readme]
     return " ".join(shlex.quote(p) for p in parts)
@@ -120,6 +128,14 @@ def run(args: argparse.Namespace) -> int:
     folder, dataset_id = resolve_dataset(args.dataset, Path(args.data_root) if args.data_root else None)
     cases = select_cases([case_info(p) for p in list_case_paths(folder)], args.preset, args.limit)
     cases = with_noise(cases, noise_levels)
+    if args.sensor_aware:
+        lacking = [c.case_id for c in cases if not c.has_sensor_origin]
+        if lacking:
+            raise InputError(
+                f"--sensor-aware: {len(lacking)} of {len(cases)} cases store no sensor origin (e.g. {lacking[0]}); "
+                "only camera crops do (a camera set made before the origin was stored is brought up to date by "
+                "`liver-p2p dataset generate --testset NAME`)"
+            )
     out = Path(args.out)
     spec = BenchmarkSpec(
         out=out,
@@ -133,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
         ablation_cases_per_bin=args.ablation_cases_per_bin,
         workers=args.workers,
         noise_levels_mm=tuple(noise_levels),
+        sensor_aware=args.sensor_aware,
     )
     check_settings(out, spec.settings())  # refuse a mismatching OUT before touching it
     machine = machine_info(config.device)

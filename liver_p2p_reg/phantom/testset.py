@@ -20,7 +20,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..errors import InputError
-from .dataset import COMPLETE_MARKER, DatasetSpec, generate_dataset, read_manifest
+from .dataset import COMPLETE_MARKER, DatasetSpec, case_is_current, generate_dataset, read_manifest
 
 TESTSETS: dict[str, DatasetSpec] = {
     "insilico-test-v1": DatasetSpec(livers=12, deformations=5, targets=8, crop="random", seed=900, split="test"),
@@ -54,7 +54,7 @@ def is_complete(path: Path, spec: DatasetSpec) -> bool:
         return False
     if json.loads(spec_path.read_text()) != asdict(spec):
         return False
-    return all((path / r["file"]).is_file() for r in read_manifest(path))
+    return all(case_is_current(path / r["file"], spec.crop) for r in read_manifest(path))
 
 
 def ensure_testset(
