@@ -17,7 +17,7 @@ from .errors import InputError
 
 # Choices validated in `Config.validate`; kept here so the CLI can list them in --help.
 SELECTION_RULES = ("closest-point", "inlier-count")
-NODE_MODES = ("continuous", "once", "on_demand")
+NODE_MODES = ("continuous", "once", "on_demand", "survey")
 DEVICES = ("cpu", "cuda")
 
 
@@ -35,6 +35,7 @@ MINIMUMS: dict[str, float] = {
     "screen_icp_iterations": 1,
     "track_residual_ratio": 1,
     "track_max_frames": 1,
+    "survey_max_points": 1000,
     "residual_warn_mm": 0,
     "uncertainty_warn_mm": 0,
     "free_space_band_mm": 0,
@@ -97,8 +98,8 @@ class Config:
     # P2P selection, ICP screening and the ambiguity test rank hypotheses by
     # residual x (1 + this x violation), violation = share of the view's footprint the pose
     # contradicts; chosen on validation camera crops by docs/freespace/rule.md
-    free_space_weight: float = 2.0
-    free_space_warn: float = 0.25  # a pose contradicting more than this share of the view's footprint -> WARN
+    free_space_weight: float = 0.5
+    free_space_warn: float = 0.1  # a pose contradicting more than this share of the view's footprint -> WARN
     # Linux/glibc: keep freed large buffers in the process heap (alloc.py); faster frames on large
     # views, identical results, the process keeps its peak memory
     reuse_freed_memory: bool = True
@@ -119,6 +120,11 @@ class Config:
     track_previous_pose: bool = True
     track_residual_ratio: float = 1.2  # a tracked pose is kept if its residual <= this x the full registration's
     track_max_frames: int = 10  # a full registration at least every this many frames
+    # survey mode (survey.py): frames tracked and fused into one surface in the preop frame, which is
+    # registered globally again each time its visibility has grown by survey_step
+    survey_step: float = 0.05
+    survey_voxel_mm: float = 2.0  # fused surface: one mean point per voxel of this edge ...
+    survey_max_points: int = 20000  # ... doubled whenever it would hold more points than this
     # a rival hypothesis (after ICP screening if the method screens) with a residual within this
     # factor of the best ...
     ambiguity_residual_ratio: float = 1.2
@@ -165,6 +171,10 @@ class Config:
                 "need 0 <= expected_extent_min_mm < expected_extent_max_mm, got "
                 f"{self.expected_extent_min_mm} and {self.expected_extent_max_mm}"
             )
+        if not 0 < self.survey_step <= 1:
+            raise InputError(f"survey_step must be in (0, 1] (a visibility increase), got {self.survey_step}")
+        if not self.survey_voxel_mm > 0:
+            raise InputError(f"survey_voxel_mm must be > 0, got {self.survey_voxel_mm}")
         if not self.max_rate_hz > 0:
             raise InputError(f"max_rate_hz must be > 0, got {self.max_rate_hz}")
         return self

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 PIXEL_VOXELS = 1.5  # pixel footprint at the view's median depth, in voxels: ~every pixel of a surface holds a point
 MAX_RAY_ANGLE_DEG = 75.0  # no depth sensor sees wider than this from its axis
@@ -39,7 +40,8 @@ class SensorView:
     depth: np.ndarray  # (H, W) median observed depth per pixel (normalized), inf where nothing was seen
     observed: np.ndarray  # (H, W) bool
     footprint: np.ndarray  # (H, W) bool: the observed pixels, closed and with holes filled
-    band: float  # depth tolerance (normalized) for deformation and noise
+    band: float  # tolerance (normalized) for deformation and noise
+    observed_tree: cKDTree  # the observed points in camera coordinates
 
     @property
     def footprint_pixels(self) -> int:
@@ -96,7 +98,8 @@ def sensor_view(target: np.ndarray, origin: np.ndarray, voxel: float, band: floa
     depth = depth.reshape(shape)
     observed = np.isfinite(depth)
     footprint = ndimage.binary_fill_holes(ndimage.binary_closing(observed, iterations=1)) | observed
-    return SensorView(origin, axes, pixel, corner, depth, observed, footprint, band)
+    tree = cKDTree(np.stack([u * z, v * z, z], axis=1))
+    return SensorView(origin, axes, pixel, corner, depth, observed, footprint, band, tree)
 
 
 def violations(view: SensorView, source: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -104,7 +107,10 @@ def violations(view: SensorView, source: np.ndarray, R: np.ndarray, t: np.ndarra
 
     A footprint pixel violates when the moved source's nearest point along its ray lies more
     than `band` in front of the observed depth, or when the pixel saw nothing and the moved
-    source has surface there (the nearest surface along a ray of a closed surface faces the sensor).
+    source has surface there (the nearest surface along a ray of a closed surface faces the
+    sensor) -- and in both cases that source point is more than `band` away from every observed
+    point: a surface seen obliquely, shifted sideways by a few mm, moves far along the rays but
+    not in 3D, and deformation or a hole's rim must not count as a contradiction.
     """
     R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
     n_poses = len(R)
@@ -125,10 +131,16 @@ def violations(view: SensorView, source: np.ndarray, R: np.ndarray, t: np.ndarra
     flat = pose * (h * w) + iu * w + iv
     rendered = np.full(n_poses * h * w, np.inf)
     np.minimum.at(rendered, flat, z)  # the moved source's z-buffer, one image per pose
-    rendered = rendered.reshape(n_poses, h, w)
-    front = view.observed & (rendered < view.depth - view.band)
-    unseen = (view.footprint & ~view.observed) & np.isfinite(rendered)
-    return (front.sum(axis=(1, 2)) + unseen.sum(axis=(1, 2))) / max(view.footprint_pixels, 1)
+    front = view.observed & (rendered.reshape(n_poses, h, w) < view.depth - view.band)
+    unseen = (view.footprint & ~view.observed) & np.isfinite(rendered.reshape(n_poses, h, w))
+    suspect = (front | unseen).reshape(-1)
+    # The point that won each suspect pixel, and whether it lies within the band of an observed point.
+    winner = np.flatnonzero(suspect[flat] & (z == rendered[flat]))
+    near, _ = view.observed_tree.query(
+        np.stack([x[winner], y[winner], z[winner]], axis=1), distance_upper_bound=view.band
+    )
+    suspect[flat[winner[np.isfinite(near)]]] = False
+    return suspect.reshape(n_poses, -1).sum(axis=1) / max(view.footprint_pixels, 1)
 
 
 def penalized(value: float, violation: float, weight: float) -> float:

@@ -456,6 +456,18 @@ def track(source_mm, target_mm, config: Config, ctx: MethodContext) -> Registrat
     return _single_result(T_norm, prep, times, "tracked", config, ctx)
 
 
+@method("evaluate")
+def evaluate(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """A given pose as is (no search, no ICP): its residual, uncertainty, free-space violation and TRE."""
+    if ctx.initial_T_mm is None:
+        raise InputError("method 'evaluate' scores a given pose and needs initial_T_mm")
+    t = time.perf_counter()
+    prep = prepare(source_mm, target_mm, config, ctx.cache)
+    times = {"preprocess": _lap(t)}
+    T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ _norm_to_mm(prep.source_norm)
+    return _single_result(T_norm, prep, times, "given", config, ctx)
+
+
 @method("procrustes")
 def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
     """Oracle: least-squares rigid fit of the ground-truth fiducials (lower bound of rigid error)."""

@@ -38,6 +38,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--device", choices=("cpu", "cuda"), help="torch device")
     p.add_argument("--source-fiducials", metavar="F", help="(F, 3) fiducials in the source frame (mm)")
     p.add_argument("--target-fiducials", metavar="F", help="the same fiducials in the target frame (mm)")
+    p.add_argument(
+        "--sensor-origin",
+        metavar="X,Y,Z",
+        help="where the depth sensor stood when it saw TARGET (mm, TARGET's frame; (0,0,0) for a cloud in the "
+        "sensor's own frame; write --sensor-origin=-10,0,5 when it starts with a minus): poses that put "
+        "SOURCE's surface where the sensor saw none are then ruled out (free space); default: unknown",
+    )
     p.add_argument("--output", "-o", metavar="PATH", help="also write the JSON result to PATH")
     p.add_argument(
         "--plot",
@@ -73,7 +80,21 @@ def _output_path(value: str | None, force: bool, option: str, suffixes: tuple[st
     return path
 
 
+def sensor_origin(text: str | None) -> list[float] | None:
+    """`X,Y,Z` in mm -> three numbers; a bad value is one InputError line."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(abs(v) < float("inf") for v in values):
+        raise InputError(f"--sensor-origin must be three finite numbers X,Y,Z in mm, got {text!r}")
+    return values
+
+
 def run(args: argparse.Namespace) -> int:
+    origin = sensor_origin(args.sensor_origin)
     output = _output_path(args.output, args.force, "--output")
     plot = _output_path(args.plot, args.force, "--plot", PLOT_SUFFIXES)
     moved = _output_path(args.moved, args.force, "--moved", MOVED_SUFFIXES)
@@ -88,14 +109,24 @@ def run(args: argparse.Namespace) -> int:
         fid_s = load_points(args.source_fiducials)
         fid_t = load_points(args.target_fiducials)  # Registrar refuses NaN/inf pairs
     result = Registrar(config).register(
-        source, target, method=config.method, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t
+        source,
+        target,
+        method=config.method,
+        source_fiducials_mm=fid_s,
+        target_fiducials_mm=fid_t,
+        sensor_origin_mm=origin,
     )
     text = json.dumps(result.to_json_dict(), indent=2)
     if output is not None:
         output.write_text(text + "\n")
     print(text)
     # The node's WARN rules, on stderr: the pose is still returned (exit 0), but flagged.
-    warnings = list(pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config).values())
+    reasons = pose_warnings(
+        result.residual_mm, result.ambiguous, result.uncertainty_mm, config, result.free_space_violation
+    )
+    warnings = list(reasons.values())
+    if result.free_space.startswith("off"):  # an origin was given but cannot be the target's sensor
+        warnings.append(f"--sensor-origin ignored: {result.free_space.removeprefix('off: ')}")
     for message in warnings:
         logging.getLogger("liver_p2p_reg").warning(message)
     if moved is not None:
