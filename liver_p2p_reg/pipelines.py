@@ -444,28 +444,30 @@ def icp(source_mm, target_mm, config: Config, ctx: MethodContext) -> Registratio
 @method("track")
 def track(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
     """Trimmed point-to-plane ICP from a prior pose (the previous frame's): no global search."""
-    if ctx.initial_T_mm is None:
-        raise InputError("method 'track' refines a prior pose and needs initial_T_mm (the previous registration)")
-    t = time.perf_counter()
-    prep = prepare(source_mm, target_mm, config, ctx.cache)
-    times = {"preprocess": _lap(t)}
-    t = time.perf_counter()
-    T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ _norm_to_mm(prep.source_norm)
-    T_norm = _refine(T_norm, prep, config, ctx.cache)
-    times["refine"] = _lap(t)
-    return _single_result(T_norm, prep, times, "tracked", config, ctx)
+    return _from_prior(source_mm, target_mm, config, ctx, "track", refine=True)
 
 
 @method("evaluate")
 def evaluate(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
     """A given pose as is (no search, no ICP): its residual, uncertainty, free-space violation and TRE."""
+    return _from_prior(source_mm, target_mm, config, ctx, "evaluate", refine=False)
+
+
+def _from_prior(
+    source_mm: np.ndarray, target_mm: np.ndarray, config: Config, ctx: MethodContext, name: str, *, refine: bool
+) -> RegistrationResult:
+    """The result of a prior pose (`initial_T_mm`), refined by ICP or as given."""
     if ctx.initial_T_mm is None:
-        raise InputError("method 'evaluate' scores a given pose and needs initial_T_mm")
+        raise InputError(f"method '{name}' starts from a prior pose and needs initial_T_mm (the previous registration)")
     t = time.perf_counter()
     prep = prepare(source_mm, target_mm, config, ctx.cache)
     times = {"preprocess": _lap(t)}
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ _norm_to_mm(prep.source_norm)
-    return _single_result(T_norm, prep, times, "given", config, ctx)
+    if refine:
+        t = time.perf_counter()
+        T_norm = _refine(T_norm, prep, config, ctx.cache)
+        times["refine"] = _lap(t)
+    return _single_result(T_norm, prep, times, "tracked" if refine else "given", config, ctx)
 
 
 @method("procrustes")

@@ -389,7 +389,7 @@ def survey_table(survey: list[tuple[ReplayRow, float, float]], config: Config) -
         "surface fit leaves under the organ's deformation); `fused visibility` is the fused surface's at the end;",
         "`worst fused frame` the largest RMS-TRE of the frames that tracking accepted into the fused surface.",
         "",
-        "| bag | frames registered | RMS-TRE first frame mm | after 5 s mm | end mm | oracle mm | end / oracle | "
+        "| sweep bag | frames registered | RMS-TRE first frame mm | after 5 s mm | end mm | oracle mm | end / oracle | "
         "surface bound mm | end / bound | fused visibility | global registrations | worst fused frame mm | "
         "survey state at the end |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -398,7 +398,7 @@ def survey_table(survey: list[tuple[ReplayRow, float, float]], config: Config) -
         frames = row.per_frame
         if not frames:
             lines.append(
-                f"| {row.bag} | 0/{row.frames} | - | - | - | {oracle:.2f} | - | {bound:.2f} | - | - | - | - | {row.status} |"
+                f"| `{row.bag}` | 0/{row.frames} | - | - | - | {oracle:.2f} | - | {bound:.2f} | - | - | - | - | {row.status} |"
             )
             continue
         start = frames[0]["stamp_ns"]
@@ -407,13 +407,21 @@ def survey_table(survey: list[tuple[ReplayRow, float, float]], config: Config) -
         end = frames[-1]
         last = row.per_frame[-1]
         lines.append(
-            f"| {row.bag} | {row.registered}/{row.frames} | {frames[0]['rms_tre_mm']:.2f} | {at_5s['rms_tre_mm']:.2f} "
+            f"| `{row.bag}` | {row.registered}/{row.frames} | {frames[0]['rms_tre_mm']:.2f} | {at_5s['rms_tre_mm']:.2f} "
             f"| {end['rms_tre_mm']:.2f} | {oracle:.2f} | {end['rms_tre_mm'] / oracle:.2f} "
             f"| {bound:.2f} | {end['rms_tre_mm'] / bound:.2f} "
             f"| {float(last.get('survey_visibility', 'nan')):.2f} | {last.get('survey_registrations', '-')} "
             f"| {max(fused) if fused else float('nan'):.2f} | {str(last.get('survey_state', '-')).split(':')[0]} |"
         )
     return lines
+
+
+def check_size(path: Path, info: dict, limit: int) -> None:
+    """Report a written bag; one over its size budget stops the script."""
+    size = bag_size_bytes(path)
+    print(f"{path.name}: {size / 1e6:.2f} MB {info}", file=sys.stderr)
+    if size > limit:
+        raise SystemExit(f"{path.name} exceeds {limit} bytes")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -439,10 +447,7 @@ def main(argv: list[str] | None = None) -> int:
                 max_preop_points=MAX_PREOP_POINTS,
                 **case,
             )
-            size = bag_size_bytes(path)
-            print(f"{name}: {size / 1e6:.2f} MB {case['info']}", file=sys.stderr)
-            if size > MAX_SWEEP_BYTES:
-                raise SystemExit(f"{name} exceeds {MAX_SWEEP_BYTES} bytes")
+            check_size(path, case["info"], MAX_SWEEP_BYTES)
         cases = insilico_cases() + [phantom_case(i, share) for i, share in PHANTOMS]
         for name, case in cases:
             path = make_case_bag(
@@ -457,10 +462,7 @@ def main(argv: list[str] | None = None) -> int:
                 max_intraop_points=MAX_INTRAOP_POINTS,
                 **case,
             )
-            size = bag_size_bytes(path)
-            print(f"{name}: {size / 1e6:.2f} MB {case['info']}", file=sys.stderr)
-            if size > MAX_BAG_BYTES:
-                raise SystemExit(f"{name} exceeds {MAX_BAG_BYTES} bytes")
+            check_size(path, case["info"], MAX_BAG_BYTES)
     bags = sorted(p for p in args.out.iterdir() if (p / "metadata.yaml").is_file())
     total = sum(bag_size_bytes(p) for p in bags)
     if total > MAX_TOTAL_BYTES:

@@ -418,7 +418,8 @@ class Summary:
             "## Confidence: would the node have warned? (WARN or ERROR by the configured thresholds)",
             "",
             f"Cases as stored (no benchmark-added noise). A pose is warned when the method failed, or it is ambiguous, or its residual is above "
-            f"`residual_warn_mm`, or its uncertainty above `uncertainty_warn_mm`; a safe method warns on every pose off by "
+            f"`residual_warn_mm`, or its uncertainty above `uncertainty_warn_mm`, or (rows with the sensor origin, `[fs]`) its "
+            f"free-space violation above `free_space_warn`; a safe method warns on every pose off by "
             f"{SUCCESS_TAU_MM:g} mm or more and on few within {GOOD_POSE_MM:g} mm.",
             "",
             *self.table_confidence(self.main),
