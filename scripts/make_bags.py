@@ -304,7 +304,7 @@ def write_readme(
         "- `sweep_*`: a laparoscope **sweeping** over the anterior surface for 14 s at 5 Hz (70 frames, each in the",
         "  moving camera's own frame, visibility 0.17-0.30 per frame, about 0.56-0.59 together), with ground-truth",
         "  fiducials per frame: an `insilico-test-v1` liver (no noise) and a simulated phantom (depth-camera noise and",
-        "  2 % flying pixels). For survey mode (table below); in the table above they are replayed in continuous mode.",
+        "  2 % flying pixels). For survey mode (last table); the expected-results table replays them in continuous mode.",
         "",
         "Camera views (`*_camera`, `phantom_sim_*`, `sweep_*`) are in their camera's frame, so the node checks free",
         "space from (0, 0, 0); random crops are no camera's view and say so in their metadata (`sensor_frame: false`),",

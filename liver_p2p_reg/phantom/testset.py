@@ -7,7 +7,9 @@ and deformations seen by an anterior laparoscope, 4 targets per deformation in t
 [0.2,0.3) and [0.3,0.4) (a camera rarely sees more): 240 cases, 120 per bin. `insilico-smoke`: 2 livers x 1
 deformation x 8 bins for fast tests and demo bags. `insilico-val-v1` / `insilico-val-camera-v1`:
 6 other livers (seed 990) in the same two forms (240 / 120 cases), the validation sets on which
-defaults and thresholds are chosen. Noise levels are applied by the benchmark
+defaults and thresholds are chosen. Camera crops also store where the camera stood
+(`sensor_origin_mm`, target frame) for free-space checks; sets made before that field existed are
+brought up to date in place, every other array unchanged. Noise levels are applied by the benchmark
 on top of these clean targets (or with `--noise` when generating other sets).
 """
 
