@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import Config
+from .freespace import penalized
 from .metrics import transform_points
 from .result import Candidate
 
@@ -83,24 +84,43 @@ def pose_gap_mm(T_a: np.ndarray, T_b: np.ndarray, source_mm: np.ndarray) -> floa
     return float(np.sqrt(np.mean(np.sum(diff**2, axis=1))))
 
 
-def is_ambiguous(hypotheses: Sequence[Candidate], source_mm: np.ndarray, residual_ratio: float, pose_mm: float) -> bool:
-    """True when a rival hypothesis fits within `residual_ratio` of the best with a pose > `pose_mm` away."""
-    ok = sorted((c for c in hypotheses if c.ok and np.isfinite(c.residual_mm)), key=lambda c: c.residual_mm)
+def is_ambiguous(
+    hypotheses: Sequence[Candidate],
+    source_mm: np.ndarray,
+    residual_ratio: float,
+    pose_mm: float,
+    free_space_weight: float = 0.0,
+) -> bool:
+    """True when a rival hypothesis fits within `residual_ratio` of the best with a pose > `pose_mm` away.
+
+    "Fits" is the residual made worse by the hypothesis' free-space violation when it is known
+    (freespace.penalized): a rival the sensor's view rules out is no rival.
+    """
+
+    def score(c: Candidate) -> float:
+        return penalized(c.residual_mm, c.free_space_violation, free_space_weight)
+
+    ok = sorted((c for c in hypotheses if c.ok and np.isfinite(c.residual_mm)), key=score)
     if len(ok) < 2:
         return False
     best = ok[0]
-    limit = residual_ratio * max(best.residual_mm, 1e-6)
+    limit = residual_ratio * max(score(best), 1e-6)
     return any(
-        pose_gap_mm(best.T_target_source, c.T_target_source, source_mm) > pose_mm
-        for c in ok[1:]
-        if c.residual_mm <= limit
+        pose_gap_mm(best.T_target_source, c.T_target_source, source_mm) > pose_mm for c in ok[1:] if score(c) <= limit
     )
 
 
-def pose_warnings(residual_mm: float, ambiguous: bool, uncertainty_mm: float, config: Config) -> dict[str, str]:
+def pose_warnings(
+    residual_mm: float,
+    ambiguous: bool,
+    uncertainty_mm: float,
+    config: Config,
+    free_space_violation: float = float("nan"),
+) -> dict[str, str]:
     """Why a registered pose should not be trusted as is (the node's WARN rules): reason -> message.
 
-    Reasons: "residual", "ambiguous", "uncertainty"; empty when the pose is OK. A NaN warns.
+    Reasons: "residual", "ambiguous", "uncertainty", "free_space"; empty when the pose is OK. A
+    NaN warns, except the free-space violation, which is NaN when the sensor origin is unknown.
     """
     out: dict[str, str] = {}
     if not residual_mm <= config.residual_warn_mm:
@@ -112,12 +132,18 @@ def pose_warnings(residual_mm: float, ambiguous: bool, uncertainty_mm: float, co
             f"pose poorly constrained by the visible surface: uncertainty {uncertainty_mm:.1f} mm "
             f"above {config.uncertainty_warn_mm} mm"
         )
+    if free_space_violation > config.free_space_warn:
+        out["free_space"] = (
+            f"the pose puts preop surface where the sensor saw none: {free_space_violation:.0%} of the view "
+            f"(above {config.free_space_warn:.0%})"
+        )
     return out
 
 
 def result_warnings(result: Any, config: Config) -> dict[str, str]:
     """`pose_warnings` of a RegistrationResult plus the warnings the method itself attached
     (e.g. prepared weights made for another liver): reason -> message."""
-    out = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config)
+    violation = getattr(result, "free_space_violation", float("nan"))
+    out = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config, violation)
     out.update({f"method{i}": message for i, message in enumerate(getattr(result, "warnings", []))})
     return out

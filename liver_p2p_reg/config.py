@@ -17,7 +17,7 @@ from .errors import InputError
 
 # Choices validated in `Config.validate`; kept here so the CLI can list them in --help.
 SELECTION_RULES = ("closest-point", "inlier-count")
-NODE_MODES = ("continuous", "once", "on_demand")
+NODE_MODES = ("continuous", "once", "on_demand", "survey")
 DEVICES = ("cpu", "cuda")
 
 
@@ -35,8 +35,12 @@ MINIMUMS: dict[str, float] = {
     "screen_icp_iterations": 1,
     "track_residual_ratio": 1,
     "track_max_frames": 1,
+    "survey_max_points": 1000,
     "residual_warn_mm": 0,
     "uncertainty_warn_mm": 0,
+    "free_space_band_mm": 0,
+    "free_space_weight": 0,
+    "free_space_warn": 0,
     "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
 }
 
@@ -90,6 +94,15 @@ class Config:
     weights_path: str = ""  # empty: the weights bundled with the package
     device: str = "cpu"
     num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    # --- free space: used when the target's sensor origin is known (node, --sensor-origin, camera crops)
+    # moved preop surface more than this in front of the observed surface, along the sensor's rays,
+    # violates free space (the band tolerates deformation and noise; freespace.py)
+    free_space_band_mm: float = 10.0
+    # P2P selection, ICP screening and the ambiguity test rank hypotheses by
+    # residual x (1 + this x violation), violation = share of the view's footprint the pose
+    # contradicts; chosen on validation camera crops by docs/freespace/rule.md
+    free_space_weight: float = 0.5
+    free_space_warn: float = 0.1  # a pose contradicting more than this share of the view's footprint -> WARN
     # Linux/glibc: keep freed large buffers in the process heap (alloc.py); faster frames on large
     # views, identical results, the process keeps its peak memory
     reuse_freed_memory: bool = True
@@ -110,12 +123,20 @@ class Config:
     track_previous_pose: bool = True
     track_residual_ratio: float = 1.2  # a tracked pose is kept if its residual <= this x the full registration's
     track_max_frames: int = 10  # a full registration at least every this many frames
+    # survey mode (survey.py): frames tracked and fused into one surface in the preop frame, which is
+    # registered globally again each time its visibility has grown by survey_step
+    survey_step: float = 0.05
+    survey_voxel_mm: float = 2.0  # fused surface: one mean point per voxel of this edge ...
+    survey_max_points: int = 20000  # ... doubled whenever it would hold more points than this
     # a rival hypothesis (after ICP screening if the method screens) with a residual within this
     # factor of the best ...
     ambiguity_residual_ratio: float = 1.2
     ambiguity_pose_mm: float = 15.0  # ... and a pose differing by this much -> ambiguous
     expected_extent_min_mm: float = 20.0  # clouds smaller than this look like wrong units
     expected_extent_max_mm: float = 600.0  # clouds larger than this look like wrong units
+    # intraop clouds arrive in their sensor's own frame (the ROS convention), so the sensor sits at
+    # (0, 0, 0) there and free space is checked; false for clouds transformed into another frame
+    sensor_at_frame_origin: bool = True
 
     def validate(self) -> Config:
         """Check ranges and choices; raise InputError with a one-line message if bad."""
@@ -155,6 +176,10 @@ class Config:
                 "need 0 <= expected_extent_min_mm < expected_extent_max_mm, got "
                 f"{self.expected_extent_min_mm} and {self.expected_extent_max_mm}"
             )
+        if not 0 < self.survey_step <= 1:
+            raise InputError(f"survey_step must be in (0, 1] (a visibility increase), got {self.survey_step}")
+        if not self.survey_voxel_mm > 0:
+            raise InputError(f"survey_voxel_mm must be > 0, got {self.survey_voxel_mm}")
         if not self.max_rate_hz > 0:
             raise InputError(f"max_rate_hz must be > 0, got {self.max_rate_hz}")
         return self

@@ -15,6 +15,7 @@ from .confidence import pose_uncertainty
 from .config import Config
 from .errors import InputError, RegistrationError
 from .features.fpfh import FPFHProvider
+from .freespace import Scorer, penalized
 from .metrics import transform_points
 from .preprocess import (
     Normalization,
@@ -141,15 +142,20 @@ def uncertainty_mm(T_norm: np.ndarray, prep: Prepared, config: Config, times: di
 
 
 def _screen_candidates(
-    poses_norm: list[np.ndarray], order: list[int], prep: Prepared, config: Config, cache: dict[str, Any]
-) -> tuple[int, list[tuple[int, np.ndarray, float]]]:
-    """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins.
+    poses_norm: list[np.ndarray],
+    order: list[int],
+    prep: Prepared,
+    config: Config,
+    cache: dict[str, Any],
+    scorer: Scorer | None = None,
+) -> tuple[int, list[tuple[int, np.ndarray, float, float]]]:
+    """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins
+    (with a known sensor origin: the lowest residual made worse by its free-space violation).
 
-    Returns the winner's index and every screened (index, pose, residual), normalized units; the
-    full refinement then starts from the winner's own pose (not from the screened one), so that
-    a winner P2P also chose gets exactly the unscreened result.
+    Returns the winner's index and every screened (index, pose, residual, violation), normalized
+    units; the full refinement then starts from the winner's own pose (not from the screened one),
+    so that a winner P2P also chose gets exactly the unscreened result.
     """
-    best: tuple[float, int] | None = None
     tried: list[np.ndarray] = []
     screened: list[tuple[int, np.ndarray, float]] = []
     for i in order:
@@ -163,14 +169,45 @@ def _screen_candidates(
         T_s = _refine(
             T, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
         )
-        residual = residual_norm(T_s, prep)
-        screened.append((i, T_s, residual))
-        if best is None or residual < best[0]:
-            best = (residual, i)
+        screened.append((i, T_s, residual_norm(T_s, prep)))
         if len(tried) >= config.refine_candidates:
             break
-    assert best is not None  # order holds at least the chosen candidate
-    return best[1], screened
+    assert screened  # order holds at least the chosen candidate
+    violation = scorer([T_s for _, T_s, _ in screened]) if scorer is not None else np.full(len(screened), np.nan)
+    keys = [penalized(res, v, config.free_space_weight) for (_, _, res), v in zip(screened, violation, strict=True)]
+    best = int(np.argmin(keys))  # the first of equals, as P2P's own choice
+    return screened[best][0], [(i, T_s, res, float(v)) for (i, T_s, res), v in zip(screened, violation, strict=True)]
+
+
+def free_space_scorer(prep: Prepared, config: Config, ctx: MethodContext) -> Scorer | None:
+    """The free-space scorer of this registration's view; None without a known sensor origin."""
+    if ctx.sensor_origin_mm is None:
+        return None
+    origin = prep.target_norm.apply(ctx.sensor_origin_mm[None])[0]
+    band = config.free_space_band_mm / prep.source_norm.scale_mm
+    return Scorer(prep.source, prep.target, origin, config.voxel_size_norm, band)
+
+
+def _free_space_choice(out: Any, violation: np.ndarray, config: Config) -> int:
+    """P2P's selection rule with each candidate's score made worse by its free-space violation."""
+    ok = out.ok.cpu().numpy()
+    if not ok.any():
+        return out.chosen
+    factor = 1.0 + config.free_space_weight * np.nan_to_num(violation, nan=0.0)
+    if config.selection == "inlier-count":
+        score = -out.inliers.cpu().numpy().astype(np.float64) / factor
+    else:
+        score = out.residual.double().cpu().numpy() * factor
+    return int(np.argmin(np.where(ok, score, np.inf)))
+
+
+def _final_free_space(scorer: Scorer | None, T_norm: np.ndarray, times: dict[str, float]) -> tuple[float, str]:
+    """The final pose's violation and the scorer's status; records the scorer's time as the "free_space" stage."""
+    if scorer is None:
+        return float("nan"), ""
+    violation = float(scorer([T_norm])[0])
+    times["free_space"] = scorer.ms
+    return violation, scorer.status
 
 
 def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
@@ -251,6 +288,12 @@ def run_feature_pipeline(
             )
         )
     chosen = out.chosen
+    scorer = free_space_scorer(prep, config, ctx)
+    if scorer is not None and scorer.view is not None:
+        violation = scorer(poses_norm)
+        for candidate, v in zip(candidates, violation, strict=True):
+            candidate.free_space_violation = float(v)
+        chosen = _free_space_choice(out, violation, config)
     if not candidates[chosen].ok:
         raise RegistrationError(
             f"{provider.name}: no candidate had >= 3 non-degenerate matches (visibility {prep.visibility:.2f})"
@@ -260,8 +303,18 @@ def run_feature_pipeline(
     screened: list[Candidate] = []
     if refine and config.refine_candidates > 1:
         t = time.perf_counter()
-        others = sorted((i for i, c in enumerate(candidates) if c.ok and i != chosen), key=lambda i: out.residual[i])
-        chosen, tried = _screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache)
+        if scorer is None or scorer.view is None:
+            others = sorted(
+                (i for i, c in enumerate(candidates) if c.ok and i != chosen), key=lambda i: out.residual[i]
+            )
+        else:
+            others = sorted(
+                (i for i, c in enumerate(candidates) if c.ok and i != chosen),
+                key=lambda i: penalized(
+                    float(out.residual[i]), candidates[i].free_space_violation, config.free_space_weight
+                ),
+            )
+        chosen, tried = _screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache, scorer)
         screened = [
             Candidate(
                 name=candidates[i].name,
@@ -269,8 +322,9 @@ def run_feature_pipeline(
                 residual_mm=res * scale,
                 n_matches=candidates[i].n_matches,
                 inliers=candidates[i].inliers,
+                free_space_violation=v,
             )
-            for i, T_s, res in tried
+            for i, T_s, res, v in tried
         ]
         T_norm = poses_norm[chosen]
         times["screen"] = _lap(t)
@@ -280,6 +334,7 @@ def run_feature_pipeline(
         residual = residual_norm(T_norm, prep)
         times["refine"] = _lap(t)
     uncertainty = uncertainty_mm(T_norm, prep, config, times)
+    violation_final, free_space = _final_free_space(scorer, T_norm, times)
     return RegistrationResult(
         T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
         method=provider.name,
@@ -288,6 +343,8 @@ def run_feature_pipeline(
         candidates=candidates,
         screened=screened,
         uncertainty_mm=uncertainty,
+        free_space_violation=violation_final,
+        free_space=free_space,
         chosen=chosen,
         n_matches=candidates[chosen].n_matches,
         visibility=prep.visibility,
@@ -319,24 +376,27 @@ def run_global_pipeline(
         t = time.perf_counter()
         T_norm = _refine(T_norm, prep, config, ctx.cache)
         times["refine"] = _lap(t)
-    return _single_result(T_norm, prep, times, "estimate", config)
+    return _single_result(T_norm, prep, times, "estimate", config, ctx)
 
 
 def _single_result(
-    T_norm: np.ndarray, prep: Prepared, times: dict[str, float], name: str, config: Config
+    T_norm: np.ndarray, prep: Prepared, times: dict[str, float], name: str, config: Config, ctx: MethodContext
 ) -> RegistrationResult:
     """The result of a one-hypothesis method (no P2P candidates) from its normalized transform."""
     uncertainty = uncertainty_mm(T_norm, prep, config, times)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
     T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
+    violation, free_space = _final_free_space(free_space_scorer(prep, config, ctx), T_norm, times)
     return RegistrationResult(
         T_target_source=T_mm,
         method="",
         residual_mm=residual,
         runtime_ms=times,
-        candidates=[Candidate(name, T_mm, residual, 0)],
+        candidates=[Candidate(name, T_mm, residual, 0, free_space_violation=violation)],
         chosen=0,
         uncertainty_mm=uncertainty,
+        free_space_violation=violation,
+        free_space=free_space,
         visibility=prep.visibility,
         n_source=len(prep.source),
         n_target=len(prep.target),
@@ -400,16 +460,30 @@ def icp(source_mm, target_mm, config: Config, ctx: MethodContext) -> Registratio
 @method("track")
 def track(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
     """Trimmed point-to-plane ICP from a prior pose (the previous frame's): no global search."""
+    return _from_prior(source_mm, target_mm, config, ctx, "track", refine=True)
+
+
+@method("evaluate")
+def evaluate(source_mm, target_mm, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """A given pose as is (no search, no ICP): its residual, uncertainty, free-space violation and TRE."""
+    return _from_prior(source_mm, target_mm, config, ctx, "evaluate", refine=False)
+
+
+def _from_prior(
+    source_mm: np.ndarray, target_mm: np.ndarray, config: Config, ctx: MethodContext, name: str, *, refine: bool
+) -> RegistrationResult:
+    """The result of a prior pose (`initial_T_mm`), refined by ICP or as given."""
     if ctx.initial_T_mm is None:
-        raise InputError("method 'track' refines a prior pose and needs initial_T_mm (the previous registration)")
+        raise InputError(f"method '{name}' starts from a prior pose and needs initial_T_mm (the previous registration)")
     t = time.perf_counter()
     prep = prepare(source_mm, target_mm, config, ctx.cache)
     times = {"preprocess": _lap(t)}
-    t = time.perf_counter()
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ _norm_to_mm(prep.source_norm)
-    T_norm = _refine(T_norm, prep, config, ctx.cache)
-    times["refine"] = _lap(t)
-    return _single_result(T_norm, prep, times, "tracked", config)
+    if refine:
+        t = time.perf_counter()
+        T_norm = _refine(T_norm, prep, config, ctx.cache)
+        times["refine"] = _lap(t)
+    return _single_result(T_norm, prep, times, "tracked" if refine else "given", config, ctx)
 
 
 @method("procrustes")
@@ -426,14 +500,17 @@ def procrustes_oracle(source_mm, target_mm, config: Config, ctx: MethodContext) 
     T_norm = np.linalg.inv(_norm_to_mm(prep.target_norm)) @ T @ _norm_to_mm(prep.source_norm)
     residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
     uncertainty = uncertainty_mm(T_norm, prep, config, times)
+    violation, free_space = _final_free_space(free_space_scorer(prep, config, ctx), T_norm, times)
     return RegistrationResult(
         T_target_source=T,
         method="procrustes",
         residual_mm=residual,
         runtime_ms=times,
-        candidates=[Candidate("fiducials", T, residual, len(ctx.source_fiducials_mm))],
+        candidates=[Candidate("fiducials", T, residual, len(ctx.source_fiducials_mm), free_space_violation=violation)],
         chosen=0,
         uncertainty_mm=uncertainty,
+        free_space_violation=violation,
+        free_space=free_space,
         n_matches=len(ctx.source_fiducials_mm),
         visibility=prep.visibility,
         n_source=len(prep.source),

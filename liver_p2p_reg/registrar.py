@@ -33,6 +33,7 @@ class MethodContext:
     # Lives as long as the Registrar: methods keep loaded models / source features here.
     cache: dict[str, Any] = field(default_factory=dict)
     initial_T_mm: np.ndarray | None = None  # a prior T_target_source (method `track`)
+    sensor_origin_mm: np.ndarray | None = None  # (3,) where the target's sensor stood, target frame (free space)
 
 
 def remember_latest(
@@ -140,10 +141,15 @@ class Registrar:
         source_fiducials_mm: np.ndarray | None = None,
         target_fiducials_mm: np.ndarray | None = None,
         initial_T_mm: np.ndarray | None = None,
+        sensor_origin_mm: np.ndarray | None = None,
     ) -> RegistrationResult:
         """Estimate T_target_source (4x4, mm). Raises InputError / RegistrationError.
 
         `initial_T_mm` is a prior pose, used by the `track` method (ICP from the prior).
+        `sensor_origin_mm` is where the target's depth sensor stood (3 numbers, mm, target frame):
+        then every hypothesis is also scored by free-space consistency (freespace.py), which
+        enters the selection, the ambiguity test and `result.free_space_violation`. None (unknown)
+        changes nothing.
         """
         start = time.perf_counter()
         source = clean_points(source_mm, "source", min_points=self.config.min_points)
@@ -155,7 +161,7 @@ class Registrar:
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
         name = method or self.config.method
         fn = get_method(name)
-        ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm))
+        ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm), _check_origin(sensor_origin_mm))
         result = fn(source, target, self.config, ctx)
         result.method = name
         # After an ICP screening its refined hypotheses are the better evidence of a rival pose.
@@ -163,7 +169,9 @@ class Registrar:
 
         cfg = self.config
         hypotheses = result.screened or result.candidates
-        result.ambiguous = is_ambiguous(hypotheses, source, cfg.ambiguity_residual_ratio, cfg.ambiguity_pose_mm)
+        result.ambiguous = is_ambiguous(
+            hypotheses, source, cfg.ambiguity_residual_ratio, cfg.ambiguity_pose_mm, cfg.free_space_weight
+        )
         if fid_s is not None and fid_t is not None:
             result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
             result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
@@ -207,6 +215,15 @@ def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InputError("initial_T_mm must be a rigid transform (its 3x3 block is not a rotation)")
     return T
+
+
+def _check_origin(origin: np.ndarray | None) -> np.ndarray | None:
+    if origin is None:
+        return None
+    origin = as_float_array(origin, "sensor origin").reshape(-1)
+    if origin.shape != (3,) or not np.isfinite(origin).all():
+        raise InputError(f"the sensor origin must be 3 finite numbers (mm, target frame), got {origin.tolist()}")
+    return origin
 
 
 def _check_fiducials(fid_s: np.ndarray | None, fid_t: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:

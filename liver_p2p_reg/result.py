@@ -18,6 +18,8 @@ class Candidate:
     n_matches: int
     ok: bool = True  # False when Procrustes failed (too few / degenerate matches)
     inliers: int = 0  # matches within the inlier radius (used by the inlier-count rule)
+    # share of the view's footprint this pose contradicts (freespace.py); NaN: sensor origin unknown
+    free_space_violation: float = float("nan")
 
     def to_json_dict(self) -> dict[str, Any]:
         return {
@@ -27,6 +29,7 @@ class Candidate:
             "n_matches": int(self.n_matches),
             "inliers": int(self.inliers),
             "ok": bool(self.ok),
+            "free_space_violation": _finite_or_none(self.free_space_violation),
         }
 
 
@@ -50,6 +53,10 @@ class RegistrationResult:
     uncertainty_mm: float = float("nan")
     # `-icp` feature methods: each screened candidate after its short ICP (the ambiguity test uses these)
     screened: list[Candidate] = field(default_factory=list)
+    # share of the view's footprint the final pose contradicts (freespace.py): NaN when the sensor
+    # origin is unknown or was refused; `free_space` says which ("", "on", "off: <why>")
+    free_space_violation: float = float("nan")
+    free_space: str = ""
     ok: bool = True
     message: str = ""
     # conditions the user must hear about although a pose was found (e.g. prepared weights made
@@ -81,6 +88,8 @@ class RegistrationResult:
             "n_target": int(self.n_target),
             "ambiguous": bool(self.ambiguous),
             "uncertainty_mm": _finite_or_none(self.uncertainty_mm),
+            "free_space_violation": _finite_or_none(self.free_space_violation),
+            "free_space": self.free_space,
             "chosen_candidate": self.chosen,
             "candidates": [c.to_json_dict() for c in self.candidates],
             "screened": [c.to_json_dict() for c in self.screened],

@@ -38,6 +38,7 @@ class CaseInfo:
     seed: int
     added_noise_mm: float = 0.0  # sensor noise the benchmark adds to the target (Table II rows)
     density: str = "uniform"  # how the target samples its surface (phantom/artifacts.py)
+    has_sensor_origin: bool = False  # the case stores where its camera stood (camera crops)
 
 
 def visibility_bin(visibility: float) -> int | None:
@@ -88,7 +89,15 @@ def case_info(path: Path) -> CaseInfo:
         deformation_rms_mm=float(data.get("deformation_rms_mm", np.nan)),
         seed=int(seed),
         density=str(data.get("density", "uniform")),
+        has_sensor_origin=sensor_origin_mm(data) is not None,
     )
+
+
+def sensor_origin_mm(data: dict[str, Any]) -> np.ndarray | None:
+    """The camera position a case stores (mm, target frame); None when it has none (random crops, older files)."""
+    from ..phantom.dataset import sensor_origin_mm as stored_origin  # the generator owns the key
+
+    return stored_origin(data)
 
 
 NOISE_BINS = ("lowest", "all")

@@ -22,7 +22,7 @@ from ..config import Config
 from ..errors import InputError, LiverP2PError
 from ..metrics import rms_tre_mm, tre_mm
 from ..registrar import Registrar, available_methods
-from .cases import CaseInfo, add_target_noise, case_seed, first_per_bin, read_case
+from .cases import CaseInfo, add_target_noise, case_seed, first_per_bin, read_case, sensor_origin_mm
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,7 @@ TAIL_COLUMNS = (
     "reason",
     "ambiguous",
     "uncertainty_mm",
+    "free_space_violation",
     "seed",
 )
 FLOAT_COLUMNS = {
@@ -69,36 +70,42 @@ FLOAT_COLUMNS = {
     "runtime_ms",
     "method_visibility",
     "uncertainty_mm",
+    "free_space_violation",
 }
 INT_COLUMNS = {"n_candidates", "n_matches", "seed"}
 BOOL_COLUMNS = {"failed", "ambiguous"}
 ABLATION_K = tuple(range(1, 9))  # the paper's Fig. 8: K = 1 ... 8
 ABLATION_CASES_PER_BIN = 10
 # Settings that may differ between runs into one OUT: they add rows and never change existing ones.
-ADDITIVE_SETTINGS = ("noise_levels_mm", "ablation_cases_per_bin")
+ADDITIVE_SETTINGS = ("noise_levels_mm", "ablation_cases_per_bin", "sensor_aware")
+SENSOR_AWARE_TAG = "[fs]"  # label suffix of the rows registered with the case's sensor origin (free space)
 
 
 @dataclass(frozen=True)
 class Variant:
-    """One way of running a method: its name plus Config overrides (empty for the main run)."""
+    """One way of running a method: its name plus Config overrides (empty for the main run), and
+    whether the case's sensor origin is given (a main run of its own, labelled `method[fs]`)."""
 
     method: str
     overrides: tuple[tuple[str, Any], ...] = ()
+    sensor_aware: bool = False
     # A named main-table method built on `method` (e.g. `prepared`: per-liver prepared weights in
     # `overrides`); its rows count as a method of their own, not as an ablation variant.
     tag: str = ""
 
     @property
     def label(self) -> str:
+        base = self.method + SENSOR_AWARE_TAG if self.sensor_aware else self.method
         if self.tag:
-            return f"{self.method}[{self.tag}]"
+            return f"{base}[{self.tag}]"
         if not self.overrides:
-            return self.method
-        return f"{self.method}[{','.join(f'{k}={v}' for k, v in self.overrides)}]"
+            return base
+        return f"{base}[{self.variant}]"
 
     @property
     def variant(self) -> str:
-        return "" if self.tag else self.label[len(self.method) :].strip("[]")
+        """The ablation's overrides ("" for a main run, with or without the sensor origin or a tag)."""
+        return "" if self.tag else ",".join(f"{k}={v}" for k, v in self.overrides)
 
 
 @dataclass
@@ -121,6 +128,7 @@ class BenchmarkSpec:
     # rows for the learned methods
     prepared: dict[str, str] = field(default_factory=dict)
     prepare_minutes: float = 0.0
+    sensor_aware: bool = False  # also run every method with the case's sensor origin (`method[fs]` rows)
 
     def settings(self) -> dict[str, Any]:
         """The settings recorded in OUT/settings.json; a rerun must match them."""
@@ -137,6 +145,7 @@ class BenchmarkSpec:
             "noise_levels_mm": list(self.noise_levels_mm),
             "noise_bins": self.noise_bins,
             "prepare_minutes": self.prepare_minutes,
+            "sensor_aware": self.sensor_aware,
             "config": self.config.to_dict(),
         }
 
@@ -149,6 +158,8 @@ def is_p2p(method: str) -> bool:
 def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
     """All (case, variant) pairs of the run, cases outermost so partial runs cover whole cases."""
     main = [Variant(m) for m in spec.methods]
+    if spec.sensor_aware:  # the same cases with the sensor origin, next to each method's plain run
+        main += [Variant(m, sensor_aware=True) for m in spec.methods if m != ORACLE]  # the oracle ignores it
     ablation: list[Variant] = []
     if spec.ablations:
         cfg = spec.config
@@ -215,12 +226,16 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
     }
     start = time.perf_counter()
     try:
+        origin = sensor_origin_mm(data) if variant.sensor_aware else None
+        if variant.sensor_aware and origin is None:
+            raise InputError(f"case {case.case_id} stores no sensor origin (only camera crops do)")
         result = registrar.register(
             data["src_pcd"],
             add_target_noise(np.asarray(data["tgt_pcd"], float), case),
             method=variant.method,
             source_fiducials_mm=src_marker,
             target_fiducials_mm=tgt_marker,
+            sensor_origin_mm=origin,
         )
     except LiverP2PError as exc:
         return {**row, **_failed(initial_rms, initial_max, f"{type(exc).__name__}: {exc}", start)}
@@ -246,6 +261,7 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
         reason="" if result.ok else (result.message or "method reported failure"),
         ambiguous=bool(result.ambiguous),
         uncertainty_mm=float(result.uncertainty_mm),
+        free_space_violation=float(result.free_space_violation),
     )
     for stage, ms in result.runtime_ms.items():
         if stage != "total":
@@ -269,6 +285,7 @@ def _failed(initial_rms: float, initial_max: float, reason: str, start: float) -
         "reason": reason.splitlines()[0] if reason else "failed",
         "ambiguous": False,
         "uncertainty_mm": math.nan,
+        "free_space_violation": math.nan,
     }
 
 
@@ -349,6 +366,8 @@ def check_settings(out: Path, settings: dict[str, Any]) -> None:
         for key in ADDITIVE_SETTINGS:  # record what was added (union of noise levels, largest ablation set)
             if key == "noise_levels_mm":
                 settings[key] = sorted(set(old.get(key, [])) | set(settings[key]))
+            elif key == "sensor_aware":
+                settings[key] = bool(old.get(key, False) or settings[key])
             else:
                 settings[key] = max(old.get(key, 0), settings[key])
         path.write_text(json.dumps(settings, indent=2, sort_keys=True) + "\n")

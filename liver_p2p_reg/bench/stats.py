@@ -33,9 +33,15 @@ METHOD_ORDER = (
 
 
 def order_methods(methods: set[str] | list[str]) -> list[str]:
-    """Methods in display order: the oracle first, then METHOD_ORDER, then alphabetical."""
+    """Methods in display order: the oracle first, then METHOD_ORDER, then alphabetical; a
+    `method[fs]` row (with the sensor origin) right after its method."""
     rank = {m: i for i, m in enumerate(METHOD_ORDER)}
-    return sorted(set(methods), key=lambda m: (rank.get(m, len(rank)), m))
+
+    def key(m: str) -> tuple[int, str, bool]:
+        base = m.removesuffix("[fs]")
+        return rank.get(base, len(rank)), base, m != base
+
+    return sorted(set(methods), key=key)
 
 
 def main_rows(rows: list[Row], with_added_noise: bool = False) -> list[Row]:

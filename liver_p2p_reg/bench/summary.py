@@ -199,15 +199,19 @@ class Summary:
             if row["failed"]:
                 return {"error"}
             uncertainty = row.get("uncertainty_mm", 0.0)  # absent from runs before the column existed
-            return set(pose_warnings(row["residual_mm"], row["ambiguous"], uncertainty, cfg))
+            violation = row.get("free_space_violation", math.nan)  # NaN: no sensor origin given
+            return set(pose_warnings(row["residual_mm"], row["ambiguous"], uncertainty, cfg, violation))
 
+        kinds = ["residual", "ambiguous", "uncertainty"]
+        if any(math.isfinite(r.get("free_space_violation", math.nan)) for r in rows):
+            kinds.append("free_space")  # only runs with the sensor origin (`--sensor-aware`) can warn by it
         header = [
             "method",
             f"poses off by ≥ {SUCCESS_TAU_MM:g} mm",
             "of them warned",
             f"poses within {GOOD_POSE_MM:g} mm warned",
             "warned in all",
-            "by residual / ambiguity / uncertainty",
+            "by " + " / ".join(k.replace("ambiguous", "ambiguity").replace("_", " ") for k in kinds),
         ]
         table = []
         for m in self.methods:
@@ -217,7 +221,7 @@ class Summary:
             reasons = [reasons_for(r) for r in mine]
             bad = [bool(w) for r, w in zip(mine, reasons, strict=True) if r["rms_tre_mm"] >= SUCCESS_TAU_MM]
             good = [bool(w) for r, w in zip(mine, reasons, strict=True) if r["rms_tre_mm"] <= GOOD_POSE_MM]
-            counts = [sum(k in w for w in reasons) for k in ("residual", "ambiguous", "uncertainty")]
+            counts = [sum(k in w for w in reasons) for k in kinds]
             table.append(
                 [
                     self.name(m),
@@ -453,7 +457,8 @@ class Summary:
             "## Confidence: would the node have warned? (WARN or ERROR by the configured thresholds)",
             "",
             f"Cases as stored (no benchmark-added noise). A pose is warned when the method failed, or it is ambiguous, or its residual is above "
-            f"`residual_warn_mm`, or its uncertainty above `uncertainty_warn_mm`; a safe method warns on every pose off by "
+            f"`residual_warn_mm`, or its uncertainty above `uncertainty_warn_mm`, or (rows with the sensor origin, `[fs]`) its "
+            f"free-space violation above `free_space_warn`; a safe method warns on every pose off by "
             f"{SUCCESS_TAU_MM:g} mm or more and on few within {GOOD_POSE_MM:g} mm.",
             "",
             *self.table_confidence(self.main),

@@ -52,6 +52,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="also run the learned methods with patient-prepared weights (`liver-p2p prepare`, this many "
         "minutes per liver, each test liver once, cached under DATA_ROOT/prepared): rows `<method>[prepared]`",
     )
+    p.add_argument(
+        "--sensor-aware",
+        action="store_true",
+        help="also run every method with each case's stored camera position (free-space scoring), "
+        "as rows `METHOD[fs]` beside the plain ones; needs camera crops (e.g. insilico-camera-v1)",
+    )
     p.add_argument("--data-root", help="where named test sets live (default: $LIVER_P2P_DATA or ./data)")
     p.add_argument("--readme", help="replace the README's BENCHMARK block with the main tables")
     p.add_argument(
@@ -85,6 +91,8 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
             parts += [flag, str(value)]
     if args.ablations:
         parts += ["--ablations", "--ablation-cases-per-bin", str(args.ablation_cases_per_bin)]
+    if args.sensor_aware:
+        parts += ["--sensor-aware"]
     if args.readme:
         parts += ["--readme", args.readme]
         if args.readme_block != "BENCHMARK":
@@ -148,6 +156,14 @@ def run(args: argparse.Namespace) -> int:
     paths = list_case_paths(folder) if plan is None else [folder / n for n in plan[1] if (folder / n).is_file()]
     cases = select_cases([case_info(p) for p in paths], args.preset, args.limit)
     cases = with_noise(cases, noise_levels, args.noise_bins)
+    if args.sensor_aware:
+        lacking = [c.case_id for c in cases if not c.has_sensor_origin]
+        if lacking:
+            raise InputError(
+                f"--sensor-aware: {len(lacking)} of {len(cases)} cases store no sensor origin (e.g. {lacking[0]}); "
+                "only camera crops do (a camera set made before the origin was stored is brought up to date by "
+                "`liver-p2p dataset generate --testset NAME`)"
+            )
     prepared: dict[str, str] = {}
     if args.prepare_minutes > 0:
         from ..bench.prepared import prepare_test_livers
@@ -175,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
         noise_bins=args.noise_bins,
         prepared=prepared,
         prepare_minutes=args.prepare_minutes,
+        sensor_aware=args.sensor_aware,
     )
     check_settings(out, spec.settings())  # refuse a mismatching OUT before touching it
     machine = machine_info(config.device)

@@ -59,6 +59,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "or a JSON result of an earlier registration",
     )
     p.add_argument(
+        "--sensor-origin",
+        metavar="X,Y,Z",
+        help="where the depth sensor stood when it saw TARGET (mm, TARGET's frame; (0,0,0) for a cloud in the "
+        "sensor's own frame; write --sensor-origin=-10,0,5 when it starts with a minus): poses that put "
+        "SOURCE's surface where the sensor saw none are then ruled out (free space); default: unknown",
+    )
+    p.add_argument(
         "--output",
         "-o",
         metavar="PATH",
@@ -154,9 +161,23 @@ def load_initial_transform(path: Path) -> Any:
     return matrix
 
 
+def sensor_origin(text: str | None) -> list[float] | None:
+    """`X,Y,Z` in mm -> three numbers; a bad value is one InputError line."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(abs(v) < float("inf") for v in values):
+        raise InputError(f"--sensor-origin must be three finite numbers X,Y,Z in mm, got {text!r}")
+    return values
+
+
 def run(args: argparse.Namespace) -> int:
     from ..registrar import check_method_name
 
+    args.sensor_origin_mm = sensor_origin(args.sensor_origin)
     targets = [Path(t) for t in args.targets]
     several = len(targets) > 1
     outputs = _output_paths(args.output, targets, args.force, "--output", (), ".json")
@@ -246,6 +267,7 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
                 source_fiducials_mm=fid_s,
                 target_fiducials_mm=fid_t,
                 initial_T_mm=initial_T,
+                sensor_origin_mm=args.sensor_origin_mm,
             )
         except LiverP2PError as exc:
             if not several:
@@ -271,7 +293,10 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
 def _warnings(result, config) -> list[str]:
     from ..confidence import result_warnings
 
-    return list(result_warnings(result, config).values())
+    warnings = list(result_warnings(result, config).values())
+    if result.free_space.startswith("off"):  # an origin was given but cannot be the target's sensor
+        warnings.append(f"--sensor-origin ignored: {result.free_space.removeprefix('off: ')}")
+    return warnings
 
 
 def _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved: Path | None, plot: Path | None):

@@ -101,8 +101,7 @@ def camera_order(
 
     The camera looks at a random anterior-facing surface point from 80-150 mm, its axis
     tilted up to ~25 degrees from the anterior direction (ports sit in the abdominal wall), a
-    70-degree field of view; hidden points are removed with a z-buffer (splatted by a 3x3
-    minimum filter so the far side cannot shine through gaps between samples).
+    70-degree field of view (`visible_from`).
     """
     anterior = np.flatnonzero(normals[:, 1] > 0.5)
     if len(anterior) == 0:
@@ -112,21 +111,35 @@ def camera_order(
     view /= np.linalg.norm(view)
     distance = rng.uniform(80.0, 150.0)
     eye = look_at + distance * view
-    z_axis = -view  # camera looks along +z
+    info = {"eye_mm": eye, "look_at_mm": look_at, "distance_mm": distance}
+    return visible_from(points, eye, -view, pixel_rad=pixel_rad), info
+
+
+def camera_axes(z_axis: np.ndarray) -> np.ndarray:
+    """(3, 3) columns x, y, z of a camera looking along `z_axis` (unit), x level with the world's xy plane."""
     x_axis = np.cross([0.0, 0.0, 1.0], z_axis)
     x_axis /= np.linalg.norm(x_axis)
-    y_axis = np.cross(z_axis, x_axis)
-    cam = (points - eye) @ np.stack([x_axis, y_axis, z_axis], axis=1)
+    return np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
+
+
+def visible_from(
+    points: np.ndarray, eye: np.ndarray, z_axis: np.ndarray, half_fov_deg: float = 35.0, pixel_rad: float = 0.02
+) -> np.ndarray:
+    """Indices of the points a camera at `eye` looking along `z_axis` (unit) sees, nearest its axis first.
+
+    A square field of view of 2 x `half_fov_deg`; hidden points are removed with a z-buffer
+    (splatted by a 3x3 minimum filter so the far side cannot shine through gaps between samples).
+    """
+    cam = (points - eye) @ camera_axes(z_axis)
     depth = cam[:, 2]
-    half_fov = np.radians(35.0)
+    half_fov = np.radians(half_fov_deg)
     in_front = depth > 1.0
     u = np.where(in_front, cam[:, 0] / np.maximum(depth, 1e-6), np.inf)
     v = np.where(in_front, cam[:, 1] / np.maximum(depth, 1e-6), np.inf)
     in_fov = in_front & (np.abs(u) <= np.tan(half_fov)) & (np.abs(v) <= np.tan(half_fov))
     idx = np.flatnonzero(in_fov)
-    info = {"eye_mm": eye, "look_at_mm": look_at, "distance_mm": distance}
     if len(idx) == 0:
-        return idx, info
+        return idx
     n_pix = int(np.ceil(2 * np.tan(half_fov) / pixel_rad)) + 1
     pu = np.clip(((u[idx] + np.tan(half_fov)) / pixel_rad).astype(np.int64), 0, n_pix - 1)
     pv = np.clip(((v[idx] + np.tan(half_fov)) / pixel_rad).astype(np.int64), 0, n_pix - 1)
@@ -136,7 +149,7 @@ def camera_order(
     tolerance_mm = 4.0 + 0.03 * depth[idx]  # a pixel's footprint grows with depth
     visible = idx[depth[idx] <= zbuf[pu, pv] + tolerance_mm]
     radius = np.hypot(u[visible], v[visible])
-    return visible[np.argsort(radius, kind="stable")], info
+    return visible[np.argsort(radius, kind="stable")]
 
 
 def _prefix_for_visibility(ordered_final: np.ndarray, meter: VisibilityMeter, visibility: float) -> tuple[int, float]:

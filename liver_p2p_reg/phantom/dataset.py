@@ -60,6 +60,9 @@ CASE_KEYS = (
     "seed",
     "generator_version",
 )
+# Optional keys: camera crops also store where the camera stood (the eye), in the target frame.
+# Case files made before it existed lack it: their sensor origin is unknown.
+SENSOR_ORIGIN_KEY = "sensor_origin_mm"
 MANIFEST_FIELDS = (
     "file",
     "split",
@@ -111,7 +114,7 @@ def make_case(
         coarse_mm=deformation.coarse_mm if density == "mesh-vertices" else None,
     )
     R, t = target["R_gt"], target["t_gt"]
-    return {
+    case = {
         "src_pcd": np.asarray(sim.vertices_mm, dtype=np.float64),
         "tgt_pcd": target["tgt_pcd"],
         "src_marker": np.asarray(sim.fiducials_mm, dtype=np.float64),
@@ -130,6 +133,19 @@ def make_case(
         "seed": int(seed),
         "generator_version": GENERATOR_VERSION,
     }
+    eye = target["crop_info"].get("eye_mm")
+    if eye is not None:  # the eye moves with the target: the same R_gt, t_gt (noise is the sensor's own)
+        case[SENSOR_ORIGIN_KEY] = R @ np.asarray(eye, dtype=np.float64) + t
+    return case
+
+
+def sensor_origin_mm(case: dict) -> np.ndarray | None:
+    """The camera position of a case (mm, target frame), or None when unknown (random crops, older files)."""
+    value = case.get(SENSOR_ORIGIN_KEY)
+    if value is None:
+        return None
+    origin = np.asarray(value, dtype=np.float64).reshape(-1)
+    return origin if origin.shape == (3,) and np.isfinite(origin).all() else None
 
 
 def write_case(path: str | Path, case: dict) -> Path:
@@ -254,7 +270,7 @@ def _generate_liver(args: tuple[DatasetSpec, int, str]) -> list[dict]:
     out_dir = Path(out)
     liver_id = liver_id_for(spec.seed, liver_index)
     paths = [out_dir / case_name(liver_id, d, t) for d in range(spec.deformations) for t in range(spec.targets)]
-    if all(p.exists() for p in paths):  # resumed run: nothing to simulate for this liver
+    if all(case_is_current(p, spec.crop) for p in paths):  # resumed run: nothing to simulate for this liver
         return [manifest_row(p, read_case(p), spec.split) for p in paths]
     sim = simulate_liver(liver_id, spec.deformations, target_tets=spec.target_tets)
     meter = VisibilityMeter(sim.vertices_mm)
@@ -262,7 +278,7 @@ def _generate_liver(args: tuple[DatasetSpec, int, str]) -> list[dict]:
     for d in range(spec.deformations):
         for t in range(spec.targets):
             path = out_dir / case_name(liver_id, d, t)
-            if path.exists():
+            if case_is_current(path, spec.crop):
                 rows.append(manifest_row(path, read_case(path), spec.split))
                 continue
             case = None
@@ -286,6 +302,20 @@ def _generate_liver(args: tuple[DatasetSpec, int, str]) -> list[dict]:
             write_case(path, case)
             rows.append(manifest_row(path, case, spec.split))
     return rows
+
+
+def case_is_current(path: Path, crop: str) -> bool:
+    """A finished case file of this generator; a camera crop made before the camera position was
+    stored is not (regenerating it changes nothing else: the generator is deterministic)."""
+    if not path.is_file():
+        return False
+    if crop != "camera":
+        return True
+    try:
+        with zipfile.ZipFile(path) as archive:  # the key list only, no array is read
+            return f"{SENSOR_ORIGIN_KEY}.npy" in archive.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
 
 
 def manifest_row(path: Path, case: dict, split: str) -> dict:

@@ -7,7 +7,9 @@ and deformations seen by an anterior laparoscope, 4 targets per deformation in t
 [0.2,0.3) and [0.3,0.4) (a camera rarely sees more): 240 cases, 120 per bin. `insilico-smoke`: 2 livers x 1
 deformation x 8 bins for fast tests and demo bags. `insilico-val-v1` / `insilico-val-camera-v1`:
 6 other livers (seed 990) in the same two forms (240 / 120 cases), the validation sets on which
-defaults and thresholds are chosen. Noise levels are applied by the benchmark
+defaults and thresholds are chosen. Camera crops also store where the camera stood
+(`sensor_origin_mm`, target frame) for free-space checks; sets made before that field existed are
+brought up to date in place, every other array unchanged. Noise levels are applied by the benchmark
 on top of these clean targets (or with `--noise` when generating other sets).
 """
 
@@ -23,6 +25,7 @@ from ..errors import InputError
 from .dataset import (
     COMPLETE_MARKER,
     DatasetSpec,
+    case_is_current,
     case_name,
     generate_dataset,
     liver_id_for,
@@ -70,7 +73,7 @@ def is_complete(path: Path, spec: DatasetSpec) -> bool:
         return False
     if json.loads(spec_path.read_text()) != asdict(spec):
         return False
-    return all((path / r["file"]).is_file() for r in read_manifest(path))
+    return all(case_is_current(path / r["file"], spec.crop) for r in read_manifest(path))
 
 
 def expected_cases(name: str) -> list[tuple[int, str, float]]:

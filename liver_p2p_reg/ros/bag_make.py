@@ -102,7 +102,6 @@ def make_case_bag(
             "bag inputs are read as millimetres",
         )
     rng = np.random.default_rng(seed)
-    types = rosbags_types()
     description = {
         "frames": n_frames,
         "frame_id": frame_id,
@@ -111,32 +110,116 @@ def make_case_bag(
         "motion_deg": motion_deg,
         **(info or {}),
     }
+    # The random draws in their historical order (preop, motions, then each frame's subsample):
+    # bags of unchanged cases stay byte-identical.
+    preop = subsample(source_mm, max_preop_points, rng)
+    frames, frame_fiducials = [], []
+    for T in sensor_motion(n_frames, motion_mm, motion_deg, rng):
+        if target_fiducials_mm is not None:
+            frame_fiducials.append(transform_points(T, target_fiducials_mm))
+        frames.append(transform_points(T, subsample(target_mm, max_intraop_points, rng)))
+    return write_frames(
+        out,
+        preop,
+        frames,
+        source_fiducials_mm=source_fiducials_mm,
+        frame_fiducials_mm=frame_fiducials if target_fiducials_mm is not None else None,
+        frame_period_s=frame_period_s,
+        frame_id=frame_id,
+        preop_frame=preop_frame,
+        description=description,
+        overwrite=overwrite,
+    )
+
+
+def make_sweep_bag(
+    out: str | Path,
+    source_mm: np.ndarray,
+    frames_mm: list[np.ndarray],
+    *,
+    source_fiducials_mm: np.ndarray | None = None,
+    frame_fiducials_mm: list[np.ndarray] | None = None,
+    frame_period_s: float = 0.2,
+    frame_id: str = "camera",
+    preop_frame: str = "ct",
+    max_preop_points: int = 20_000,
+    seed: int = 0,
+    info: dict[str, Any] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a moving sensor's frames (each in the sensor's frame at that moment, mm) as a rosbag2 directory.
+
+    Frame k is stamped START_NS + (k + 1) x period; its ground-truth fiducials (same frame) carry its stamp.
+    """
+    source_mm = _points(source_mm, "source")
+    frames = [_points(f, f"frame {k}") for k, f in enumerate(frames_mm)]
+    if not frames:
+        raise InputError("a sweep needs at least one frame")
+    if (source_fiducials_mm is None) != (frame_fiducials_mm is None):
+        raise InputError("give both source and per-frame fiducials, or neither")
+    if frame_fiducials_mm is not None:
+        source_fiducials_mm = _points(source_fiducials_mm, "source fiducials", paired=True)
+        frame_fiducials_mm = [_points(f, "frame fiducials", paired=True) for f in frame_fiducials_mm]
+        if len(frame_fiducials_mm) != len(frames) or any(
+            f.shape != source_fiducials_mm.shape for f in frame_fiducials_mm
+        ):
+            raise InputError("per-frame fiducials must match the frames in number and the source fiducials in shape")
+    if not frame_period_s > 0:
+        raise InputError(f"the frame period must be > 0 s, got {frame_period_s}")
+    rng = np.random.default_rng(seed)
+    description = {"frames": len(frames), "frame_id": frame_id, "frame_period_s": frame_period_s, **(info or {})}
+    return write_frames(
+        out,
+        subsample(source_mm, max_preop_points, rng),
+        frames,
+        source_fiducials_mm=source_fiducials_mm,
+        frame_fiducials_mm=frame_fiducials_mm,
+        frame_period_s=frame_period_s,
+        frame_id=frame_id,
+        preop_frame=preop_frame,
+        description=description,
+        overwrite=overwrite,
+    )
+
+
+def write_frames(
+    out: str | Path,
+    preop_mm: np.ndarray,
+    frames_mm: list[np.ndarray],
+    *,
+    source_fiducials_mm: np.ndarray | None,
+    frame_fiducials_mm: list[np.ndarray] | None,
+    frame_period_s: float,
+    frame_id: str,
+    preop_frame: str,
+    description: dict[str, Any],
+    overwrite: bool,
+) -> Path:
+    """The bag itself: preop model and fiducials (latched), then each frame's fiducials and cloud, in metres."""
+    types = rosbags_types()
     period_ns = int(frame_period_s * 1e9)
     with BagWriter(out, overwrite=overwrite, custom_data={CASE_KEY: json.dumps(description, sort_keys=True)}) as bag:
-        preop = subsample(source_mm, max_preop_points, rng)
         bag.write(
             TOPIC_PREOP,
             POINTCLOUD2,
             START_NS,
-            points_to_cloud(preop * M_PER_MM, types, frame_id=preop_frame, stamp_ns=START_NS),
+            points_to_cloud(preop_mm * M_PER_MM, types, frame_id=preop_frame, stamp_ns=START_NS),
         )
         if source_fiducials_mm is not None:
             msg = points_to_cloud(source_fiducials_mm * M_PER_MM, types, frame_id=preop_frame, stamp_ns=START_NS)
             bag.write(TOPIC_PREOP_FIDUCIALS, POINTCLOUD2, START_NS, msg)
-        for k, T in enumerate(sensor_motion(n_frames, motion_mm, motion_deg, rng)):
+        for k, frame in enumerate(frames_mm):
             stamp = START_NS + (k + 1) * period_ns
-            if target_fiducials_mm is not None:  # logged just before its cloud so replay pairs them
-                fid = transform_points(T, target_fiducials_mm) * M_PER_MM
+            if frame_fiducials_mm is not None:  # logged just before its cloud so replay pairs them
+                fid = frame_fiducials_mm[k] * M_PER_MM
                 bag.write(
                     TOPIC_INTRAOP_FIDUCIALS,
                     POINTCLOUD2,
                     stamp - 1000,
                     points_to_cloud(fid, types, frame_id=frame_id, stamp_ns=stamp),
                 )
-            frame = transform_points(T, subsample(target_mm, max_intraop_points, rng)) * M_PER_MM
-            bag.write(
-                TOPIC_INTRAOP, POINTCLOUD2, stamp, points_to_cloud(frame, types, frame_id=frame_id, stamp_ns=stamp)
-            )
+            cloud = points_to_cloud(frame * M_PER_MM, types, frame_id=frame_id, stamp_ns=stamp)
+            bag.write(TOPIC_INTRAOP, POINTCLOUD2, stamp, cloud)
     return Path(out)
 
 

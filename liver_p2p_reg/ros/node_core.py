@@ -24,6 +24,7 @@ from ..metrics import transform_points
 from ..preprocess import voxel_downsample
 from ..registrar import Registrar
 from ..result import RegistrationResult
+from ..survey import Survey
 from .pointcloud2 import cloud_to_points_mm, stamp_to_ns
 
 LOG = logging.getLogger("liver_p2p_reg.node")
@@ -129,6 +130,7 @@ class NodeCore:
         self._last_start_s: float | None = None
         self._once_done = False
         self._track: _TrackState | None = None
+        self._survey_state: Survey | None = None  # survey mode only
         self.last_output: CoreOutput | None = None
         self.received = 0
         self.processed = 0
@@ -155,6 +157,7 @@ class NodeCore:
             self._preop_problem = unit_warning
             self._once_done = False
             self._track = None  # a pose of another model is no prior
+            self._survey_state = None  # nor is a surface fused against it
         values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": self.preop_frame}
         if not unit_warning:
             # The model's own share of the work (its features, ICP index, ...) is done now,
@@ -334,11 +337,27 @@ class NodeCore:
         if fid_s is not None and (fid_t is None or fid_t.shape != fid_s.shape):
             fid_s = fid_t = None  # ground truth absent or not matching: no TRE
         prep_ms = (time.perf_counter() - start) * 1e3
-        result, track_ms = self._try_tracking(preop, points, fid_s, fid_t, cloud.frame_id, reason)
-        values["tracked"] = str(result is not None).lower()
+        if self.config.mode == "survey" and reason != "reregister":  # ---- survey mode (survey.py)
+            try:
+                step = self._survey().step(
+                    preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=self._origin()
+                )
+            except LiverP2PError as exc:
+                return fail(ERROR, f"registration failed: {exc}")
+            except Exception as exc:  # the node must survive anything a method raises
+                LOG.exception("survey registration raised")
+                return fail(ERROR, f"registration crashed: {type(exc).__name__}: {exc}")
+            result, track_ms = step.result, None
+            values.update(step.values)
+            warnings += step.warnings
+        else:
+            result, track_ms = self._try_tracking(preop, points, fid_s, fid_t, cloud.frame_id, reason)
+        values["tracked"] = str(result is not None and result.method == "track").lower()
         if result is None:
             try:
-                result = self.registrar.register(preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t)
+                result = self.registrar.register(
+                    preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=self._origin()
+                )
             except LiverP2PError as exc:
                 return fail(ERROR, f"registration failed: {exc}")
             except Exception as exc:  # the node must survive anything a method raises
@@ -407,6 +426,7 @@ class NodeCore:
                 initial_T_mm=track.T_mm,
                 source_fiducials_mm=fid_s,
                 target_fiducials_mm=fid_t,
+                sensor_origin_mm=self._origin(),
             )
         except LiverP2PError:
             return None, (time.perf_counter() - start) * 1e3
@@ -425,6 +445,33 @@ class NodeCore:
             self._track.frames += 1
         else:
             self._track = _TrackState(np.asarray(result.T_target_source, float), result.residual_mm, frame_id)
+
+    # ---------------------------------------------------------------- survey mode
+    def _survey(self) -> Survey:
+        """The survey state, bound to the current registrar and config (a parameter change starts over)."""
+        if self._survey_state is None or (self._survey_state.registrar, self._survey_state.config) != (
+            self.registrar,
+            self.config,
+        ):
+            self._survey_state = Survey(self.registrar, self.config)
+        return self._survey_state
+
+    def reset_survey(self) -> str:
+        """Forget the fused surface and the pose (the ~/reset_survey service); returns what was dropped."""
+        with self._register_lock:
+            survey = self._survey_state
+            dropped = (
+                "nothing fused yet"
+                if survey is None or not survey.frames
+                else (f"dropped {survey.frames} fused frames (visibility {survey.visibility:.2f})")
+            )
+            if survey is not None:
+                survey.reset()
+        return f"survey reset: {dropped}; the next frame is registered globally"
+
+    def _origin(self) -> np.ndarray | None:
+        """Where the sensor stood, in the intraop cloud's frame: its origin, by the ROS convention (free space)."""
+        return np.zeros(3) if self.config.sensor_at_frame_origin else None
 
     def _decode(self, cloud: _Cloud) -> tuple[np.ndarray, int]:
         if cloud.points_mm is not None:
@@ -466,6 +513,9 @@ def result_values(result: RegistrationResult) -> dict[str, str]:
         "ambiguous": str(bool(result.ambiguous)).lower(),
         "uncertainty_mm": f"{result.uncertainty_mm:.3f}",
     }
+    if result.free_space:  # "on", or "off: <why the origin was refused>"; absent without an origin
+        values["free_space"] = result.free_space
+        values["free_space_violation"] = f"{result.free_space_violation:.3f}"
     if result.chosen is not None and 0 <= result.chosen < len(result.candidates):
         values["chosen_candidate"] = result.candidates[result.chosen].name
     if result.candidates:

@@ -84,6 +84,8 @@ class RegisterNode(Node):
         self.cloud_pub = self.create_publisher(PointCloud2, "/registration/registered_preop", 1)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/reregister", self._on_reregister, callback_group=io_group)
+        # survey mode (issue 19): start the fused surface over
+        self.create_service(Trigger, "~/reset_survey", self._on_reset_survey, callback_group=io_group)
         self.create_timer(SCHEDULER_PERIOD_S, self._work, callback_group=work_group)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_status, callback_group=io_group)
         self.tf_broadcaster = None
@@ -114,6 +116,13 @@ class RegisterNode(Node):
         self._publish(output)
         response.success = output.pose is not None
         response.message = output.summary
+        return response
+
+    def _on_reset_survey(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        # survey mode (issue 19): NodeCore.reset_survey waits for a registration in progress
+        response.message = self.core.reset_survey()
+        response.success = True
+        self.get_logger().info(response.message)
         return response
 
     def _publish_status(self) -> None:

@@ -61,6 +61,9 @@ class ReplayRow:
     message_frame: int = 0  # ... and that frame's number (1-based intraop frame; 0: none)
     output: str = ""  # output bag path ("" when not written)
     info: dict = field(default_factory=dict)  # the bag's case description (custom_data)
+    # one dict per registration that gave a pose: stamp_ns, rms_tre_mm (None without ground truth),
+    # level, method, and in survey mode survey_state / survey_visibility
+    per_frame: list[dict] = field(default_factory=list)
 
 
 def replay_bag(
@@ -80,6 +83,10 @@ def replay_bag(
     plot_path: also draw the last registered frame (overlay.plot_registration) to this PNG.
     """
     path = Path(path)
+    info = _bag_info(path)
+    if info.get("sensor_frame") is False and config.sensor_at_frame_origin:
+        # clouds in another frame than their sensor's (simulated random crops): (0, 0, 0) is no sensor origin
+        config = config.replace(sensor_at_frame_origin=False)
     core = NodeCore(config, registrar)
     types = rosbags_output_types()
     writer = BagWriter(out_path, overwrite=overwrite) if out_path else None
@@ -143,17 +150,23 @@ def replay_bag(
     finally:
         if writer is not None:
             writer.close()
-    info = {}
-    if CASE_KEY in (custom := bag_custom_data(path)):
-        try:
-            info = json.loads(custom[CASE_KEY])
-        except ValueError:
-            info = {}
     if plot_path is not None and last_posed is not None:
         output, cloud, fiducials, frame = last_posed
         title = f"{path.name}, frame {frame} of {frames} (the last registered)"
         _plot_frame(plot_path, core, output, cloud, fiducials, title=title)
     return _summarize(path, frames, outputs, str(out_path or ""), info, output_frames)
+
+
+def _bag_info(path: Path) -> dict:
+    """The case description a bag carries in its metadata (bag_make.CASE_KEY), {} if none."""
+    custom = bag_custom_data(path)
+    if CASE_KEY not in custom:
+        return {}
+    try:
+        info = json.loads(custom[CASE_KEY])
+    except ValueError:
+        return {}
+    return info if isinstance(info, dict) else {}
 
 
 def _plot_frame(
@@ -204,6 +217,17 @@ def _summarize(
         return float(np.mean(values)) if values else float("nan")
 
     messages = [(o.summary, f) for o, f in zip(outputs, output_frames, strict=True) if o.level == worst]
+    per_frame = [
+        {
+            "stamp_ns": o.pose.stamp_ns,
+            "rms_tre_mm": o.result.rms_tre_mm,
+            "level": o.level,
+            "method": o.result.method,
+            **{k: v for k, v in o.diagnostics[0].values.items() if k.startswith("survey_")},
+        }
+        for o in outputs
+        if o.pose is not None and o.result is not None
+    ]
     return ReplayRow(
         bag=path.name,
         frames=frames,
@@ -221,6 +245,7 @@ def _summarize(
         message_frame=messages[0][1] if messages else 0,
         output=out,
         info=info,
+        per_frame=per_frame,
     )
 
 

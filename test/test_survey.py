@@ -1,0 +1,103 @@
+"""Survey mode on a bundled sweep bag: the fused surface grows, resets on request, and stops when tracking fails."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.metrics import transform_points
+from liver_p2p_reg.ros.bag_io import read_messages
+from liver_p2p_reg.ros.node_core import OK, WARN, NodeCore
+from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
+from liver_p2p_reg.survey import FusedSurface
+
+SWEEP = Path(__file__).resolve().parents[1] / "bags" / "sweep_insilico_9000002"
+
+
+@pytest.fixture(scope="module")
+def sweep() -> dict:
+    """The sweep bag's preop model and fiducials, and every frame with its ground-truth fiducials (mm)."""
+    out: dict = {"frames": [], "fiducials": []}
+    for item in read_messages(SWEEP):
+        points = cloud_to_points_mm(item.msg)
+        if item.topic == "/preop/points":
+            out["preop"] = points
+        elif item.topic == "/preop/fiducials":
+            out["preop_fiducials"] = points
+        elif item.topic == "/intraop/fiducials":
+            out["fiducials"].append(points)
+        elif item.topic == "/intraop/points":
+            out["frames"].append(points)
+    return out
+
+
+def survey_core(sweep: dict) -> NodeCore:
+    core = NodeCore(Config(mode="survey"))
+    assert core.set_preop(sweep["preop"]).level == OK
+    core.set_preop_fiducials(sweep["preop_fiducials"])
+    return core
+
+
+def feed(core: NodeCore, sweep: dict, k: int, now_s: float, points: np.ndarray | None = None):
+    stamp = 1_000_000 + k
+    core.set_intraop_fiducials(sweep["fiducials"][k], stamp)
+    core.on_intraop_points(sweep["frames"][k] if points is None else points, "camera", stamp)
+    output = core.process_pending(now_s)
+    assert output is not None and output.pose is not None
+    return output, output.diagnostics[0]
+
+
+def test_survey_fusion_grows_visibility_on_a_sweep_bag_and_resets(sweep) -> None:
+    core = survey_core(sweep)
+    visibility, tre = [], []
+    for i, k in enumerate(range(0, 40, 4)):  # ~1.25 frames/s of the 5 Hz sweep: 8 s of scope motion
+        output, diag = feed(core, sweep, k, float(i))
+        assert diag.values["survey_state"] == "fusing", diag.message
+        visibility.append(float(diag.values["survey_visibility"]))
+        tre.append(output.result.rms_tre_mm)
+    assert visibility[-1] > visibility[0] + 0.15  # the fused surface sees much more than one frame
+    assert int(diag.values["survey_registrations"]) >= 2  # ... and was registered again as it grew
+    assert int(diag.values["survey_frames"]) == 10
+    assert max(tre) < 10.0  # no accepted frame is off by more than 10 mm
+    message = core.reset_survey()
+    assert "dropped 10 fused frames" in message
+    output, diag = feed(core, sweep, 40, 20.0)
+    assert diag.values["survey_state"] == "fusing" and diag.values["survey_frames"] == "1"
+    assert output.result.method != "evaluate"  # the first frame of a new survey: a global registration
+    assert float(diag.values["survey_visibility"]) < visibility[-1] - 0.15
+
+
+def test_a_tracking_failure_stops_fusion_with_a_diagnostic(sweep) -> None:
+    core = survey_core(sweep)
+    for i, k in enumerate((0, 3, 6)):
+        _, diag = feed(core, sweep, k, float(i))
+        assert diag.values["survey_state"] == "fusing"
+    # The scope jumps: the next frame is the sweep's frame 9 seen from 40 degrees and 60 mm away.
+    jump = np.eye(4)
+    jump[:3, :3] = Rotation.from_euler("y", 40, degrees=True).as_matrix()
+    jump[:3, 3] = [60.0, 0.0, 0.0]
+    output, diag = feed(core, sweep, 9, 3.0, transform_points(jump, sweep["frames"][9]))
+    assert diag.level == WARN
+    assert diag.values["survey_state"].startswith("stopped: tracking failed at frame 4 of the survey")
+    assert "survey stopped (tracking failed" in diag.message and "~/reset_survey" in diag.message
+    assert diag.values["survey_frames"] == "3"  # the jumped frame was not fused
+    # Later frames are registered one by one and say so, until the survey is reset.
+    _, diag = feed(core, sweep, 12, 4.0)
+    assert diag.values["survey_state"].startswith("stopped") and diag.values["survey_frames"] == "3"
+    core.reset_survey()
+    _, diag = feed(core, sweep, 15, 5.0)
+    assert diag.values["survey_state"] == "fusing" and diag.values["survey_frames"] == "1"
+
+
+def test_fused_surface_is_voxel_merged_and_bounded() -> None:
+    rng = np.random.default_rng(0)
+    fused = FusedSurface(voxel_mm=2.0, max_points=500)
+    patch = rng.uniform(0, 20, size=(3000, 3)) * [1, 1, 0]  # a 20 x 20 mm square: 100 voxels of 2 mm
+    fused.add(patch)
+    fused.add(patch + [0.0, 0.0, 0.0])  # the same surface again adds no point
+    assert len(fused) == 100 and fused.counts.sum() == 6000
+    fused.add(rng.uniform(0, 100, size=(20000, 3)) * [1, 1, 0])  # a 100 x 100 mm square: 2500 voxels of 2 mm
+    assert len(fused) <= 500 and fused.voxel_mm > 2.0  # the grid coarsened to stay bounded
+    assert fused.counts.sum() == 26000
