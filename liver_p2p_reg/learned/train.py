@@ -487,13 +487,16 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
     state = json.loads((run / "state.json").read_text())
     cfg = state["config"]
     store_meta_path = Path(cfg["store_dir"]) / "store.json"
+    from ..phantom.dataset import GENERATOR_VERSION
+    from ..phantom.loader import STORE_VERSION
+
     # The store's own record where it is on this machine (a GPU run's store stays there); else the config's.
     store_meta = {
         "seed": cfg["store_seed"],
         "deformations": cfg["store_deformations"],
         "livers": [None] * cfg["store_livers"],
-        "generator_version": None,
-        "store_version": None,
+        "generator_version": GENERATOR_VERSION,
+        "store_version": STORE_VERSION,
     }
     if store_meta_path.is_file():
         store_meta.update(json.loads(store_meta_path.read_text()))
@@ -538,7 +541,7 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
     md = [
         f"# Model card: {dest.name}",
         "",
-        "Learned rotation-invariant point matcher of liver_p2p_reg (issue 6).",
+        "Learned rotation-invariant point matcher of liver_p2p_reg.",
         "",
         f"- Parameters: {card['parameters']:,}; file size {card['size_bytes'] / 1e6:.2f} MB (safetensors, no pickle).",
         "- Inputs: voxelized, normalized clouds; invariant multi-scale covariance features per point; "
@@ -566,7 +569,13 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
         f"- Validation ({cfg['val_pairs']} pairs, held-out livers, random crops, visibility 0.2-1.0, no noise): "
         f"learned {val.get('val_learned_mm', float('nan')):.2f} mm, "
         f"learned-p2p {val.get('val_learned_p2p_mm', float('nan')):.2f} mm mean RMS-TRE, "
-        f"success@20mm {val.get('val_success20', float('nan')):.2f}.",
+        f"success@20mm {val.get('val_success20', float('nan')):.2f}"
+        + (
+            f"; {cfg['real_val_pairs']} pairs of the real train_dev livers (random and camera crops, visibility "
+            f"0.2-0.5, noise 0 or 2 mm): learned-p2p {val['val_real_p2p_mm']:.2f} mm."
+            if cfg.get("real_val_pairs") and "val_real_p2p_mm" in val
+            else "."
+        ),
         f"- Commit of the training code: {commit or 'unknown'}.",
         "",
         "Training config:",

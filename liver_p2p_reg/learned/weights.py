@@ -10,7 +10,7 @@ import torch
 from ..errors import WeightsError
 from .model import MatcherNet, ModelConfig
 
-BUNDLED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "matcher_v2.safetensors"
+BUNDLED_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "matcher_v3.safetensors"
 FORMAT = "liver_p2p_reg.matcher/1"
 
 
