@@ -16,6 +16,7 @@ METHOD_MODULES: dict[str, tuple[str, ...]] = {
         "icp",
         "track",
         "procrustes",
+        "evaluate",
     ),
     "liver_p2p_reg.learned.pipeline": ("learned", "learned-p2p", "learned-p2p-icp"),
 }

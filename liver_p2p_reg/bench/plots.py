@@ -27,11 +27,16 @@ def method_style(method: str, default_method: str | None = None) -> dict:
         from ..config import Config
 
         default_method = Config().method
+    if "[" in method:  # a tagged run of a method ([fs], [prepared]): its method's colour, dotted
+        return {**method_style(method.split("[")[0], default_method), "linestyle": ":"}
     if method == ORACLE:
         return {"color": "black", "linestyle": "--", "linewidth": 1.5}
     if method == default_method:
         return {"color": "tab:red", "linestyle": "-", "linewidth": 2.5}
-    others = [m for m in order_methods(set(METHOD_ORDER) | {method}) if m not in (ORACLE, default_method)]
+    from ..method_names import method_names
+
+    known = set(METHOD_ORDER) | set(method_names()) | {method}
+    others = [m for m in order_methods(known) if m not in (ORACLE, default_method)]
     return {"color": OTHER_COLOURS[others.index(method) % len(OTHER_COLOURS)], "linestyle": "-", "linewidth": 1.5}
 
 
