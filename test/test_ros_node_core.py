@@ -181,6 +181,7 @@ def test_registration_outputs_pose_cloud_and_tre():
     values = out.diagnostics[0].values
     assert float(values["rms_tre_mm"]) < 1e-3 and "runtime_ms.total" in values and "residual_mm" in values
     # once mode: holds after the first pose until re-registered
+    core.set_intraop_fiducials(moved(T, fid_ct), 43)  # the oracle needs this frame's own fiducials
     core.on_intraop_points(moved(T, preop[preop[:, 1] > 0]), "camera", 43)
     assert not core.due(100.0)
     assert core.reregister(100.0).pose is not None

@@ -1,0 +1,77 @@
+"""Ground-truth fiducials of the node core, kept with the preop model and the header stamp they came with."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+MAX_FRAMES = 16  # intraop fiducial sets kept (by stamp) for clouds still to be registered
+MAX_MODELS = 4  # preop fiducial sets kept (by stamp) for models that may still arrive
+
+
+class FiducialStore:
+    """Pairs fiducials with their model and cloud by header stamp; never guesses.
+
+    Preop fiducials belong to the preop model with the same header stamp (the loader and the
+    bags stamp both alike); intraop fiducials belong to the cloud with the same stamp and to
+    the current model: a new model forgets them. Without an exact pair the TRE is absent,
+    never computed against another frame's or another model's markers.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._preop: dict[int, np.ndarray] = {}  # model stamp -> (F, 3) mm, preop frame
+        self._intraop: dict[int, np.ndarray] = {}  # cloud stamp -> (F, 3) mm, sensor frame
+        self._model_stamp: int | None = None
+
+    def new_model(self, stamp_ns: int) -> None:
+        """A new preop model arrived: earlier intraop fiducials described the old one."""
+        with self._lock:
+            self._model_stamp = int(stamp_ns)
+            self._intraop.clear()
+
+    def set_preop(self, points_mm: np.ndarray | None, stamp_ns: int | None = None) -> None:
+        """Preop fiducials of the model stamped `stamp_ns` (None: the current model)."""
+        with self._lock:
+            stamp = self._model_stamp if stamp_ns is None else int(stamp_ns)
+            stamp = 0 if stamp is None else stamp
+            if points_mm is None:
+                self._preop.pop(stamp, None)
+                return
+            self._preop[stamp] = np.asarray(points_mm, float).reshape(-1, 3)
+            while len(self._preop) > MAX_MODELS:
+                self._preop.pop(next(iter(self._preop)))  # the oldest inserted
+
+    def set_intraop(self, points_mm: np.ndarray, stamp_ns: int) -> None:
+        """Intraop fiducials of the cloud stamped `stamp_ns` (sensor frame, mm)."""
+        with self._lock:
+            self._intraop[int(stamp_ns)] = np.asarray(points_mm, float).reshape(-1, 3)
+            while len(self._intraop) > MAX_FRAMES:
+                self._intraop.pop(min(self._intraop))
+
+    @property
+    def preop_mm(self) -> np.ndarray | None:
+        """The current model's fiducials, or None."""
+        with self._lock:
+            return self._preop.get(0 if self._model_stamp is None else self._model_stamp)
+
+    def streaming(self) -> bool:
+        """Whether ground truth is being published for the current model (its markers and a frame's)."""
+        with self._lock:
+            model = 0 if self._model_stamp is None else self._model_stamp
+            return model in self._preop and bool(self._intraop)
+
+    def has_frame(self, stamp_ns: int) -> bool:
+        with self._lock:
+            return int(stamp_ns) in self._intraop
+
+    def pair(self, stamp_ns: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(preop, intraop) fiducials for the cloud stamped `stamp_ns`; (None, None) without an exact,
+        same-shaped pair."""
+        with self._lock:
+            fid_s = self._preop.get(0 if self._model_stamp is None else self._model_stamp)
+            fid_t = self._intraop.get(int(stamp_ns))
+        if fid_s is None or fid_t is None or fid_s.shape != fid_t.shape:
+            return None, None
+        return fid_s, fid_t
