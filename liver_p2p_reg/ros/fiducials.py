@@ -14,7 +14,7 @@ class FiducialStore:
     """Pairs fiducials with their model and cloud by header stamp; never guesses.
 
     Preop fiducials belong to the preop model with the same header stamp (the loader and the
-    bags stamp both alike); intraop fiducials belong to the cloud with the same stamp and to
+    bags stamp both alike) and are dropped with it; intraop fiducials belong to the cloud with the same stamp and to
     the current model: a new model forgets them. Without an exact pair the TRE is absent,
     never computed against another frame's or another model's markers.
     """
@@ -26,8 +26,11 @@ class FiducialStore:
         self._model_stamp: int | None = None
 
     def new_model(self, stamp_ns: int) -> None:
-        """A new preop model arrived: earlier intraop fiducials described the old one."""
+        """A new preop model arrived: the old model's markers and earlier intraop fiducials described
+        the old one (bags share stamps, so a same-stamp model gets only markers that come after it)."""
         with self._lock:
+            if self._model_stamp is not None:
+                self._preop.pop(self._model_stamp, None)
             self._model_stamp = int(stamp_ns)
             self._intraop.clear()
 

@@ -400,6 +400,7 @@ class NodeCore:
         with self._lock:
             self._latest = _Cloud(cloud.frame_id, cloud.stamp_ns, points_mm=points, n_raw=n_raw)
         prep_ms = (time.perf_counter() - start) * 1e3
+        cached = set(self.registrar.cache)
         result, track_ms = self._try_tracking(preop, points, fid_s, fid_t, cloud.frame_id, reason)
         values["tracked"] = str(result is not None).lower()
         if result is None:
@@ -415,6 +416,10 @@ class NodeCore:
                 result.runtime_ms["total"] = result.runtime_ms.get("total", 0.0) + track_ms
         result.runtime_ms.setdefault("node_prepare", prep_ms)
         values.update(result_values(result))
+        # what this registration had to compute about the model (normally nothing: the warm-up did)
+        computed = {str(k).split(":")[0] for k in self.registrar.cache if k not in cached}
+        values["model_cache_computed"] = ",".join(sorted(computed)) or "none"
+
         if not result.ok or not np.all(np.isfinite(result.T_target_source)):
             return CoreOutput(
                 [
