@@ -58,11 +58,11 @@ def run(args: argparse.Namespace) -> int:
     graph = None
     if not args.replay:
         try:
-            import rclpy  # noqa: F401  (only to know whether the live graph can run)
+            from ..ros import graph_demo  # the rclpy adapter: importable only where rclpy is
         except ImportError as exc:
             print(f"rclpy not importable ({exc}): running the ROS-free replay instead of the live graph", flush=True)
         else:
-            graph = _run_graph(paths, config, out)
+            graph = _run_graph(graph_demo, paths, config, out)
     print(f"Replaying {len(paths)} bundled bags from {bags} with method {config.method} (no ROS) ...", flush=True)
     rows = replay_bags(paths, config, out_dir=out / "replay", progress=graph is None, overwrite=True, plot_dir=out)
     if graph is None:
@@ -75,10 +75,8 @@ def run(args: argparse.Namespace) -> int:
     return _report_graph(graph, rows, out)
 
 
-def _run_graph(paths: list[Path], config: Config, out: Path) -> tuple[list, float]:
+def _run_graph(graph_demo, paths: list[Path], config: Config, out: Path) -> tuple[list, float]:
     import shutil
-
-    from ..ros.graph_demo import node_params, run_graph
 
     if out.exists():
         shutil.rmtree(out)
@@ -87,7 +85,7 @@ def _run_graph(paths: list[Path], config: Config, out: Path) -> tuple[list, floa
         f"each bag's /intraop/* played in real time, then ~/reregister ...",
         flush=True,
     )
-    return run_graph(paths, out, params=node_params(config))
+    return graph_demo.run_graph(paths, out, params=graph_demo.node_params(config))
 
 
 def _report_graph(graph: tuple[list, float], replay_rows: list, out: Path) -> int:
