@@ -11,7 +11,7 @@ rclpy = require_rclpy()
 
 from ros_support import BAG_B, bag_frames_m, clean_stderr, start_graph  # noqa: E402
 
-from liver_p2p_reg.ros.bag_make import TOPIC_INTRAOP  # noqa: E402
+from liver_p2p_reg.ros.bag_make import TOPIC_PREOP  # noqa: E402
 from liver_p2p_reg.ros.graph import NodeProcess, set_isolated_environment  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import points_to_cloud  # noqa: E402
 from liver_p2p_reg.ros.register_node import RCLPY_TYPES  # noqa: E402
@@ -32,12 +32,12 @@ def graphs(tmp_path_factory):
         g.probe.close()
 
 
-def big_cloud():
-    """The bag's frame resampled to 400 k points: a registration that takes a while."""
-    _, frames_m = bag_frames_m(BAG_B)
+def big_model():
+    """The bag's preop model resampled to 300 k points: its warm-up (a registration) takes seconds."""
+    preop_m, _ = bag_frames_m(BAG_B)
     rng = np.random.default_rng(1)
-    dense = frames_m[0][rng.integers(0, len(frames_m[0]), 400_000)] + rng.normal(0, 0.0003, (400_000, 3))
-    return points_to_cloud(dense, RCLPY_TYPES.cloud, frame_id="camera", stamp_ns=77)
+    dense = preop_m[rng.integers(0, len(preop_m), 300_000)] + rng.normal(0, 0.0003, (300_000, 3))
+    return points_to_cloud(dense, RCLPY_TYPES.cloud, frame_id="ct", stamp_ns=77)
 
 
 def check_stop(g, sig):
@@ -55,11 +55,11 @@ def test_sigterm_when_idle(graphs):
 def test_signal_mid_registration(graphs, name, sig):
     """Symptom 7: was 9-11 s and `exception was never retrieved: cannot use Destroyable`."""
     g = graphs[name]
-    g.send_model(BAG_B)
     since = g.mark()
-    g.probe.publish(TOPIC_INTRAOP, big_cloud())
-    time.sleep(0.4)
-    assert not g.attempts(since), "registration finished before the signal: not a busy test"
+    g.probe.publish(TOPIC_PREOP, big_model())  # reliable + latched: it arrives
+    assert g.probe.wait_for(lambda: "points: warming up" in g.node.stderr(), 30), g.node.stderr()
+    time.sleep(0.3)
+    assert not g.preop_diags(since), "warm-up finished before the signal: not a busy test"
     check_stop(g, sig)
 
 

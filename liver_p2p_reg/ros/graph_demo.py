@@ -51,7 +51,7 @@ class GraphRow:
         return float(np.percentile(self.latency_ms, q)) if self.latency_ms else float("nan")
 
 
-def _model_files(bag: Path, folder: Path) -> tuple[Path, Path | None]:
+def model_files(bag: Path, folder: Path) -> tuple[Path, Path | None]:
     """The bag's preop model (and fiducials) as .npy files in metres, for preop_loader_node."""
     messages = {m.topic: m.msg for m in read_messages(bag, [TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS])}
     if TOPIC_PREOP not in messages:
@@ -68,7 +68,7 @@ def _model_files(bag: Path, folder: Path) -> tuple[Path, Path | None]:
 
 def run_bag(probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dict[str, str]) -> GraphRow:
     """Loader for the bag's model, then its /intraop/* played live, then one ~/reregister call."""
-    model, fiducials = _model_files(bag, out_dir)
+    model, fiducials = model_files(bag, out_dir)
     diag_index = probe.count("/diagnostics")
     starts = {topic: probe.count(topic) for topic in RECORDED_TYPES}
     params = {"model_path": str(model), "units": "m"}

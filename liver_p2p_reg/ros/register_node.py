@@ -121,6 +121,7 @@ class RegisterNode(Node):
     def _on_preop(self, msg: PointCloud2) -> None:
         diag = self.core.on_preop_msg(msg, warm_up=False)
         if diag.level == OK:  # reported once warmed up, with warm_up_ms
+            self.get_logger().info(f"preop model of {diag.values['points']} points: warming up")
             self._submit(self._warm_up)
         else:
             self._report([diag])
