@@ -1,11 +1,12 @@
-"""rclpy wiring of register_node and preop_loader_node (runs only where ROS 2 Jazzy is installed)."""
+"""rclpy wiring of register_node and preop_loader_node in this process (the process-level tests are test_ros_graph*.py)."""
 
 import time
 
 import numpy as np
 import pytest
+from conftest import require_rclpy  # noqa: E402
 
-rclpy = pytest.importorskip("rclpy")
+rclpy = require_rclpy()
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
@@ -81,6 +82,7 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
         assert future.result().success and "residual" in future.result().message
     finally:
         executor.shutdown()
+        node.stop()
         node.destroy_node()
         helper.destroy_node()
 

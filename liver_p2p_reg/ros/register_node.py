@@ -10,7 +10,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NoReturn
 
 import rclpy
 from builtin_interfaces.msg import Time
@@ -266,8 +266,8 @@ class RegisterNode(Node):
         return self.get_clock().now().nanoseconds
 
 
-def main(args: list[str] | None = None) -> int:
-    """`ros2 run liver_p2p_reg register_node` (Jazzy idiom: rclpy.init() returns None).
+def main(args: list[str] | None = None) -> NoReturn:
+    """`ros2 run liver_p2p_reg register_node` (Jazzy idiom: rclpy.init() returns None); exits the process.
 
     SIGINT/SIGTERM end the node within JOIN_ON_EXIT_S even during a registration: the worker's
     unfinished result is dropped and the process leaves without waiting for it.
@@ -286,16 +286,16 @@ def main(args: list[str] | None = None) -> int:
         get_logger("register_node").fatal(str(exc))
         status = 1
     finally:
-        finished = True
         if node is not None:
-            finished = node.stop()
+            node.stop()
             node.destroy_node()
         rclpy.try_shutdown()
-    if not finished:  # the abandoned registration holds no resource worth waiting for
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(status)
-    return status
+    # Leave without the interpreter's teardown: unloading torch/Open3D took seconds (past launch's
+    # SIGINT window under load), and an abandoned registration holds nothing worth waiting for.
+    # rclpy is shut down and the logs are flushed; there is nothing else to clean up.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 if __name__ == "__main__":
