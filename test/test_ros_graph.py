@@ -175,11 +175,12 @@ def test_clouds_at_exactly_the_rate_limit_are_each_registered_without_creep(fres
     """Symptom 5: clouds arriving at exactly max_rate_hz: none dropped, no growing wait (was 47 -> 461 ms)."""
     g = fresh
     g.send_model(BAG_A)
-    g.set(max_rate_hz=4.0)
+    g.set(max_rate_hz=4.0, track_max_frames=100)  # every frame tracked: no forced full registration
     _, frames_m = bag_frames_m(BAG_A)
+    frames_m = [f[:: max(1, len(f) // 3000)] for f in frames_m]  # light clouds: little CPU noise on a busy machine
     since = g.mark()
-    g.send_frame(BAG_A, 0)  # a full registration first; the stream below is tracked from it
-    assert levels(g.wait_attempts(since)) == [OK]
+    g.probe.publish(TOPIC_INTRAOP, points_to_cloud(frames_m[0], TYPES, frame_id="camera", stamp_ns=4_000_000_000))
+    assert levels(g.wait_attempts(since)) == [OK]  # a full registration; the stream below is tracked from it
     sent = {}
     since, poses = g.mark(), g.probe.count("/registration/pose")
     start = time.monotonic()
@@ -191,7 +192,7 @@ def test_clouds_at_exactly_the_rate_limit_are_each_registered_without_creep(fres
     g.probe.wait_for(lambda: stamp in {int(values_of(s)["stamp_ns"]) for s in g.attempts(since)}, 30)
     registered = {int(values_of(s)["stamp_ns"]) for s in g.attempts(since)}
     latency = [1e3 * (p.received_s - sent[stamp_ns(p.msg)]) for p in g.probe.since("/registration/pose", poses)]
-    g.set(max_rate_hz=2.0)
+    g.set(max_rate_hz=2.0, track_max_frames=10)
     assert len(registered) >= 15, f"only {len(registered)} of 16 registered; latency ms {np.round(latency)}"
     assert np.median(latency[-4:]) < np.median(latency[:4]) + 80, np.round(latency)
 

@@ -66,7 +66,10 @@ def test_signal_mid_registration(graphs, name, sig):
 def test_unknown_method_at_start_up_is_one_fatal_line(tmp_path):
     env = set_isolated_environment()
     node = NodeProcess("register_node", {"method": "no-such-method"}, env=env, log_dir=tmp_path)
-    assert node.wait(120) == 1
+    try:
+        assert node.wait(120) == 1
+    finally:
+        node.stop(signal.SIGKILL)
     lines = clean_stderr(node.stderr())
     assert len(lines) == 1 and "[FATAL]" in lines[0] and "unknown method 'no-such-method'" in lines[0], lines
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import atexit
 import os
 import random
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -36,14 +38,38 @@ NODE_MODULES = {
 LEVEL_OF = {b"\x00": 0, b"\x01": 1, b"\x02": 2, b"\x03": 3}
 
 
+def domain_in_use(domain_id: int) -> bool:
+    """Whether a DDS participant already listens on this domain here (its first unicast discovery port)."""
+    port = 7410 + 250 * domain_id  # RTPS: PB 7400 + DG 250 * domain + offset 10 + 2 * participant 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            return True
+    return False
+
+
 def isolated_env(domain_id: int | None = None) -> dict[str, str]:
-    """Environment variables that keep a graph to itself: a random domain, localhost-only discovery."""
+    """Environment variables that keep a graph to itself: a random unused domain, localhost-only discovery."""
     if domain_id is None:
-        domain_id = random.SystemRandom().randint(1, 100)  # 0 is everyone's default; 101+ clash with ports
+        candidates = list(range(1, 101))  # 0 is everyone's default; above 101 the ports clash
+        random.SystemRandom().shuffle(candidates)
+        domain_id = next((d for d in candidates if not domain_in_use(d)), candidates[0])
     return {
         "ROS_DOMAIN_ID": str(domain_id),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
     }
+
+
+_STARTED: list[NodeProcess] = []
+
+
+@atexit.register
+def _kill_leftovers() -> None:
+    """A node this process started must not outlive it (it would answer on its domain forever)."""
+    for node in _STARTED:
+        if node.alive():
+            node.proc.kill()
 
 
 class NodeProcess:
@@ -72,6 +98,7 @@ class NodeProcess:
         full_env = {**os.environ, **(env or {}), "RCUTILS_COLORIZED_OUTPUT": "0", "PYTHONUNBUFFERED": "1"}
         self.started_s = time.monotonic()
         self.proc = subprocess.Popen(args, stdout=self._out, stderr=self._err, stdin=subprocess.DEVNULL, env=full_env)
+        _STARTED.append(self)
 
     @property
     def pid(self) -> int:
@@ -158,6 +185,10 @@ class GraphProbe:
             topic: self.node.create_publisher(PointCloud2, topic, QOS_BY_TOPIC.get(topic, RELIABLE_QOS))
             for topic in (TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS)
         }
+        # Clients live as long as the probe: a client made just before its call may send the request
+        # before the service's reply path has discovered it, and the reply is lost (rmw: timeout).
+        self._clients: dict[str, Any] = {}
+        self._client(Trigger, f"/{target}/reregister")
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name="probe", daemon=True)
@@ -212,20 +243,22 @@ class GraphProbe:
     def wait_for_subscriber(self, topic: str, timeout_s: float = 20.0) -> bool:
         return bool(self.wait_for(lambda: self.publishers[topic].get_subscription_count() > 0, timeout_s))
 
+    def _client(self, srv_type: type, name: str) -> Any:
+        if name not in self._clients:
+            self._clients[name] = self.node.create_client(srv_type, name)
+        return self._clients[name]
+
     def call(self, srv_type: type, name: str, request: Any, timeout_s: float = 60.0) -> Any:
         """Call a service and wait for the answer (None on timeout or if it never appears)."""
-        client = self.node.create_client(srv_type, name)
-        try:
-            if not client.wait_for_service(timeout_sec=timeout_s):
-                return None
-            future = client.call_async(request)
-            done = threading.Event()
-            future.add_done_callback(lambda _: done.set())
-            if not done.wait(timeout_s):
-                return None
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+        client = self._client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            return None
+        future = client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        if not done.wait(timeout_s):
+            return None
+        return future.result()
 
     def reregister(self, timeout_s: float = 60.0) -> Any:
         return self.call(Trigger, f"/{self.target}/reregister", Trigger.Request(), timeout_s)
