@@ -298,6 +298,21 @@ def test_transform_and_registered_preop_match_the_pose(fresh):
     except ImportError:
         lines = [line for line in g.node.stderr().splitlines() if "tf2_ros not importable" in line]
         assert len(lines) == 1  # said once, at start-up
+        return
+    _tf_carries(g)
+
+
+def _tf_carries(g):
+    """Where tf2_ros exists (a sourced ROS 2), /tf carries the same transform as /registration/transform."""
+    from tf2_msgs.msg import TFMessage
+
+    seen = []
+    g.probe.node.create_subscription(TFMessage, "/tf", seen.append, 100)
+    g.send_frame(BAG_A, 4)
+    stamp = g.probe.wait_for(lambda: [t for m in seen for t in m.transforms if t.child_frame_id == "ct"], 30)
+    assert stamp, "no ct transform on /tf"
+    latest = g.probe.since("/registration/transform")[-1].msg
+    assert any(t.header == latest.header and t.transform == latest.transform for t in stamp)
 
 
 def test_idle_cpu_is_near_zero(fresh):

@@ -76,10 +76,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_graph(graph_demo, paths: list[Path], config: Config, out: Path) -> tuple[list, float]:
-    import shutil
-
-    if out.exists():
-        shutil.rmtree(out)
     print(
         f"Live ROS 2 graph: register_node and a preop_loader_node per bag as processes (method {config.method}); "
         f"each bag's /intraop/* played in real time, then ~/reregister ...",

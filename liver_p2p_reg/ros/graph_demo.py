@@ -19,6 +19,7 @@ from .bag_player import BagPlayer, Played
 from .graph import GraphProbe, NodeProcess, level_of, set_isolated_environment, stamp_ns, values_of
 from .node_core import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME
 from .pointcloud2 import cloud_to_points_m
+from .replay import fmt, markdown_table
 
 RECORDED_TYPES = {
     "/registration/pose": "geometry_msgs/msg/PoseStamped",
@@ -181,10 +182,6 @@ def run_graph(
     return rows, startup_s
 
 
-def _fmt(value: float, digits: int = 2) -> str:
-    return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
-
-
 def format_graph_table(rows: Sequence[GraphRow], replay_tre: dict[str, float] | None = None) -> str:
     """Per-bag table: visibility, RMS-TRE, residual, status, latency p50/p95 (and replay's TRE)."""
     header = ["bag", "poses", "visibility", "RMS-TRE mm", "residual mm", "status", "latency ms p50", "p95"]
@@ -195,21 +192,17 @@ def format_graph_table(rows: Sequence[GraphRow], replay_tre: dict[str, float] | 
         line = [
             r.bag,
             f"{r.registered}/{r.frames}",
-            _fmt(r.visibility),
-            _fmt(r.rms_tre_mm),
-            _fmt(r.residual_mm),
+            fmt(r.visibility),
+            fmt(r.rms_tre_mm),
+            fmt(r.residual_mm),
             r.status,
-            _fmt(r.latency_p(50), 0),
-            _fmt(r.latency_p(95), 0),
+            fmt(r.latency_p(50), 0),
+            fmt(r.latency_p(95), 0),
         ]
         if replay_tre is not None:
-            line.append(_fmt(replay_tre.get(r.bag, float("nan"))))
+            line.append(fmt(replay_tre.get(r.bag, float("nan"))))
         body.append(line)
-    widths = [max(len(h), *(len(row[i]) for row in body)) if body else len(h) for i, h in enumerate(header)]
-    lines = ["| " + " | ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)) + " |"]
-    lines.append("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    lines += ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) + " |" for row in body]
-    return "\n".join(lines)
+    return markdown_table(header, body)
 
 
 def node_params(config: Config) -> dict:
