@@ -88,7 +88,7 @@ def run_bag(probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dic
         last = max(clouds)
         probe.wait_for(lambda: last in _attempt_stamps(probe, diag_index), SETTLE_S)
         answer = probe.reregister()
-        rereg = "no answer" if answer is None else f"{'OK' if answer.success else 'failed'}: {answer.message}"
+        rereg = "no answer" if answer is None else f"{'pose' if answer.success else 'no pose'}: {answer.message}"
     finally:
         loader.stop(signal.SIGINT)
     row = _row(bag.name, probe, diag_index, starts, clouds)

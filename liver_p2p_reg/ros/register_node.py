@@ -28,6 +28,7 @@ from std_srvs.srv import Trigger
 
 from ..config import Config
 from ..errors import LiverP2PError
+from ..registrar import get_method
 from .messages import OutputTypes, diagnostic_array, pose_stamped, transform_stamped
 from .node_core import ERROR, OK, WARN, CoreOutput, Diagnostic, NodeCore
 from .pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
@@ -86,6 +87,7 @@ class RegisterNode(Node):
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("register_node", **node_kwargs)  # node_kwargs: e.g. parameter_overrides (tests)
         self.core = NodeCore(config_from_parameters(self))
+        self._accepted = self.core.config  # the configuration the parameter sets so far describe
         self._log_handler = _RclpyLogHandler(self._log)
         logging.getLogger("liver_p2p_reg").addHandler(self._log_handler)
         self._wake = threading.Condition()
@@ -167,11 +169,14 @@ class RegisterNode(Node):
         changes = {p.name: p.value for p in params if p.name in known}  # rclpy handles its own (use_sim_time)
         if not changes:
             return SetParametersResult(successful=True)
-        try:
-            self.core.reconfigure(changes)
+        try:  # validate now (against earlier sets not yet applied), so the answer carries the reason ...
+            config = self._accepted.replace(**changes)
+            get_method(config.method)
         except LiverP2PError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        self._submit()  # a new mode or rate may make a waiting cloud due
+        # ... and apply on the worker, between registrations, without blocking this callback
+        self._accepted = config
+        self._submit(lambda: self.core.reconfigure(config.to_dict()))
         return SetParametersResult(successful=True)
 
     # ---------------------------------------------------------------- worker thread
