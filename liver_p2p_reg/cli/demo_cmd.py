@@ -38,6 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "(default: out/demo)",
     )
     p.add_argument("--replay", action="store_true", help="skip the live graph: the ROS-free replay only")
+    p.add_argument("--bags", default="*", help="only the bundled bags whose name matches this glob (default: all)")
     p.set_defaults(func=run)
 
 
@@ -53,7 +54,9 @@ def run(args: argparse.Namespace) -> int:
     bags = bundled_bags_dir()
     if bags is None:
         raise InputError("no bundled bags found (expected a bags/ folder next to the package)")
-    paths = sorted(p for p in bags.iterdir() if (p / "metadata.yaml").is_file() or p.suffix == ".mcap")
+    paths = sorted(p for p in bags.glob(args.bags) if (p / "metadata.yaml").is_file() or p.suffix == ".mcap")
+    if not paths:
+        raise InputError(f"no bundled bag matches {args.bags!r} in {bags}")
     out = Path(args.out)
     graph = None
     if not args.replay:
