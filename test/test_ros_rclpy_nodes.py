@@ -90,3 +90,22 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
 def test_preop_loader_missing_file_is_fatal_input_error(ros_context, tmp_path):
     with pytest.raises(InputError, match="not found"):
         PreopLoaderNode(parameter_overrides=[Parameter("model_path", value=str(tmp_path / "missing.stl"))])
+
+
+def test_parameter_set_keeps_the_registrar_cache(ros_context):
+    """A parameter set swaps the configuration but keeps what was computed about the model."""
+    node = RegisterNode(parameter_overrides=[Parameter("method", value="icp")])
+    try:
+        marker = object()
+        node.core.registrar.cache["test-marker:x:()"] = marker
+        assert node.set_parameters([Parameter("residual_warn_mm", value=5.0)])[0].successful
+        end = time.monotonic() + 30
+        while node.core.config.residual_warn_mm != 5.0 and time.monotonic() < end:
+            time.sleep(0.02)  # applied by the node's worker, between registrations
+        assert node.core.config.residual_warn_mm == 5.0
+        assert node.core.registrar.cache.get("test-marker:x:()") is marker
+        bad = node.set_parameters([Parameter("method", value="nope")])[0]
+        assert not bad.successful and "unknown method 'nope'" in bad.reason
+    finally:
+        node.stop()
+        node.destroy_node()
