@@ -24,6 +24,7 @@ class FiducialStore:
         self._preop: dict[int, np.ndarray] = {}  # model stamp -> (F, 3) mm, preop frame
         self._intraop: dict[int, np.ndarray] = {}  # cloud stamp -> (F, 3) mm, sensor frame
         self._model_stamp: int | None = None
+        self._paired_once = False  # a cloud of the current model has been paired (or not) already
 
     def new_model(self, stamp_ns: int) -> None:
         """A new preop model arrived: the old model's markers and earlier intraop fiducials described
@@ -33,6 +34,7 @@ class FiducialStore:
                 self._preop.pop(self._model_stamp, None)
             self._model_stamp = int(stamp_ns)
             self._intraop.clear()
+            self._paired_once = False
 
     def set_preop(self, points_mm: np.ndarray | None, stamp_ns: int | None = None) -> None:
         """Preop fiducials of the model stamped `stamp_ns` (None: the current model)."""
@@ -59,11 +61,12 @@ class FiducialStore:
         with self._lock:
             return self._preop.get(0 if self._model_stamp is None else self._model_stamp)
 
-    def streaming(self) -> bool:
-        """Whether ground truth is being published for the current model (its markers and a frame's)."""
+    def expected(self) -> bool:
+        """Whether a cloud's own intraop fiducials are likely on their way: the current model has
+        markers and either intraop fiducials came for it or no cloud of it has been paired yet."""
         with self._lock:
             model = 0 if self._model_stamp is None else self._model_stamp
-            return model in self._preop and bool(self._intraop)
+            return model in self._preop and (bool(self._intraop) or not self._paired_once)
 
     def has_frame(self, stamp_ns: int) -> bool:
         with self._lock:
@@ -75,6 +78,7 @@ class FiducialStore:
         with self._lock:
             fid_s = self._preop.get(0 if self._model_stamp is None else self._model_stamp)
             fid_t = self._intraop.get(int(stamp_ns))
+            self._paired_once = True
         if fid_s is None or fid_t is None or fid_s.shape != fid_t.shape:
             return None, None
         return fid_s, fid_t

@@ -37,9 +37,9 @@ PREOP_DIAG_NAME = "liver_p2p_reg: preop model"
 HARDWARE_ID = "liver_p2p_reg"
 # A cloud arriving at exactly max_rate_hz is due although its arrival jitters this share of a period early.
 RATE_TOLERANCE = 0.05
-# While ground truth is streamed, a cloud waits at most this long for its own same-stamp fiducials
+# While ground truth is expected, a cloud waits at most this long for its own same-stamp fiducials
 # (published just before it, on another topic) so its TRE is not lost to delivery order.
-FIDUCIAL_WAIT_S = 0.1
+FIDUCIAL_WAIT_S = 0.3
 
 
 @dataclass
@@ -294,7 +294,7 @@ class NodeCore:
             due_s = -np.inf
             if self.config.mode == "continuous" and self._rate_ref_s is not None:
                 due_s = self._rate_ref_s + (1.0 - RATE_TOLERANCE) / self.config.max_rate_hz
-        if cloud.received_s is not None and self.fiducials.streaming() and not self.fiducials.has_frame(cloud.stamp_ns):
+        if cloud.received_s is not None and self.fiducials.expected() and not self.fiducials.has_frame(cloud.stamp_ns):
             due_s = max(due_s, cloud.received_s + FIDUCIAL_WAIT_S)
         return due_s
 
