@@ -16,12 +16,12 @@ $(STAMP): setup.py package.xml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet $(TORCH_PIN)
-	$(PY) -m pip install --quiet -e '.[cpu,dev]'
+	$(PY) -m pip install --quiet -e '.[cpu,dev,ros]'
 	touch $(STAMP)
 
-setup: $(STAMP) ## create .venv and install the package (CPU torch, headless Open3D)
+setup: $(STAMP) ## create .venv and install the package (CPU torch, headless Open3D, rclpy wheels)
 
-demo: $(STAMP) ## run the main job: replay every bundled bag and print the per-case table
+demo: $(STAMP) ## run the main job: every bundled bag through the live ROS 2 graph, per-bag table
 	$(PY) -m liver_p2p_reg demo
 
 test: $(STAMP) ## lint, format check and the whole test suite

@@ -4,6 +4,7 @@ import os
 from glob import glob
 
 from setuptools import find_packages, setup
+from setuptools.command.develop import develop
 from setuptools.command.install_scripts import install_scripts
 
 PACKAGE = "liver_p2p_reg"
@@ -32,6 +33,22 @@ class ros_aware_install_scripts(install_scripts):
                 self.install_dir = base_dir
         if script_name not in NODE_EXECUTABLES:
             super().write_script(script_name, contents, mode, *ignored)
+
+
+class ros_aware_develop(develop):
+    """`colcon build --symlink-install` (`setup.py develop`): setup.cfg sends every script to
+    <prefix>/lib/<pkg>/ for `ros2 run`; `liver-p2p` also goes to <prefix>/bin, as in a plain install."""
+
+    def write_script(self, script_name, contents, mode="t", *ignored):
+        super().write_script(script_name, contents, mode, *ignored)
+        if script_name == "liver-p2p":
+            base_dir = self.script_dir
+            self.script_dir = os.path.join(os.path.dirname(os.path.dirname(os.path.normpath(base_dir))), "bin")
+            os.makedirs(self.script_dir, exist_ok=True)
+            try:
+                super().write_script(script_name, contents, mode, *ignored)
+            finally:
+                self.script_dir = base_dir
 
 
 def tree(directory, patterns=("*",)):
@@ -79,11 +96,13 @@ setup(
     extras_require={
         "cpu": ["open3d-cpu>=0.18,<0.20"],  # 0.20.0's CPU wheel links libusb again
         "full": ["open3d>=0.18"],
-        "dev": ["pytest>=7", "ruff>=0.5", "setuptools>=61"],  # setuptools: the colcon-layout test
+        # setuptools: the colcon-layout test; colcon: the colcon build test
+        "dev": ["pytest>=7", "ruff>=0.5", "setuptools>=61", "colcon-common-extensions>=0.3"],
+        # ROS 2 Jazzy's rclpy and messages as PyPI wheels (no tf2_ros, launch or rosbag2 wheels exist)
+        "ros": ["ros-jazzy-rclpy[fastrtps]>=7.1", "ros-jazzy-common-interfaces>=5.3", "ros-jazzy-std-srvs>=5.3"],
     },
-    tests_require=["pytest"],
     zip_safe=False,
-    cmdclass={"install_scripts": ros_aware_install_scripts},
+    cmdclass={"install_scripts": ros_aware_install_scripts, "develop": ros_aware_develop},
     entry_points={
         "console_scripts": [
             "liver-p2p = liver_p2p_reg.cli:main",

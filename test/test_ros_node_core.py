@@ -181,6 +181,7 @@ def test_registration_outputs_pose_cloud_and_tre():
     values = out.diagnostics[0].values
     assert float(values["rms_tre_mm"]) < 1e-3 and "runtime_ms.total" in values and "residual_mm" in values
     # once mode: holds after the first pose until re-registered
+    core.set_intraop_fiducials(moved(T, fid_ct), 43)  # the oracle needs this frame's own fiducials
     core.on_intraop_points(moved(T, preop[preop[:, 1] > 0]), "camera", 43)
     assert not core.due(100.0)
     assert core.reregister(100.0).pose is not None
@@ -256,6 +257,7 @@ def test_a_new_preop_model_clears_the_prior_pose():
     core, preop, fid_ct = tracking_core()
     send_frame(core, preop, fid_ct, ground_truth(), 1, 0.0)
     core.set_preop(preop)
+    core.set_preop_fiducials(fid_ct)  # markers belong to their model: a new model needs its own
     out = send_frame(core, preop, fid_ct, nudged(ground_truth()), 2, 1.0)
     assert out.result.method == "procrustes"
 
@@ -276,3 +278,65 @@ def test_a_poorly_constrained_pose_is_published_with_a_warning(limit_mm, level):
     uncertainty = float(out.diagnostics[0].values["uncertainty_mm"])
     assert out.pose is not None and out.level == level and 0.05 < uncertainty < 15.0
     assert ("poorly constrained" in out.summary) == (level == WARN)
+
+
+@needs_procrustes
+def test_rate_limit_counts_from_arrivals_so_waits_never_creep():
+    """Clouds at exactly max_rate_hz, each registered a little late: every next one is due on arrival."""
+    core = core_with_preop(max_rate_hz=2.0)
+    fid_ct = liver_like(6, seed=5) * 0.3
+    core.set_preop_fiducials(fid_ct)
+    for k in range(20):
+        arrival = 100.0 + 0.5 * k
+        core.set_intraop_fiducials(fid_ct, k)
+        core.on_intraop_points(liver_like()[:900], "camera", k, now_s=arrival)
+        assert core.due(arrival + 0.001), f"cloud {k} waited"  # counting from late starts, waits crept up
+        assert core.process_pending(arrival + 0.04).pose is not None  # started 40 ms after arrival
+    assert core.dropped == 0
+
+
+@needs_procrustes
+def test_tre_needs_the_frames_own_fiducials_and_the_current_models():
+    T = ground_truth()
+    preop = liver_like()
+    fid_ct = np.array([[10.0, 5, 0], [-20, 10, 5], [0, -15, -10], [30, 0, 8], [-5, 20, -12]])
+    core = NodeCore(Config(method="icp", mode="on_demand"))
+    core.set_preop(preop, stamp_ns=7)
+    core.set_preop_fiducials(fid_ct, stamp_ns=7)
+    core.set_intraop_fiducials(moved(T, fid_ct), 1)
+    core.on_intraop_points(moved(T, preop[preop[:, 0] > 0]), "camera", 1)
+    assert "rms_tre_mm" in core.reregister(0.0).diagnostics[0].values
+    core.on_intraop_points(moved(T, preop[preop[:, 0] > 5]), "camera", 2)  # no fiducials of its own
+    assert "rms_tre_mm" not in core.reregister(1.0).diagnostics[0].values
+    core.set_preop(preop * 1.1, stamp_ns=7)  # another model with the same stamp (bags share a clock)
+    core.on_intraop_points(moved(T, preop[preop[:, 0] > 0]), "camera", 1)  # frame 1's stamp again
+    assert core.preop_fiducials_mm is None
+    assert "rms_tre_mm" not in core.reregister(2.0).diagnostics[0].values
+
+
+def test_a_cloud_waits_briefly_for_its_own_fiducials_while_ground_truth_streams():
+    from liver_p2p_reg.ros.node_core import FIDUCIAL_WAIT_S
+
+    core = core_with_preop()
+    core.set_preop_fiducials(liver_like(5))
+    core.set_intraop_fiducials(liver_like(5), 1)
+    core.on_intraop_points(liver_like(), "camera", 2, now_s=10.0)  # stamp 2's fiducials not here yet
+    assert not core.due(10.0) and core.due(10.0 + FIDUCIAL_WAIT_S)
+    core.set_intraop_fiducials(liver_like(5), 2)
+    assert core.due(10.0)
+
+
+def test_reconfigure_validates_the_method_and_keeps_the_cache():
+    from liver_p2p_reg.errors import InputError
+
+    with pytest.raises(InputError, match="unknown method 'nope'"):
+        NodeCore(Config(method="nope"))
+    core = NodeCore(Config(method="icp"))
+    core.registrar.cache["prepared-source:abc:()"] = object()
+    cache = dict(core.registrar.cache)
+    with pytest.raises(InputError, match="unknown method"):
+        core.reconfigure({"method": "nope", "residual_warn_mm": 9.0})
+    assert core.config.residual_warn_mm == 4.0 and core.config.method == "icp"  # all or nothing
+    core.reconfigure({"residual_warn_mm": 9.0})
+    assert core.config.residual_warn_mm == 9.0 and core.registrar.config.residual_warn_mm == 9.0
+    assert core.registrar.cache == cache

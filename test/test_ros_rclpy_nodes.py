@@ -1,11 +1,12 @@
-"""rclpy wiring of register_node and preop_loader_node (runs only where ROS 2 Jazzy is installed)."""
+"""rclpy wiring of register_node and preop_loader_node in this process (the process-level tests are test_ros_graph*.py)."""
 
 import time
 
 import numpy as np
 import pytest
+from conftest import require_rclpy  # noqa: E402
 
-rclpy = pytest.importorskip("rclpy")
+rclpy = require_rclpy()
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
@@ -81,6 +82,7 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
         assert future.result().success and "residual" in future.result().message
     finally:
         executor.shutdown()
+        node.stop()
         node.destroy_node()
         helper.destroy_node()
 
@@ -88,3 +90,22 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
 def test_preop_loader_missing_file_is_fatal_input_error(ros_context, tmp_path):
     with pytest.raises(InputError, match="not found"):
         PreopLoaderNode(parameter_overrides=[Parameter("model_path", value=str(tmp_path / "missing.stl"))])
+
+
+def test_parameter_set_keeps_the_registrar_cache(ros_context):
+    """A parameter set swaps the configuration but keeps what was computed about the model."""
+    node = RegisterNode(parameter_overrides=[Parameter("method", value="icp")])
+    try:
+        marker = object()
+        node.core.registrar.cache["test-marker:x:()"] = marker
+        assert node.set_parameters([Parameter("residual_warn_mm", value=5.0)])[0].successful
+        end = time.monotonic() + 30
+        while node.core.config.residual_warn_mm != 5.0 and time.monotonic() < end:
+            time.sleep(0.02)  # applied by the node's worker, between registrations
+        assert node.core.config.residual_warn_mm == 5.0
+        assert node.core.registrar.cache.get("test-marker:x:()") is marker
+        bad = node.set_parameters([Parameter("method", value="nope")])[0]
+        assert not bad.successful and "unknown method 'nope'" in bad.reason
+    finally:
+        node.stop()
+        node.destroy_node()

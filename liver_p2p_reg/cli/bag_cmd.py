@@ -1,4 +1,4 @@
-"""`liver-p2p bag make|import|info`: build rosbag2 (MCAP) bags from dataset cases or plain files."""
+"""`liver-p2p bag make|import|play|info`: build rosbag2 (MCAP) bags from cases or files; play them on ROS 2."""
 
 from __future__ import annotations
 
@@ -30,6 +30,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     imp.add_argument("out", help="output rosbag2 directory")
     _common(imp)
     imp.set_defaults(func=run_import)
+
+    play = sub.add_parser("play", help="publish a bag on live ROS 2 topics (rclpy; no rosbag2 needed)")
+    play.add_argument("bag", help="rosbag2 directory or .mcap file")
+    play.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1: recorded timing)")
+    play.add_argument("--loop", action="store_true", help="play again and again until Ctrl-C")
+    play.add_argument(
+        "--wait-s", type=float, default=2.0, help="wait this long for subscribers before publishing (default 2)"
+    )
+    play.set_defaults(func=run_play)
 
     info = sub.add_parser("info", help="list the topics, message counts and size of a bag")
     info.add_argument("bag", help="rosbag2 directory or .mcap file")
@@ -99,6 +108,18 @@ def run_import(args: argparse.Namespace) -> int:
     from ..ros.bag_make import load_case_npz
 
     return _make(args, load_case_npz(args.npz))
+
+
+def run_play(args: argparse.Namespace) -> int:
+    try:
+        from ..ros.bag_player import main_play
+    except ImportError as exc:
+        raise InputError(f"bag play needs rclpy ({exc}): pip install -e '.[ros]' or source ROS 2 Jazzy") from None
+    if not args.rate > 0:
+        raise InputError(f"--rate must be > 0, got {args.rate}")
+    if not Path(args.bag).exists():
+        raise InputError(f"bag not found: {args.bag}")
+    return main_play(args.bag, args.rate, args.loop, args.wait_s)
 
 
 def run_info(args: argparse.Namespace) -> int:

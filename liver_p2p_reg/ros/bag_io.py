@@ -148,12 +148,16 @@ class BagWriter:
 
     def write(self, topic: str, msgtype: str, timestamp_ns: int, msg: Any) -> None:
         """Serialize a rosbags message object and append it."""
+        self.write_raw(topic, msgtype, timestamp_ns, typestore().serialize_cdr(msg, msgtype))
+
+    def write_raw(self, topic: str, msgtype: str, timestamp_ns: int, raw: bytes) -> None:
+        """Append an already serialized (CDR) message, e.g. one recorded from a live topic."""
         conn = self._connections.get(topic)
         if conn is None:
             qos = _qos(latched=topic in LATCHED_TOPICS)
             conn = self._writer.add_connection(topic, msgtype, typestore=typestore(), offered_qos_profiles=[qos])
             self._connections[topic] = conn
-        self._writer.write(conn, int(timestamp_ns), typestore().serialize_cdr(msg, msgtype))
+        self._writer.write(conn, int(timestamp_ns), raw)
 
     def close(self) -> None:
         self._writer.close()

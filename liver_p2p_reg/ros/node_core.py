@@ -22,9 +22,10 @@ from ..config import Config
 from ..errors import InputError, LiverP2PError
 from ..metrics import transform_points
 from ..preprocess import voxel_downsample
-from ..registrar import Registrar
+from ..registrar import Registrar, get_method
 from ..result import RegistrationResult
 from ..survey import Survey
+from .fiducials import FiducialStore
 from .pointcloud2 import cloud_to_points_mm, stamp_to_ns
 
 LOG = logging.getLogger("liver_p2p_reg.node")
@@ -35,7 +36,11 @@ LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
 DIAG_NAME = "liver_p2p_reg: registration"
 PREOP_DIAG_NAME = "liver_p2p_reg: preop model"
 HARDWARE_ID = "liver_p2p_reg"
-MAX_FIDUCIAL_FRAMES = 16  # ground-truth fiducials kept per stamp, to pair them with their cloud
+# A cloud arriving at exactly max_rate_hz is due although its arrival jitters this share of a period early.
+RATE_TOLERANCE = 0.05
+# While ground truth is expected, a cloud waits at most this long for its own same-stamp fiducials
+# (published just before it, on another topic) so its TRE is not lost to delivery order.
+FIDUCIAL_WAIT_S = 0.3
 
 
 @dataclass
@@ -99,6 +104,7 @@ class _Cloud:
     msg: Any = None
     points_mm: np.ndarray | None = None
     n_raw: int = 0
+    received_s: float | None = None  # arrival on the caller's clock (None: not given)
 
 
 @dataclass
@@ -116,18 +122,20 @@ class NodeCore:
 
     def __init__(self, config: Config | None = None, registrar: Registrar | None = None) -> None:
         self.config = (config or Config()).validate()
+        get_method(self.config.method)  # an unknown method is refused now, not with an ERROR per frame
         self.registrar = registrar or Registrar(self.config)
         self._lock = threading.Lock()  # guards the state below (cheap, callbacks)
         self._register_lock = threading.Lock()  # one registration at a time
         self.preop_mm: np.ndarray | None = None
         self.preop_frame = "ct"
-        self.preop_fiducials_mm: np.ndarray | None = None
+        self.fiducials = FiducialStore()
         self._preop_scale_mm: float | None = None
         self._preop_problem = ""  # why the current model cannot be registered against (wrong units)
-        self._intraop_fiducials: dict[int, np.ndarray] = {}  # header stamp -> (F, 3) mm
         self._pending: _Cloud | None = None
         self._latest: _Cloud | None = None
-        self._last_start_s: float | None = None
+        # the rate limit counts from the arrival of the last registered cloud (its start time when
+        # no arrival is known): counting from start times let waits creep up frame after frame
+        self._rate_ref_s: float | None = None
         self._once_done = False
         self._track: _TrackState | None = None
         self._survey_state: Survey | None = None  # survey mode only
@@ -137,8 +145,43 @@ class NodeCore:
         self.dropped = 0  # clouds superseded before they were registered (latest-only)
 
     # ---------------------------------------------------------------- inputs
-    def set_preop(self, points_mm: np.ndarray, frame_id: str = "ct") -> Diagnostic:
-        """New preop model (mm, preop frame). Returns its diagnostic; bad models are rejected."""
+    @property
+    def preop_fiducials_mm(self) -> np.ndarray | None:
+        """Fiducials of the current preop model (mm, preop frame), or None."""
+        return self.fiducials.preop_mm
+
+    def reconfigure(self, changes: dict[str, Any]) -> Config:
+        """Apply parameter changes atomically (all valid or none; InputError says why).
+
+        The Registrar's cache is kept: its entries are keyed by the source's content and the
+        parameters they depend on, so only what a change invalidates is computed again.
+        """
+        config = self.config.replace(**changes)
+        get_method(config.method)
+        registrar = Registrar(config)
+        registrar.cache = self.registrar.cache
+        with self._register_lock:  # never swap under a running registration
+            self.config, self.registrar = config, registrar
+        return config
+
+    def preload(self) -> float:
+        """Import the method's modules, load its weights and run it once on a synthetic
+        liver-sized surface, so a real model's warm-up only computes that model's share; ms."""
+        start = time.perf_counter()
+        d = np.random.default_rng(0).normal(size=(3000, 3))
+        shell = d / np.linalg.norm(d, axis=1, keepdims=True) * [80.0, 55.0, 40.0]
+        with self._register_lock:
+            self.registrar.warm_up(shell)
+        return (time.perf_counter() - start) * 1e3
+
+    def set_preop(
+        self, points_mm: np.ndarray, frame_id: str = "ct", stamp_ns: int = 0, *, warm_up: bool = True
+    ) -> Diagnostic:
+        """New preop model (mm, preop frame). Returns its diagnostic; bad models are rejected.
+
+        warm_up=False leaves the model's warm-up to a later `warm_up_model()` call (the node
+        runs it on its worker so callbacks stay fast).
+        """
         points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         points = points[np.isfinite(points).all(axis=1)]
         if len(points) < self.config.min_points:
@@ -158,57 +201,73 @@ class NodeCore:
             self._once_done = False
             self._track = None  # a pose of another model is no prior
             self._survey_state = None  # nor is a surface fused against it
+            self.fiducials.new_model(stamp_ns)
         values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": self.preop_frame}
-        if not unit_warning:
-            # The model's own share of the work (its features, ICP index, ...) is done now,
-            # once, instead of inside the first frame's latency.
-            with self._register_lock:
-                values["warm_up_ms"] = f"{self.registrar.warm_up(points):.1f}"
         if unit_warning:
             return Diagnostic(WARN, PREOP_DIAG_NAME, unit_warning, values)
+        if warm_up:
+            return self.warm_up_model()
         return Diagnostic(OK, PREOP_DIAG_NAME, f"preop model received ({len(points)} points)", values)
 
-    def set_preop_fiducials(self, points_mm: np.ndarray | None) -> None:
-        """Ordered fiducials inside the preop model (mm, preop frame)."""
-        with self._lock:
-            self.preop_fiducials_mm = None if points_mm is None else np.asarray(points_mm, float).reshape(-1, 3)
+    def warm_up_model(self) -> Diagnostic:
+        """Do the current model's own share of the work (its features, ICP index, ...) now, once,
+        instead of inside the first frame's latency; its diagnostic carries `warm_up_ms`."""
+        with self._register_lock:
+            points = self.preop_mm
+            if points is None:
+                return Diagnostic(ERROR, PREOP_DIAG_NAME, "no preop model to warm up")
+            ms = self.registrar.warm_up(points)
+        values = {
+            "points": str(len(points)),
+            "extent_mm": f"{extent_mm(points):.1f}",
+            "frame_id": self.preop_frame,
+            "warm_up_ms": f"{ms:.1f}",
+        }
+        return Diagnostic(OK, PREOP_DIAG_NAME, f"preop model received ({len(points)} points)", values)
+
+    def set_preop_fiducials(self, points_mm: np.ndarray | None, stamp_ns: int | None = None) -> None:
+        """Ordered fiducials inside the preop model stamped `stamp_ns` (None: the current model), mm."""
+        self.fiducials.set_preop(points_mm, stamp_ns)
 
     def set_intraop_fiducials(self, points_mm: np.ndarray, stamp_ns: int) -> None:
         """Ground-truth fiducials in the sensor frame for the cloud with the same header stamp."""
-        with self._lock:
-            self._intraop_fiducials[int(stamp_ns)] = np.asarray(points_mm, float).reshape(-1, 3)
-            while len(self._intraop_fiducials) > MAX_FIDUCIAL_FRAMES:
-                self._intraop_fiducials.pop(min(self._intraop_fiducials))
+        self.fiducials.set_intraop(points_mm, stamp_ns)
 
-    def on_preop_msg(self, msg: Any) -> Diagnostic:
+    def on_preop_msg(self, msg: Any, *, warm_up: bool = True) -> Diagnostic:
         """A /preop/points PointCloud2 (metres)."""
         try:
             points = cloud_to_points_mm(msg)
         except InputError as exc:
             return Diagnostic(ERROR, PREOP_DIAG_NAME, f"bad /preop/points: {exc}")
-        return self.set_preop(points, msg.header.frame_id)
+        return self.set_preop(points, msg.header.frame_id, stamp_to_ns(msg.header.stamp), warm_up=warm_up)
 
-    def on_preop_fiducials_msg(self, msg: Any) -> None:
+    def on_preop_fiducials_msg(self, msg: Any) -> Diagnostic | None:
+        """A /preop/fiducials PointCloud2; a WARN diagnostic when it cannot be used."""
         try:
-            self.set_preop_fiducials(cloud_to_points_mm(msg))
+            self.set_preop_fiducials(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
         except InputError as exc:
-            LOG.warning("ignoring bad /preop/fiducials: %s", exc)
+            return Diagnostic(WARN, PREOP_DIAG_NAME, f"ignoring bad /preop/fiducials: {exc}")
+        return None
 
-    def on_intraop_fiducials_msg(self, msg: Any) -> None:
+    def on_intraop_fiducials_msg(self, msg: Any) -> Diagnostic | None:
+        """A /intraop/fiducials PointCloud2; a WARN diagnostic when it cannot be used."""
         try:
             self.set_intraop_fiducials(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
         except InputError as exc:
-            LOG.warning("ignoring bad /intraop/fiducials: %s", exc)
+            return Diagnostic(WARN, DIAG_NAME, f"ignoring bad /intraop/fiducials: {exc}")
+        return None
 
     def on_intraop_msg(self, msg: Any, now_s: float | None = None) -> list[Diagnostic]:
         """A /intraop/points PointCloud2; O(1): decoding waits until the cloud is registered."""
-        cloud = _Cloud(msg.header.frame_id, stamp_to_ns(msg.header.stamp), msg=msg)
+        cloud = _Cloud(msg.header.frame_id, stamp_to_ns(msg.header.stamp), msg=msg, received_s=now_s)
         return self._receive(cloud)
 
-    def on_intraop_points(self, points_mm: np.ndarray, frame_id: str, stamp_ns: int = 0) -> list[Diagnostic]:
+    def on_intraop_points(
+        self, points_mm: np.ndarray, frame_id: str, stamp_ns: int = 0, now_s: float | None = None
+    ) -> list[Diagnostic]:
         """Plain-data variant of `on_intraop_msg` (mm, sensor frame)."""
         points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-        return self._receive(_Cloud(frame_id, int(stamp_ns), points_mm=points, n_raw=len(points)))
+        return self._receive(_Cloud(frame_id, int(stamp_ns), points_mm=points, n_raw=len(points), received_s=now_s))
 
     def _receive(self, cloud: _Cloud) -> list[Diagnostic]:
         with self._lock:
@@ -226,19 +285,27 @@ class NodeCore:
         return []
 
     # ---------------------------------------------------------------- scheduling
+    def next_due_s(self) -> float | None:
+        """When the pending cloud becomes due (the caller's clock; -inf: now), None if it never will
+        by itself (nothing pending, no model, on_demand, once already done)."""
+        with self._lock:
+            cloud = self._pending
+            if cloud is None or self.preop_mm is None or self.config.mode == "on_demand":
+                return None
+            if self.config.mode == "once" and self._once_done:
+                return None
+            due_s = -np.inf
+            if self.config.mode == "continuous" and self._rate_ref_s is not None:
+                due_s = self._rate_ref_s + (1.0 - RATE_TOLERANCE) / self.config.max_rate_hz
+        if cloud.received_s is not None and self.fiducials.expected() and not self.fiducials.has_frame(cloud.stamp_ns):
+            due_s = max(due_s, cloud.received_s + FIDUCIAL_WAIT_S)
+        return due_s
+
     def due(self, now_s: float | None = None) -> bool:
         """Whether `process_pending` would register now (mode, rate limit, inputs present)."""
         now_s = time.monotonic() if now_s is None else now_s
-        with self._lock:
-            if self._pending is None or self.preop_mm is None:
-                return False
-            if self.config.mode == "on_demand":
-                return False
-            if self.config.mode == "once":
-                return not self._once_done
-            if self._last_start_s is None:
-                return True
-            return now_s - self._last_start_s >= 1.0 / self.config.max_rate_hz - 1e-9
+        due_s = self.next_due_s()
+        return due_s is not None and now_s >= due_s - 1e-9
 
     def process_pending(self, now_s: float | None = None) -> CoreOutput | None:
         """Register the latest pending cloud if due (continuous/once modes); else None."""
@@ -247,7 +314,8 @@ class NodeCore:
             return None
         with self._lock:
             cloud, self._pending = self._pending, None
-            self._last_start_s = now_s
+            if cloud is not None:
+                self._rate_ref_s = now_s if cloud.received_s is None else cloud.received_s
         if cloud is None:
             return None
         output = self._register(cloud, self.config.mode)
@@ -260,7 +328,7 @@ class NodeCore:
         with self._lock:
             cloud = self._pending or self._latest
             self._pending = None
-            self._last_start_s = time.monotonic() if now_s is None else now_s
+            self._rate_ref_s = time.monotonic() if now_s is None else now_s
         if cloud is None:
             diag = Diagnostic(ERROR, DIAG_NAME, "no intraop cloud received yet (/intraop/points)")
             self.last_output = CoreOutput([diag], reason="reregister")
@@ -270,7 +338,9 @@ class NodeCore:
     def flush(self) -> CoreOutput | None:
         """Register a still-pending cloud ignoring the rate limit (end of a replayed bag)."""
         with self._lock:
-            self._last_start_s = None
+            self._rate_ref_s = None
+            if self._pending is not None:
+                self._pending.received_s = None  # no fiducials are coming after the bag's end
         return self.process_pending(0.0)
 
     def status(self) -> Diagnostic:
@@ -299,11 +369,9 @@ class NodeCore:
             return CoreOutput([Diagnostic(level, DIAG_NAME, message, values)], reason=reason)
 
         with self._lock:
-            preop, preop_frame, fid_s = self.preop_mm, self.preop_frame, self.preop_fiducials_mm
+            preop, preop_frame = self.preop_mm, self.preop_frame
             scale_mm, preop_problem = self._preop_scale_mm, self._preop_problem
-            fid_t = self._intraop_fiducials.get(cloud.stamp_ns)
-            if fid_t is None and self._intraop_fiducials:
-                fid_t = self._intraop_fiducials[max(self._intraop_fiducials)]
+        fid_s, fid_t = self.fiducials.pair(cloud.stamp_ns)
         if preop is None:
             return fail(ERROR, "no preop model received yet (/preop/points)")
         if preop_problem:  # kept with a WARN on arrival; a pose against it would be meaningless
@@ -334,9 +402,8 @@ class NodeCore:
             return fail(WARN, unit_warning + "; not registered")
         with self._lock:
             self._latest = _Cloud(cloud.frame_id, cloud.stamp_ns, points_mm=points, n_raw=n_raw)
-        if fid_s is not None and (fid_t is None or fid_t.shape != fid_s.shape):
-            fid_s = fid_t = None  # ground truth absent or not matching: no TRE
         prep_ms = (time.perf_counter() - start) * 1e3
+        cached = set(self.registrar.cache)
         if self.config.mode == "survey" and reason != "reregister":  # ---- survey mode (survey.py)
             try:
                 step = self._survey().step(
@@ -368,6 +435,10 @@ class NodeCore:
                 result.runtime_ms["total"] = result.runtime_ms.get("total", 0.0) + track_ms
         result.runtime_ms.setdefault("node_prepare", prep_ms)
         values.update(result_values(result))
+        # what this registration had to compute about the model (normally nothing: the warm-up did)
+        computed = {str(k).split(":")[0] for k in self.registrar.cache if k not in cached}
+        values["model_cache_computed"] = ",".join(sorted(computed)) or "none"
+
         if not result.ok or not np.all(np.isfinite(result.T_target_source)):
             return CoreOutput(
                 [

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import array
+import os
+import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import rclpy
@@ -61,10 +63,11 @@ class PreopLoaderNode(Node):
             self.get_logger().info(f"published {len(fiducials_m)} fiducials on /preop/fiducials")
 
 
-def main(args: list[str] | None = None) -> int:
-    """`ros2 run liver_p2p_reg preop_loader_node --ros-args -p model_path:=liver.stl`."""
+def main(args: list[str] | None = None) -> NoReturn:
+    """`ros2 run liver_p2p_reg preop_loader_node --ros-args -p model_path:=liver.stl`; exits the process."""
     rclpy.init(args=args)
     node = None
+    status = 0
     try:
         node = PreopLoaderNode()
         executor = SingleThreadedExecutor()
@@ -74,12 +77,16 @@ def main(args: list[str] | None = None) -> int:
         pass
     except LiverP2PError as exc:  # missing/unreadable file: one fatal line and exit status 1
         get_logger("preop_loader_node").fatal(str(exc))
-        return 1
+        status = 1
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    # Without the interpreter's teardown (seconds for the point-cloud libraries): rclpy is shut
+    # down and the logs are flushed, so SIGINT/SIGTERM end the node at once, as launch expects.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 if __name__ == "__main__":

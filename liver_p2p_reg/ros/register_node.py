@@ -4,28 +4,33 @@ from __future__ import annotations
 
 import array
 import dataclasses
+import logging
+import os
+import sys
+import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NoReturn
 
 import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from ..config import Config
 from ..errors import LiverP2PError
-from ..registrar import Registrar
+from ..registrar import get_method
 from .messages import OutputTypes, diagnostic_array, pose_stamped, transform_stamped
-from .node_core import CoreOutput, NodeCore
+from .node_core import ERROR, OK, WARN, CoreOutput, Diagnostic, NodeCore
 from .pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
 
 RCLPY_TYPES = OutputTypes(
@@ -44,83 +49,125 @@ RCLPY_TYPES = OutputTypes(
 )
 # Late joiners (register_node started after the loader) still get the preop model.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-SCHEDULER_PERIOD_S = 0.02  # how often the worker checks for a due cloud (rate limit lives in the core)
 DIAGNOSTICS_PERIOD_S = 1.0
+JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
 
 
 def config_from_parameters(node: Node) -> Config:
     """Declare one ROS parameter per Config field (defaults from Config: one source of truth) and read them."""
     defaults = Config()
     values = {}
-    # dynamic typing: `-p max_rate_hz:=2` (an integer) is coerced by Config instead of rejected
-    descriptor = ParameterDescriptor(dynamic_typing=True)
     for f in dataclasses.fields(Config):
+        # A descriptor per parameter: rclpy writes the name and type into the object it is given.
+        # dynamic_typing: `-p max_rate_hz:=2` (an integer) is coerced by Config instead of rejected.
+        descriptor = ParameterDescriptor(description=f"{f.name} ({f.type}); see msg_docs/", dynamic_typing=True)
         node.declare_parameter(f.name, getattr(defaults, f.name), descriptor)
         values[f.name] = node.get_parameter(f.name).value
     return Config.from_dict(values)
 
 
+class _RclpyLogHandler(logging.Handler):
+    """Sends the package's Python `logging` records to the node's rclpy logger (and so to /rosout)."""
+
+    def __init__(self, log: Callable[[int, str], None]) -> None:
+        super().__init__()
+        self._log = log
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._log(record.levelno, self.format(record))
+
+
 class RegisterNode(Node):
-    """Registers the preop model to each intraop cloud (per the mode) and publishes pose, tf, diagnostics."""
+    """Registers the preop model to each intraop cloud (per the mode) and publishes pose, tf, diagnostics.
+
+    Callbacks only hand work over; one worker thread does every heavy step (start-up preload,
+    a new model's warm-up, registrations, service requests), woken by events, never polling.
+    """
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("register_node", **node_kwargs)  # node_kwargs: e.g. parameter_overrides (tests)
         self.core = NodeCore(config_from_parameters(self))
+        self._accepted = self.core.config  # the configuration the parameter sets so far describe
+        self._log_handler = _RclpyLogHandler(self._log)
+        logging.getLogger("liver_p2p_reg").addHandler(self._log_handler)
+        self._wake = threading.Condition()
+        self._jobs: list[Callable[[], None]] = [self._preload]
+        self._stopping = False
         self.add_on_set_parameters_callback(self._on_parameters)
-        io_group = ReentrantCallbackGroup()  # cheap callbacks: never blocked by a registration
-        work_group = MutuallyExclusiveCallbackGroup()  # the one registration worker
-        self.create_subscription(PointCloud2, "/preop/points", self._on_preop, LATCHED_QOS, callback_group=io_group)
-        self.create_subscription(
-            PointCloud2, "/preop/fiducials", self.core.on_preop_fiducials_msg, LATCHED_QOS, callback_group=io_group
-        )
-        self.create_subscription(
-            PointCloud2, "/intraop/points", self._on_intraop, qos_profile_sensor_data, callback_group=io_group
-        )
-        self.create_subscription(
-            PointCloud2, "/intraop/fiducials", self.core.on_intraop_fiducials_msg, 10, callback_group=io_group
-        )
         self.pose_pub = self.create_publisher(PoseStamped, "/registration/pose", 10)
         self.transform_pub = self.create_publisher(TransformStamped, "/registration/transform", 10)
         self.cloud_pub = self.create_publisher(PointCloud2, "/registration/registered_preop", 1)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_service(Trigger, "~/reregister", self._on_reregister, callback_group=io_group)
-        # survey mode (issue 19): start the fused surface over
-        self.create_service(Trigger, "~/reset_survey", self._on_reset_survey, callback_group=io_group)
-        self.create_timer(SCHEDULER_PERIOD_S, self._work, callback_group=work_group)
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_status, callback_group=io_group)
+        self.create_subscription(PointCloud2, "/preop/points", self._on_preop, LATCHED_QOS)
+        self.create_subscription(PointCloud2, "/preop/fiducials", self._on_preop_fiducials, LATCHED_QOS)
+        # fiducials before points: when both are waiting, a cloud's own fiducials are taken first
+        self.create_subscription(PointCloud2, "/intraop/fiducials", self._on_intraop_fiducials, 10)
+        self.create_subscription(PointCloud2, "/intraop/points", self._on_intraop, qos_profile_sensor_data)
+        self.create_service(Trigger, "~/reregister", self._on_reregister)
+        self.create_service(Trigger, "~/reset_survey", self._on_reset_survey)  # survey mode: start over
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_status)
         self.tf_broadcaster = None
-        try:  # /tf is optional: tf2_ros may be absent in minimal installs
+        try:  # /tf is optional: tf2_ros has no PyPI wheel, so pip-only installs lack it
             from tf2_ros import TransformBroadcaster
 
             self.tf_broadcaster = TransformBroadcaster(self)
         except ImportError:
-            self.get_logger().warning("tf2_ros not importable: publishing /registration/transform only")
+            self.get_logger().info("tf2_ros not importable: publishing /registration/transform only, no /tf")
         cfg = self.core.config
         self.get_logger().info(
             f"register_node ready: method={cfg.method} mode={cfg.mode} max_rate_hz={cfg.max_rate_hz}"
         )
+        self._worker = threading.Thread(target=self._work, name="registration", daemon=True)
+        self._worker.start()
 
-    # ---------------------------------------------------------------- callbacks (io group)
+    # ---------------------------------------------------------------- callbacks (cheap, executor thread)
     def _on_preop(self, msg: PointCloud2) -> None:
-        diag = self.core.on_preop_msg(msg)
-        self.get_logger().info(diag.message)
-        self.diag_pub.publish(diagnostic_array([diag], self._now_ns(), RCLPY_TYPES))
+        diag = self.core.on_preop_msg(msg, warm_up=False)
+        if diag.level == OK:  # reported once warmed up, with warm_up_ms
+            self.get_logger().info(f"preop model of {diag.values['points']} points: warming up")
+            self._submit(self._warm_up)
+        else:
+            self._report([diag])
+
+    def _on_preop_fiducials(self, msg: PointCloud2) -> None:
+        diag = self.core.on_preop_fiducials_msg(msg)
+        if diag is not None:
+            self._report([diag])
+
+    def _on_intraop_fiducials(self, msg: PointCloud2) -> None:
+        diag = self.core.on_intraop_fiducials_msg(msg)
+        if diag is not None:
+            self._report([diag])
+        self._submit()  # a cloud may be waiting for exactly these
 
     def _on_intraop(self, msg: PointCloud2) -> None:
-        diags = self.core.on_intraop_msg(msg)  # O(1): decoding happens in the worker
+        diags = self.core.on_intraop_msg(msg, time.monotonic())  # O(1): decoding happens in the worker
         if diags:
-            self.diag_pub.publish(diagnostic_array(diags, self._now_ns(), RCLPY_TYPES))
+            self._report(diags)
+        self._submit()
 
-    def _on_reregister(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        output = self.core.reregister(time.monotonic())
-        self._publish(output)
+    async def _on_reregister(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        # The registration runs on the worker; this coroutine waits without holding a thread.
+        done = Future(executor=self.executor)
+        done.add_done_callback(lambda _: None)  # makes set_result wake the executor
+
+        def job() -> None:
+            output = self.core.reregister(time.monotonic())
+            self._publish(output)
+            done.set_result(output)
+
+        self._submit(job)
+        output = await done
         response.success = output.pose is not None
         response.message = output.summary
         return response
 
-    def _on_reset_survey(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        # survey mode (issue 19): NodeCore.reset_survey waits for a registration in progress
-        response.message = self.core.reset_survey()
+    async def _on_reset_survey(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        # On the worker, after any registration in progress; this coroutine waits without a thread.
+        done = Future(executor=self.executor)
+        done.add_done_callback(lambda _: None)  # makes set_result wake the executor
+        self._submit(lambda: done.set_result(self.core.reset_survey()))
+        response.message = await done
         response.success = True
         self.get_logger().info(response.message)
         return response
@@ -129,25 +176,71 @@ class RegisterNode(Node):
         self.diag_pub.publish(diagnostic_array([self.core.status()], self._now_ns(), RCLPY_TYPES))
 
     def _on_parameters(self, params: list[Any]) -> SetParametersResult:
-        try:
-            config = self.core.config.replace(**{p.name: p.value for p in params})
+        known = {f.name for f in dataclasses.fields(Config)}
+        changes = {p.name: p.value for p in params if p.name in known}  # rclpy handles its own (use_sim_time)
+        if not changes:
+            return SetParametersResult(successful=True)
+        try:  # validate now (against earlier sets not yet applied), so the answer carries the reason ...
+            config = self._accepted.replace(**changes)
+            get_method(config.method)
         except LiverP2PError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        self.core.config = config
-        self.core.registrar = Registrar(config)
+        # ... and apply on the worker, between registrations, without blocking this callback
+        self._accepted = config
+        self._submit(lambda: self.core.reconfigure(config.to_dict()))
         return SetParametersResult(successful=True)
 
-    # ---------------------------------------------------------------- worker (work group)
-    def _work(self) -> None:
-        output = self.core.process_pending(time.monotonic())
-        if output is not None:
-            self._publish(output)
+    # ---------------------------------------------------------------- worker thread
+    def _submit(self, job: Callable[[], None] | None = None) -> None:
+        with self._wake:
+            if job is not None:
+                self._jobs.append(job)
+            self._wake.notify()
 
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while not self._stopping and not self._jobs:
+                    due_s = self.core.next_due_s()
+                    wait_s = None if due_s is None else due_s - time.monotonic()
+                    if wait_s is not None and wait_s <= 0:
+                        break
+                    self._wake.wait(wait_s)
+                if self._stopping:
+                    return
+                jobs, self._jobs = self._jobs, []
+            try:
+                for job in jobs:
+                    job()
+                output = self.core.process_pending(time.monotonic())
+                if output is not None:
+                    self._publish(output)
+            except Exception as exc:  # the worker must outlive anything; at shutdown, stay silent
+                if self._stopping:
+                    return
+                self.get_logger().error(f"registration worker: {type(exc).__name__}: {exc}")
+
+    def _preload(self) -> None:
+        ms = self.core.preload()
+        self.get_logger().info(f"method {self.core.config.method} loaded in {ms:.0f} ms")
+
+    def _warm_up(self) -> None:
+        self._report([self.core.warm_up_model()])
+
+    def stop(self) -> bool:
+        """Stop the worker; False when a registration is still running (it is abandoned)."""
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        logging.getLogger("liver_p2p_reg").removeHandler(self._log_handler)
+        self._worker.join(JOIN_ON_EXIT_S)
+        return not self._worker.is_alive()
+
+    # ---------------------------------------------------------------- outputs
     def _publish(self, output: CoreOutput) -> None:
+        if self._stopping:
+            return
         stamp_ns = output.pose.stamp_ns if output.pose is not None else self._now_ns()
-        for diag in output.diagnostics:
-            log = self.get_logger().info if diag.level == 0 else self.get_logger().warning
-            log(f"{diag.level_name}: {diag.message}")
         if output.pose is not None:
             self.pose_pub.publish(pose_stamped(output.pose, RCLPY_TYPES))
             transform = transform_stamped(output.pose, RCLPY_TYPES)
@@ -161,31 +254,64 @@ class RegisterNode(Node):
                 stamp_ns=stamp_ns,
             )
             self.cloud_pub.publish(cloud)
-        self.diag_pub.publish(diagnostic_array(output.diagnostics, stamp_ns, RCLPY_TYPES))
+        self._report(output.diagnostics, stamp_ns)
+
+    def _report(self, diags: list[Diagnostic], stamp_ns: int | None = None) -> None:
+        """Log each diagnostic at its own severity and publish them on /diagnostics."""
+        severity = {OK: logging.INFO, WARN: logging.WARNING, ERROR: logging.ERROR}
+        for diag in diags:
+            self._log(severity.get(diag.level, logging.WARNING), f"{diag.level_name}: {diag.message}")
+        if not self._stopping:
+            self.diag_pub.publish(
+                diagnostic_array(diags, self._now_ns() if stamp_ns is None else stamp_ns, RCLPY_TYPES)
+            )
+
+    def _log(self, level: int, text: str) -> None:
+        # rclpy binds one severity to each call site: one call per severity, never a shared one
+        logger = self.get_logger()
+        if level >= logging.ERROR:
+            logger.error(text)
+        elif level >= logging.WARNING:
+            logger.warning(text)
+        elif level >= logging.INFO:
+            logger.info(text)
+        else:
+            logger.debug(text)
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
 
-def main(args: list[str] | None = None) -> int:
-    """`ros2 run liver_p2p_reg register_node` (Jazzy idiom: rclpy.init() returns None)."""
+def main(args: list[str] | None = None) -> NoReturn:
+    """`ros2 run liver_p2p_reg register_node` (Jazzy idiom: rclpy.init() returns None); exits the process.
+
+    SIGINT/SIGTERM end the node within JOIN_ON_EXIT_S even during a registration: the worker's
+    unfinished result is dropped and the process leaves without waiting for it.
+    """
     rclpy.init(args=args)
     node = None
+    status = 0
     try:
         node = RegisterNode()
-        executor = MultiThreadedExecutor(num_threads=4)
+        executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except LiverP2PError as exc:  # bad parameters: one fatal line, no traceback
         get_logger("register_node").fatal(str(exc))
-        return 1
+        status = 1
     finally:
         if node is not None:
+            node.stop()
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    # Leave without the interpreter's teardown: unloading torch/Open3D took seconds (past launch's
+    # SIGINT window under load), and an abandoned registration holds nothing worth waiting for.
+    # rclpy is shut down and the logs are flushed; there is nothing else to clean up.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 if __name__ == "__main__":

@@ -297,7 +297,7 @@ def _bag_name(path: Path) -> str:
     return path.name.removesuffix(".mcap")
 
 
-def _fmt(value: float, digits: int = 2) -> str:
+def fmt(value: float, digits: int = 2) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
 
@@ -330,16 +330,21 @@ def format_table(rows: Sequence[ReplayRow]) -> str:
         [
             r.bag,
             f"{r.registered}/{r.frames}",
-            _fmt(r.visibility),
-            _fmt(r.rms_tre_mm),
-            _fmt(r.max_rms_tre_mm),
-            _fmt(r.residual_mm),
-            _fmt(r.uncertainty_mm, 1),
-            _fmt(r.runtime_ms_p50, 0),
+            fmt(r.visibility),
+            fmt(r.rms_tre_mm),
+            fmt(r.max_rms_tre_mm),
+            fmt(r.residual_mm),
+            fmt(r.uncertainty_mm, 1),
+            fmt(r.runtime_ms_p50, 0),
             r.status,
         ]
         for r in rows
     ]
+    return markdown_table(header, body)
+
+
+def markdown_table(header: Sequence[str], body: Sequence[Sequence[str]]) -> str:
+    """A Markdown table with padded columns (readable as plain text too)."""
     widths = [max(len(h), *(len(row[i]) for row in body)) if body else len(h) for i, h in enumerate(header)]
     lines = ["| " + " | ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)) + " |"]
     lines.append("|" + "|".join("-" * (w + 2) for w in widths) + "|")
