@@ -73,7 +73,7 @@ def test_colcon_install_layout(tmp_path: Path) -> None:
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lib = prefix / "lib" / PACKAGE
-    for exe in ("register_node", "preop_loader_node", "liver-p2p"):
+    for exe in ("register_node", "preop_loader_node", "slicer_bridge_node", "liver-p2p"):
         assert (lib / exe).is_file() and os.access(lib / exe, os.X_OK), f"{exe} missing from lib/{PACKAGE}"
     # The CLI is on PATH (bin/), the node executables are not (ros2 run finds them in lib/<pkg>).
     assert (prefix / "bin" / "liver-p2p").is_file()
@@ -116,7 +116,7 @@ def test_console_script_help() -> None:
 
 
 def test_no_rclpy_outside_ros_adapters() -> None:
-    allowed = {"register_node.py", "preop_loader_node.py"}
+    allowed = {"register_node.py", "preop_loader_node.py", "slicer_bridge_node.py"}
     offenders = []
     for path in (ROOT / PACKAGE).rglob("*.py"):
         text = path.read_text()

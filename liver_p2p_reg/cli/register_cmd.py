@@ -46,6 +46,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--moved", metavar="PATH", help="also write SOURCE moved into TARGET's frame (PLY/PCD/XYZ/NPY, mm)")
     p.add_argument("--force", action="store_true", help="overwrite --output / --plot / --moved files that exist")
+    p.add_argument(
+        "--slicer",
+        metavar="HOST:PORT",
+        help="also send the model, TARGET, the CTToSensor transform and the verdict to 3D Slicer "
+        "(its OpenIGTLinkIF connector of type Server, e.g. localhost:18944); README 'See it in 3D Slicer'",
+    )
     p.set_defaults(func=run)
 
 
@@ -87,6 +93,11 @@ def run(args: argparse.Namespace) -> int:
     if args.source_fiducials is not None:
         fid_s = load_points(args.source_fiducials)
         fid_t = load_points(args.target_fiducials)  # Registrar refuses NaN/inf pairs
+    slicer = None
+    if args.slicer:  # connected before registering: no Slicer is one line, not a lost registration
+        from ..igtl.commands import connect_to_slicer
+
+        slicer = connect_to_slicer(args.slicer)
     result = Registrar(config).register(
         source, target, method=config.method, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t
     )
@@ -98,6 +109,10 @@ def run(args: argparse.Namespace) -> int:
     warnings = list(pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config).values())
     for message in warnings:
         logging.getLogger("liver_p2p_reg").warning(message)
+    if slicer is not None:
+        from ..igtl.commands import send_registration
+
+        send_registration(slicer, args.source, source, target, result, warnings)
     if moved is not None:
         save_points(moved, transform_points(result.T_target_source, source))
     if plot is not None:

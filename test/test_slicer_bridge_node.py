@@ -1,0 +1,304 @@
+"""slicer_bridge_node under real rclpy: a bundled bag's registration, played on an isolated domain, reaches a Slicer stand-in.
+
+The bag is first replayed through the node core (its output bag then holds the poses and
+diagnostics the registration published); this process plays those messages as serialized CDR
+through rclpy publishers with the documented QoS to the node, started as its own process.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import require_rclpy
+from igtl_support import Recorder, assert_wire_equal, expected_transform, hung_up
+
+rclpy = require_rclpy()
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import Point, PoseStamped  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
+from rosbags.highlevel import AnyReader  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
+
+from liver_p2p_reg.config import Config, SlicerConfig  # noqa: E402
+from liver_p2p_reg.ros.bag_io import typestore  # noqa: E402
+from liver_p2p_reg.ros.node_core import DIAG_NAME, LEVEL_NAMES  # noqa: E402
+from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns  # noqa: E402
+from liver_p2p_reg.ros.replay import replay_bag  # noqa: E402
+from liver_p2p_reg.ros.slicer_bridge_node import STATUS_NAME  # noqa: E402
+from liver_p2p_reg.ros.slicer_link import level_of, pose_to_T_mm  # noqa: E402
+
+BAG = Path(__file__).resolve().parents[1] / "bags" / "insilico_L9000001_D00_T007_random"
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+QOS = {
+    "/preop/points": LATCHED,
+    "/preop/mesh": LATCHED,
+    "/intraop/points": qos_profile_sensor_data,
+    "/registration/pose": 10,
+    "/diagnostics": 10,
+}
+TYPES = {
+    "/preop/points": PointCloud2,
+    "/preop/mesh": Marker,
+    "/intraop/points": PointCloud2,
+    "/registration/pose": PoseStamped,
+    "/diagnostics": DiagnosticArray,
+}
+MAX_CLOUD_POINTS = SlicerConfig().max_cloud_points
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The registration of a bundled bag: its preop model and, per frame, cloud + pose + diagnostics as CDR."""
+    out = tmp_path_factory.mktemp("slicer_node") / "replayed"
+    replay_bag(BAG, Config(method="icp"), out_path=out, max_frames=3)  # the quickest method: any pose will do
+    raw: list[tuple[str, bytes]] = []
+    with AnyReader([out], default_typestore=typestore()) as reader:
+        wanted = [c for c in reader.connections if c.topic in TYPES]
+        raw = [(c.topic, bytes(data)) for c, _, data in reader.messages(connections=wanted)]
+    preop = next(data for topic, data in raw if topic == "/preop/points")
+    groups: list[dict] = []
+    for topic, data in raw:
+        if topic == "/intraop/points":
+            groups.append({"/intraop/points": data})
+        elif topic in ("/registration/pose", "/diagnostics") and groups:
+            groups[-1].setdefault(topic, data)
+    registered = [g for g in groups if "/registration/pose" in g]
+    assert len(registered) == 3, [list(g) for g in groups]
+    return {"preop": preop, "frames": registered, "bag": out}
+
+
+def isolated_env() -> dict[str, str]:
+    return {"ROS_DOMAIN_ID": str(random.SystemRandom().randint(1, 100)), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+
+def start_node(env: dict[str, str], *params: str) -> tuple[subprocess.Popen, list[str]]:
+    args = [sys.executable, "-m", "liver_p2p_reg.ros.slicer_bridge_node", "--ros-args"]
+    for param in ("host:=127.0.0.1", "port:=0", *params):
+        args += ["-p", param]
+    full_env = {**os.environ, **env, "RCUTILS_COLORIZED_OUTPUT": "0", "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=full_env)
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True).start()  # keeps the pipe drained
+    return proc, lines
+
+
+class Player:
+    """An rclpy node of this process that publishes CDR bytes and listens to /diagnostics."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        os.environ.update(env)
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("slicer_test_player", context=self.context)
+        self.publishers = {t: self.node.create_publisher(TYPES[t], t, QOS[t]) for t in TYPES}
+        self.statuses: list = []
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 10)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # context shut down by close()
+            pass
+
+    def _diag(self, msg: DiagnosticArray) -> None:
+        self.statuses += [s for s in msg.status if s.name == STATUS_NAME]
+
+    def bridge_stats(self) -> dict[str, str]:
+        return {kv.key: kv.value for kv in self.statuses[-1].values} if self.statuses else {}
+
+    def wait_for_bridge(self, timeout_s: float = 60.0) -> None:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if all(p.get_subscription_count() > 0 for t, p in self.publishers.items() if t != "/diagnostics"):
+                return
+            time.sleep(0.05)
+        raise AssertionError("slicer_bridge_node did not subscribe to the topics")
+
+    def publish(self, topic: str, data) -> None:
+        self.publishers[topic].publish(data)
+
+    def play(self, frame: dict, pause_s: float = 0.3) -> None:
+        for topic in ("/intraop/points", "/registration/pose", "/diagnostics"):
+            self.publish(topic, frame[topic])
+            time.sleep(0.05)
+        time.sleep(pause_s)
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self.thread.join(2.0)
+
+
+@pytest.fixture(scope="module")
+def graph():
+    env = isolated_env()
+    proc, lines = start_node(env, "cloud_rate_hz:=100.0")
+    player = None
+    try:
+        end = time.monotonic() + 90
+        port = None
+        while port is None and time.monotonic() < end and proc.poll() is None:
+            found = (re.search(r"listening on 127\.0\.0\.1:(\d+)", line) for line in lines)
+            port = next((int(m.group(1)) for m in found if m), None)
+            time.sleep(0.05)
+        assert port, "".join(lines)
+        player = Player(env)
+        player.wait_for_bridge()
+        yield {"proc": proc, "lines": lines, "port": port, "player": player}
+    finally:
+        if player is not None:
+            player.close()
+        proc.send_signal(signal.SIGINT)
+        try:
+            code = proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            code = None
+    assert code == 0, "".join(lines)
+    bad = [line for line in lines if not line.startswith("[INFO]") and line.strip()]
+    assert bad == [], "".join(lines)  # no traceback, no warning beyond the expected garbage line
+
+
+def decode(topic: str, data: bytes):
+    return typestore().deserialize_cdr(data, {"/intraop/points": "sensor_msgs/msg/PointCloud2",
+                                              "/registration/pose": "geometry_msgs/msg/PoseStamped",
+                                              "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+                                              "/preop/points": "sensor_msgs/msg/PointCloud2"}[topic])  # fmt: skip
+
+
+def registration_texts(diagnostics: bytes) -> list[str]:
+    msg = decode("/diagnostics", diagnostics)
+    return [f"{LEVEL_NAMES[level_of(s.level)]}: {s.message}" for s in msg.status if s.name == DIAG_NAME]
+
+
+def test_bag_through_rclpy_reaches_slicer(graph: dict, frames: dict) -> None:
+    player: Player = graph["player"]
+    slicer = Recorder.connect(graph["port"])
+    try:
+        player.publish("/preop/points", frames["preop"])
+        model = slicer.wait_for("PreopModel")[0].value
+        preop = cloud_to_points_mm(decode("/preop/points", frames["preop"]))
+        assert len(model.polygons) == len(preop)  # 19134 points, each drawn as a triangle
+        np.testing.assert_allclose(model.points[: len(preop)], (preop * [-1, -1, 1]).astype(np.float32), atol=0)
+        expected_texts = []
+        for i, frame in enumerate(frames["frames"]):
+            player.play(frame)
+            pose = decode("/registration/pose", frame["/registration/pose"])
+            transform = slicer.wait_for("CTToSensor", i + 1)[i]
+            # the published pose, in mm, composed with LPS -> RAS: equal within float32's 1e-6
+            assert_wire_equal(transform.value, expected_transform(pose_to_T_mm(pose.pose)))
+            assert transform.timestamp_s == pytest.approx(stamp_to_ns(pose.header.stamp) * 1e-9, abs=1e-6)
+            cloud = slicer.wait_for("IntraopCloud", i + 1)[i].value
+            full = cloud_to_points_mm(decode("/intraop/points", frame["/intraop/points"]))
+            kept = full[np.linspace(0, len(full) - 1, MAX_CLOUD_POINTS).round().astype(int)]
+            np.testing.assert_allclose(cloud.points[:MAX_CLOUD_POINTS], kept.astype(np.float32), atol=0)
+            expected_texts += registration_texts(frame["/diagnostics"])
+        texts = [m.value for m in slicer.wait_for("RegistrationStatus", len(expected_texts))]
+        assert texts == expected_texts and len(texts) == 3
+        assert all(re.match(r"(OK|WARN|ERROR): ", t) for t in texts)
+    finally:
+        slicer.close()
+
+
+def test_late_joiner_and_reconnect_get_the_current_state(graph: dict, frames: dict) -> None:
+    player: Player = graph["player"]
+    last = frames["frames"][-1]
+    player.publish("/preop/points", frames["preop"])
+    player.play(last)
+    late = Recorder.connect(graph["port"])
+    late.wait_for("PreopModel")
+    pose = decode("/registration/pose", last["/registration/pose"])
+    assert_wire_equal(late.wait_for("CTToSensor")[0].value, expected_transform(pose_to_T_mm(pose.pose)))
+    assert late.wait_for("RegistrationStatus")[0].value == registration_texts(last["/diagnostics"])[-1]
+    late.close()
+    again = Recorder.connect(graph["port"])  # reconnects: the state again, then the stream
+    try:
+        again.wait_for("PreopModel")
+        again.wait_for("CTToSensor")
+        first = frames["frames"][0]
+        player.play(first)
+        pose = decode("/registration/pose", first["/registration/pose"])
+        assert_wire_equal(again.wait_for("CTToSensor", 2)[1].value, expected_transform(pose_to_T_mm(pose.pose)))
+    finally:
+        again.close()
+
+
+def test_garbage_from_a_client_does_not_harm_the_node(graph: dict, frames: dict) -> None:
+    player: Player = graph["player"]
+    good = Recorder.connect(graph["port"])
+    try:
+        good.wait_for("CTToSensor")
+        rude = socket.create_connection(("127.0.0.1", graph["port"]), timeout=10)
+        rude.sendall(os.urandom(8192))
+        assert hung_up(rude)
+        rude.close()
+        frame = frames["frames"][1]
+        player.play(frame)
+        pose = decode("/registration/pose", frame["/registration/pose"])
+        assert_wire_equal(good.wait_for("CTToSensor", 2)[-1].value, expected_transform(pose_to_T_mm(pose.pose)))
+        assert graph["proc"].poll() is None
+        end = time.monotonic() + 10
+        while player.bridge_stats().get("garbage_disconnections") != "1" and time.monotonic() < end:
+            time.sleep(0.1)
+        assert player.bridge_stats()["garbage_disconnections"] == "1"
+        assert any("not OpenIGTLink" in line for line in graph["lines"])
+        graph["lines"][:] = [line for line in graph["lines"] if "not OpenIGTLink" not in line]
+    finally:
+        good.close()
+
+
+def test_mesh_from_the_loader_is_sent_as_a_mesh(graph: dict) -> None:
+    player: Player = graph["player"]
+    # a tetrahedron-shaped "liver" (mm in the ct frame): 4 faces of the mesh topic, then its points
+    corners_mm = np.array([[0, 0, 0], [80, 0, 0], [0, 60, 0], [0, 0, 40]], dtype=float)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    stamp = player.node.get_clock().now().to_msg()
+    mesh = Marker(type=Marker.TRIANGLE_LIST, action=Marker.ADD)
+    mesh.header.frame_id, mesh.header.stamp = "ct", stamp
+    mesh.points = [Point(x=x * 1e-3, y=y * 1e-3, z=z * 1e-3) for x, y, z in corners_mm[faces.reshape(-1)]]
+    slicer = Recorder.connect(graph["port"])
+    try:
+        player.publish("/preop/mesh", mesh)
+        model = slicer.wait_for("PreopModel", 2)[-1].value  # the state (earlier model), then the mesh
+        assert len(model.points) == 4 and len(model.polygons) == 4
+        received = {tuple(np.round(model.points[c], 3).ravel()) for c in model.polygons}
+        flipped = corners_mm * [-1, -1, 1]
+        assert received == {tuple(np.round(flipped[f], 3).ravel()) for f in faces}
+    finally:
+        slicer.close()
+
+
+def test_bad_parameters_and_a_taken_port_are_one_fatal_line() -> None:
+    env = isolated_env()
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        for param in ("ct_convention:=RAI", f"port:={taken.getsockname()[1]}"):
+            proc, lines = start_node(env, param)
+            try:
+                code = proc.wait(60)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            time.sleep(0.2)  # the reader thread drains the last lines
+            fatal = [line for line in lines if line.startswith("[FATAL]")]
+            assert code == 1 and len(fatal) == 1, "".join(lines)
+            assert "Traceback" not in "".join(lines)
