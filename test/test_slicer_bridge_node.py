@@ -7,6 +7,7 @@ through rclpy publishers with the documented QoS to the node, started as its own
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import random
 import re
@@ -340,6 +341,33 @@ def test_the_loaders_mesh_file_reaches_slicer_as_a_mesh(graph: dict, tmp_path: P
         loader.send_signal(signal.SIGINT)
         out = loader.communicate(timeout=20)[0]
     assert loader.returncode == 0 and "on /preop/mesh" in out, out
+
+
+def test_every_setting_is_a_described_ros_parameter(graph: dict) -> None:
+    from rcl_interfaces.srv import DescribeParameters, GetParameters
+
+    player: Player = graph["player"]
+    names = [f.name for f in dataclasses.fields(SlicerConfig)]
+
+    def call(kind: type, service: str, request):
+        client = player.node.create_client(kind, f"/slicer_bridge_node/{service}")
+        try:
+            assert client.wait_for_service(timeout_sec=30)
+            future = client.call_async(request)
+            done = threading.Event()
+            future.add_done_callback(lambda _: done.set())
+            assert done.wait(30)
+            return future.result()
+        finally:
+            player.node.destroy_client(client)
+
+    values = call(GetParameters, "get_parameters", GetParameters.Request(names=names)).values
+    got = dict(zip(names, values, strict=True))
+    assert got["port"].integer_value == 0 and got["ct_convention"].string_value == "LPS"  # started with port:=0
+    assert got["cloud_rate_hz"].double_value == 100.0 and got["max_cloud_points"].integer_value == MAX_CLOUD_POINTS
+    descriptors = call(DescribeParameters, "describe_parameters", DescribeParameters.Request(names=names)).descriptors
+    assert [d.name for d in descriptors] == names
+    assert all("parameters_slicer_bridge.md" in d.description and d.dynamic_typing for d in descriptors)
 
 
 def test_bad_parameters_and_a_taken_port_are_one_fatal_line() -> None:

@@ -32,9 +32,12 @@ STATUS_PERIOD_S = 1.0
 def slicer_config_from_parameters(node: Node) -> SlicerConfig:
     """Declare one ROS parameter per SlicerConfig field (defaults from SlicerConfig) and read them."""
     defaults = SlicerConfig()
-    descriptor = ParameterDescriptor(dynamic_typing=True)  # `-p port:=18944` and `-p cloud_rate_hz:=2` both work
     values = {}
     for f in dataclasses.fields(SlicerConfig):
+        # a descriptor each (rclpy writes the name into the one it gets); dynamic typing: `-p cloud_rate_hz:=2`
+        # (an integer) is coerced by SlicerConfig instead of rejected
+        descriptor = ParameterDescriptor(description=f"{f.name}; see msg_docs/parameters_slicer_bridge.md")
+        descriptor.dynamic_typing = True
         node.declare_parameter(f.name, getattr(defaults, f.name), descriptor)
         values[f.name] = node.get_parameter(f.name).value
     return SlicerConfig.from_dict(values)
