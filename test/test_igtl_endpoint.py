@@ -191,3 +191,33 @@ def test_client_mode_talks_to_pyigtls_server() -> None:
         server.stop()
         for sig, handler in handlers.items():
             signal.signal(sig, handler)
+
+
+def test_picture_is_drawn_from_what_a_peer_received(bridge: SlicerBridge, tmp_path) -> None:
+    from liver_p2p_reg.igtl.picture import collect, draw
+    from liver_p2p_reg.igtl.wire import StreamReader
+
+    rng = np.random.default_rng(3)
+    model, cloud = rng.uniform(-80, 80, (700, 3)), rng.uniform(-40, 40, (300, 3))
+    peer = socket.create_connection(("127.0.0.1", bridge.endpoint.port))
+    assert bridge.endpoint.wait_for_peers(1, 10.0)
+    bridge.send_model(model, stamp_ns=1)
+    bridge.send_cloud(cloud, 2)
+    bridge.send_pose(pose(9.0), 2)
+    bridge.send_status("WARN", "registered: residual 5.00 mm (residual above 4 mm)", 2)
+    assert bridge.endpoint.flush(10.0)
+    bridge.endpoint.close()  # the peer reads to the end of the stream
+    reader, messages = StreamReader(), []
+    while data := peer.recv(1 << 20):
+        messages += reader.feed(data)
+    config = bridge.config
+    arrived = collect(messages, config.model_device, config.cloud_device, config.transform_device, config.status_device)
+    np.testing.assert_allclose(arrived.model_ras, (model * [-1, -1, 1]).astype(np.float32))
+    np.testing.assert_allclose(arrived.cloud, cloud.astype(np.float32))
+    assert arrived.model_triangles == 0 and arrived.status.startswith("WARN: registered")
+    assert_wire_equal(arrived.transform, expected_transform(pose(9.0)))
+    assert {d: n for d, (_, n, _) in arrived.counts.items()} == {d: 1 for d in arrived.counts} and len(
+        arrived.counts
+    ) == 4
+    png = draw(arrived, tmp_path / "what.png", title="test")
+    assert png.stat().st_size > 10_000
