@@ -107,8 +107,11 @@ class Player:
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("slicer_test_player", context=self.context)
         self.publishers = {t: self.node.create_publisher(TYPES[t], t, QOS[t]) for t in TYPES}
-        self.statuses: list = []
+        self.statuses: list = []  # the bridge's own
+        self.registration: list = []  # register_node's registration statuses, periodic ones included
+        self.poses: list = []
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 10)
+        self.node.create_subscription(PoseStamped, "/registration/pose", self.poses.append, 10)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, daemon=True)
@@ -122,6 +125,7 @@ class Player:
 
     def _diag(self, msg: DiagnosticArray) -> None:
         self.statuses += [s for s in msg.status if s.name == STATUS_NAME]
+        self.registration += [s for s in msg.status if s.name == DIAG_NAME]
 
     def bridge_stats(self) -> dict[str, str]:
         return {kv.key: kv.value for kv in self.statuses[-1].values} if self.statuses else {}
@@ -368,6 +372,60 @@ def test_every_setting_is_a_described_ros_parameter(graph: dict) -> None:
     descriptors = call(DescribeParameters, "describe_parameters", DescribeParameters.Request(names=names)).descriptors
     assert [d.name for d in descriptors] == names
     assert all("parameters_slicer_bridge.md" in d.description and d.dynamic_typing for d in descriptors)
+
+
+def test_with_the_real_register_node(tmp_path: Path) -> None:
+    """register_node registers the bundled bag's frames; the bridge forwards its poses and verdicts, not its summaries."""
+    env = isolated_env()
+    bridge, lines = start_node(env)
+    full_env = {**os.environ, **env, "RCUTILS_COLORIZED_OUTPUT": "0"}
+    register = subprocess.Popen(
+        [sys.executable, "-m", "liver_p2p_reg.ros.register_node", "--ros-args", "-p", "method:=icp"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=full_env,
+    )  # fmt: skip
+    player = Player(env)
+    slicer = None
+    try:
+        end = time.monotonic() + 120
+        while player.publishers["/intraop/points"].get_subscription_count() < 2 and time.monotonic() < end:
+            time.sleep(0.05)  # both nodes listen
+        port = next(int(m.group(1)) for m in (re.search(r"listening on 127\.0\.0\.1:(\d+)", x) for x in lines) if m)
+        slicer = Recorder.connect(port)
+        with AnyReader([BAG], default_typestore=typestore()) as reader:
+            wanted = [c for c in reader.connections if c.topic in ("/preop/points", "/intraop/points")]
+            raw = [(c.topic, bytes(data)) for c, _, data in reader.messages(connections=wanted)]
+        player.publish("/preop/points", next(d for t, d in raw if t == "/preop/points"))
+        slicer.wait_for("PreopModel")
+        clouds = [d for t, d in raw if t == "/intraop/points"][:2]
+        for i, cloud in enumerate(clouds):
+            player.publish("/intraop/points", cloud)
+            deadline = time.monotonic() + 120
+            while len(player.poses) <= i and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.6)  # register_node's max_rate_hz is 2
+        slicer.wait_for("CTToSensor", len(player.poses))
+        time.sleep(2.5)  # register_node's 1 Hz summaries come meanwhile: they must not become STRINGs
+        assert len(player.poses) == 2
+        for pose in player.poses:
+            stamp_s = stamp_to_ns(pose.header.stamp) * 1e-9
+            sent = [m for m in slicer.of("CTToSensor") if abs(m.timestamp_s - stamp_s) < 1e-6]
+            assert len(sent) == 1
+            assert_wire_equal(sent[0].value, expected_transform(pose_to_T_mm(pose.pose)))
+        verdicts = [s for s in player.registration if not any(kv.key == "received_clouds" for kv in s.values)]
+        summaries = [s for s in player.registration if any(kv.key == "received_clouds" for kv in s.values)]
+        assert len(verdicts) >= 2 and summaries
+        texts = [f"{LEVEL_NAMES[level_of(s.level)]}: {s.message}" for s in verdicts]
+        assert [m.value for m in slicer.of("RegistrationStatus")] == texts
+    finally:
+        if slicer is not None:
+            slicer.close()
+        player.close()
+        for proc in (bridge, register):
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
 
 
 def test_bad_parameters_and_a_taken_port_are_one_fatal_line() -> None:
