@@ -67,12 +67,14 @@ class SlicerBridge:
     def send_status(self, level_name: str, message: str, stamp_ns: int = 0) -> str:
         """A STRING 'LEVEL: message' (OK, WARN, ERROR); returns the text sent."""
         text = f"{level_name}: {message}"
-        self._publish("STRING", self.config.status_device, wire.string_body(text), stamp_ns)
+        # every verdict counts (a WARN must not be replaced by the next OK before it is seen): not coalesced
+        self._publish("STRING", self.config.status_device, wire.string_body(text), stamp_ns, replace=False)
         return text
 
-    def _publish(self, type_name: str, device: str, body: bytes, stamp_ns: int) -> None:
+    def _publish(self, type_name: str, device: str, body: bytes, stamp_ns: int, replace: bool = True) -> None:
         stamp_ns = stamp_ns or time.time_ns()  # no stamp (a file on the command line): now
-        self.endpoint.publish(f"{type_name}:{device}", wire.pack_message(type_name, device, body, stamp_ns))
+        message = wire.pack_message(type_name, device, body, stamp_ns)
+        self.endpoint.publish(f"{type_name}:{device}", message, replace)
 
 
 def _finite(points: np.ndarray, what: str) -> np.ndarray:

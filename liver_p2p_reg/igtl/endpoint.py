@@ -2,8 +2,8 @@
 
 One daemon thread owns the sockets. `publish` (from any thread) only queues bytes and wakes it,
 so a slow, absent or misbehaving peer never blocks the caller. Each peer has its own bounded
-queue: a newer message of the same device replaces an older one not yet sent, and the oldest
-are dropped beyond the limits. A peer that sends garbage is disconnected; a peer that connects
+queue: a newer state of a device (a transform, a model) replaces an older one not yet sent, and
+the oldest messages are dropped beyond the limits. A peer that sends garbage is disconnected; a peer that connects
 (or reconnects) first gets the latest message of every device.
 """
 
@@ -70,12 +70,16 @@ class Endpoint:
         }
 
     # ---------------------------------------------------------------- any thread
-    def publish(self, key: str, data: bytes) -> None:
-        """Queue a message for every peer (and for peers to come); returns at once."""
+    def publish(self, key: str, data: bytes, replace: bool = True) -> None:
+        """Queue a message for every peer (and the latest per key for peers to come); returns at once.
+
+        replace: a newer message replaces an older one of the same key not yet sent (a state, like a
+        transform); False keeps every one (events, like each registration's verdict) within the limits.
+        """
         with self._lock:
             self._state[key] = data
             for peer in self._peers:
-                self._enqueue(peer, key, data)
+                self._enqueue(peer, key, data, replace)
         self._wake()
 
     def peer_count(self) -> int:
@@ -112,8 +116,8 @@ class Endpoint:
             self._thread.join(5.0)
 
     # ---------------------------------------------------------------- queueing (lock held)
-    def _enqueue(self, peer: _Peer, key: str, data: bytes) -> None:
-        if any(k == key for k, _ in peer.queue):  # the newer state replaces the unsent older one
+    def _enqueue(self, peer: _Peer, key: str, data: bytes, replace: bool) -> None:
+        if replace and any(k == key for k, _ in peer.queue):  # the newer state replaces the unsent older one
             kept = [(k, d) for k, d in peer.queue if k != key]
             self.counters["dropped_messages"] += len(peer.queue) - len(kept)
             peer.queue = deque(kept)
