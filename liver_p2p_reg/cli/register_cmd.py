@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         from ..igtl.commands import send_registration
 
         send_registration(slicer, args.source, source, target, result, warnings)
+        slicer.endpoint.close()
     if moved is not None:
         save_points(moved, transform_points(result.T_target_source, source))
     if plot is not None:

@@ -59,7 +59,10 @@ def send_registration(
     result: Any,
     warnings: list[str],
 ) -> None:
-    """Model (the file's mesh if it has one), intraop cloud, CTToSensor and the verdict, then wait until sent."""
+    """Model (the file's mesh if it has one), intraop cloud, CTToSensor and the verdict; returns once sent.
+
+    Call it once per registration on the same connection; close `bridge.endpoint` at the end.
+    """
     from ..cloud_io import MESH_FORMATS, load_mesh
 
     vertices, triangles = source_mm, None
@@ -76,10 +79,9 @@ def send_registration(
     if warnings:
         message += " (" + "; ".join(warnings) + ")"
     bridge.send_status("WARN" if warnings else "OK", message)
-    sent = bridge.endpoint.flush(FLUSH_TIMEOUT_S)
-    bridge.endpoint.close()
-    if not sent:
-        raise InputError("3D Slicer did not take the result within 10 s (connection stalled)")
+    if not bridge.endpoint.flush(FLUSH_TIMEOUT_S):
+        bridge.endpoint.close()
+        raise InputError(f"3D Slicer did not take the result within {FLUSH_TIMEOUT_S:g} s (connection stalled)")
     LOG.info("sent to 3D Slicer: %s, %s, %s, %s", *_devices(bridge.config))
 
 
