@@ -165,14 +165,7 @@ class Config:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> Config:
         """Build from a mapping, coercing ints to floats where needed; validate."""
-        known = {f.name: f for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for name, value in values.items():
-            if name not in known:
-                raise InputError(f"unknown configuration key {name!r}")
-            default = getattr(cls(), name)
-            kwargs[name] = _coerce(name, value, type(default))
-        return cls(**kwargs).validate()
+        return _from_mapping(cls, values, "configuration key")
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> Config:
@@ -238,6 +231,18 @@ def _coerce(name: str, value: Any, kind: type) -> Any:
             return ""
         return str(value)
     return value
+
+
+def _from_mapping(cls: type, values: dict[str, Any], what: str) -> Any:
+    """A settings dataclass from a mapping, each value coerced to its field's type; validated."""
+    defaults = cls()
+    known = {f.name for f in fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for name, value in values.items():
+        if name not in known:
+            raise InputError(f"unknown {what} {name!r}")
+        kwargs[name] = _coerce(name, value, type(getattr(defaults, name)))
+    return cls(**kwargs).validate()
 
 
 # --- the OpenIGTLink link to 3D Slicer (slicer_bridge_node, `register --slicer`, `replay --slicer`) ---
@@ -308,11 +313,4 @@ class SlicerConfig:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> SlicerConfig:
         """Build from a mapping (ROS parameters, CLI options) with the same coercion as Config; validate."""
-        defaults = cls()
-        known = {f.name for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for name, value in values.items():
-            if name not in known:
-                raise InputError(f"unknown Slicer link setting {name!r}")
-            kwargs[name] = _coerce(name, value, type(getattr(defaults, name)))
-        return cls(**kwargs).validate()
+        return _from_mapping(cls, values, "Slicer link setting")
