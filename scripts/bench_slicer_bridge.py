@@ -96,7 +96,7 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def graph(bag: Path, rate_hz: float, seconds: float, cloud_points: int, idle_s: float) -> list[str]:
+def graph(bag: Path, rate_hz: float, seconds: float, cloud_points: int, idle_s: float, params: list[str]) -> list[str]:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from geometry_msgs.msg import PoseStamped
@@ -121,16 +121,9 @@ def graph(bag: Path, rate_hz: float, seconds: float, cloud_points: int, idle_s: 
         cloud_m = (np.tile(cloud_m, (reps, 1)) + np.random.default_rng(0).normal(0, 1e-4, (reps * len(cloud_m), 3)))[
             :cloud_points
         ]
-    args = [
-        sys.executable,
-        "-m",
-        "liver_p2p_reg.ros.slicer_bridge_node",
-        "--ros-args",
-        "-p",
-        "host:=127.0.0.1",
-        "-p",
-        "port:=0",
-    ]
+    args = [sys.executable, "-m", "liver_p2p_reg.ros.slicer_bridge_node", "--ros-args", "-p", "host:=127.0.0.1"]
+    for param in ["port:=0", *params]:
+        args += ["-p", param]
     proc = subprocess.Popen(
         args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, **env}
     )
@@ -221,12 +214,15 @@ def main() -> int:
     parser.add_argument("--cloud-points", type=int, default=0, help="resize the published cloud (0: the bag's)")
     parser.add_argument("--poses", type=int, default=600, help="poses of the in-process run")
     parser.add_argument("--skip-graph", action="store_true", help="only the in-process run (no rclpy needed)")
+    parser.add_argument(
+        "--param", action="append", default=[], metavar="NAME:=VALUE", help="a bridge parameter (repeatable)"
+    )
     args = parser.parse_args()
     print(
         f"in process, SlicerLink.send_pose -> TRANSFORM read by the peer at {args.rate_hz:g} Hz: {in_process(args.poses, args.rate_hz)}"
     )
     if not args.skip_graph:
-        for line in graph(Path(args.bag), args.rate_hz, args.seconds, args.cloud_points, args.idle_seconds):
+        for line in graph(Path(args.bag), args.rate_hz, args.seconds, args.cloud_points, args.idle_seconds, args.param):
             print(line)
     print(
         f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (the numbers are only valid on an idle machine)"

@@ -98,6 +98,18 @@ def start_node(env: dict[str, str], *params: str) -> tuple[subprocess.Popen, lis
     return proc, lines
 
 
+def bridge_port(proc: subprocess.Popen, lines: list[str], timeout_s: float = 90.0) -> int:
+    """The port a bridge started with port:=0 says it listens on."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and proc.poll() is None:
+        found = (re.search(r"listening on 127\.0\.0\.1:(\d+)", line) for line in lines)
+        port = next((int(m.group(1)) for m in found if m), None)
+        if port:
+            return port
+        time.sleep(0.05)
+    raise AssertionError("the bridge did not say its port:\n" + "".join(lines))
+
+
 class Player:
     """An rclpy node of this process that publishes CDR bytes and listens to /diagnostics."""
 
@@ -160,13 +172,7 @@ def graph():
     proc, lines = start_node(env, "cloud_rate_hz:=100.0")
     player = None
     try:
-        end = time.monotonic() + 90
-        port = None
-        while port is None and time.monotonic() < end and proc.poll() is None:
-            found = (re.search(r"listening on 127\.0\.0\.1:(\d+)", line) for line in lines)
-            port = next((int(m.group(1)) for m in found if m), None)
-            time.sleep(0.05)
-        assert port, "".join(lines)
+        port = bridge_port(proc, lines)
         player = Player(env)
         player.wait_for_bridge()
         yield {"proc": proc, "lines": lines, "port": port, "player": player}
@@ -389,8 +395,7 @@ def test_with_the_real_register_node(tmp_path: Path) -> None:
         end = time.monotonic() + 120
         while player.publishers["/intraop/points"].get_subscription_count() < 2 and time.monotonic() < end:
             time.sleep(0.05)  # both nodes listen
-        port = next(int(m.group(1)) for m in (re.search(r"listening on 127\.0\.0\.1:(\d+)", x) for x in lines) if m)
-        slicer = Recorder.connect(port)
+        slicer = Recorder.connect(bridge_port(bridge, lines))
         with AnyReader([BAG], default_typestore=typestore()) as reader:
             wanted = [c for c in reader.connections if c.topic in ("/preop/points", "/intraop/points")]
             raw = [(c.topic, bytes(data)) for c, _, data in reader.messages(connections=wanted)]
