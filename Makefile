@@ -16,7 +16,7 @@ $(STAMP): setup.py package.xml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet $(TORCH_PIN)
-	$(PY) -m pip install --quiet -e '.[cpu,dev,ros]'
+	$(PY) -m pip install --quiet -e '.[cpu,dev,ros,slicer]'
 	touch $(STAMP)
 
 setup: $(STAMP) ## create .venv and install the package (CPU torch, headless Open3D, rclpy wheels)

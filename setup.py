@@ -9,7 +9,7 @@ from setuptools.command.install_scripts import install_scripts
 
 PACKAGE = "liver_p2p_reg"
 VERSION = "0.1.0"  # keep equal to package.xml (a test checks)
-NODE_EXECUTABLES = ("register_node", "preop_loader_node")
+NODE_EXECUTABLES = ("register_node", "preop_loader_node", "slicer_bridge_node")
 
 
 class ros_aware_install_scripts(install_scripts):
@@ -94,6 +94,9 @@ setup(
     # Open3D comes in two builds that provide the same module; pick one extra
     # (cpu: headless, no libusb; full: needs the system's libusb-1.0-0).
     extras_require={
+        # the OpenIGTLink link to 3D Slicer: fastcrc computes the protocol's CRC-64 (the bridge needs it);
+        # pyigtl, an independent OpenIGTLink implementation, is the tests' and scripts' Slicer stand-in
+        "slicer": ["fastcrc>=0.3", "pyigtl>=0.3.4"],
         "cpu": ["open3d-cpu>=0.18,<0.20"],  # 0.20.0's CPU wheel links libusb again
         "full": ["open3d>=0.18"],
         # setuptools: the colcon-layout test; colcon: the colcon build test
@@ -108,6 +111,7 @@ setup(
             "liver-p2p = liver_p2p_reg.cli:main",
             "register_node = liver_p2p_reg.ros.register_node:main",
             "preop_loader_node = liver_p2p_reg.ros.preop_loader_node:main",
+            "slicer_bridge_node = liver_p2p_reg.ros.slicer_bridge_node:main",
         ],
     },
 )

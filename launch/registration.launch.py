@@ -1,4 +1,4 @@
-"""Launch preop_loader_node + register_node with config/registration.yaml; optionally play a bag and open RViz."""
+"""Launch preop_loader_node + register_node with config/registration.yaml; optionally a bag, RViz and the Slicer bridge."""
 
 import os
 
@@ -33,6 +33,13 @@ def generate_launch_description():
             DeclareLaunchArgument("bag", default_value="", description="optional rosbag2 directory to play"),
             DeclareLaunchArgument("rviz", default_value="false", description="open RViz with config/registration.rviz"),
             DeclareLaunchArgument("method", default_value=default_method, description="registration method"),
+            DeclareLaunchArgument(
+                "slicer", default_value="false", description="serve the registration to 3D Slicer over OpenIGTLink"
+            ),
+            DeclareLaunchArgument("slicer_port", default_value="18944", description="OpenIGTLink port of the bridge"),
+            DeclareLaunchArgument(
+                "ct_convention", default_value="LPS", description="anatomical convention of the ct frame: LPS or RAS"
+            ),
             Node(
                 package="liver_p2p_reg",
                 executable="preop_loader_node",
@@ -53,6 +60,16 @@ def generate_launch_description():
                 executable="register_node",
                 name="register_node",
                 parameters=[params, {"method": LaunchConfiguration("method")}],
+                output="screen",
+            ),
+            Node(
+                package="liver_p2p_reg",
+                executable="slicer_bridge_node",
+                name="slicer_bridge_node",
+                parameters=[
+                    {"port": LaunchConfiguration("slicer_port"), "ct_convention": LaunchConfiguration("ct_convention")}
+                ],
+                condition=IfCondition(LaunchConfiguration("slicer")),
                 output="screen",
             ),
             ExecuteProcess(cmd=["ros2", "bag", "play", bag], condition=IfCondition(play_bag), output="screen"),

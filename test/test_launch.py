@@ -37,7 +37,7 @@ def test_launch_file_uses_the_jazzy_node_api_and_real_names():
     assert used <= declared, used - declared
     nodes = [c for c in calls(tree, "Node") if isinstance(keyword(c, "package"), ast.Constant)]
     ours = {keyword(c, "executable").value: c for c in nodes if keyword(c, "package").value == "liver_p2p_reg"}
-    assert set(ours) == {"register_node", "preop_loader_node"}
+    assert set(ours) == {"register_node", "preop_loader_node", "slicer_bridge_node"}
     for call in nodes:
         assert not call.args, "launch_ros Node takes keyword arguments only"
         assert {k.arg for k in call.keywords} <= JAZZY_NODE_KWARGS, {k.arg for k in call.keywords} - JAZZY_NODE_KWARGS

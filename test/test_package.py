@@ -73,7 +73,7 @@ def test_colcon_install_layout(tmp_path: Path) -> None:
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lib = prefix / "lib" / PACKAGE
-    for exe in ("register_node", "preop_loader_node", "liver-p2p"):
+    for exe in ("register_node", "preop_loader_node", "slicer_bridge_node", "liver-p2p"):
         assert (lib / exe).is_file() and os.access(lib / exe, os.X_OK), f"{exe} missing from lib/{PACKAGE}"
     # The CLI is on PATH (bin/), the node executables are not (ros2 run finds them in lib/<pkg>).
     assert (prefix / "bin" / "liver-p2p").is_file()
@@ -115,8 +115,15 @@ def test_console_script_help() -> None:
     assert out.returncode == 0 and "usage: liver-p2p" in out.stdout
 
 
-# The rclpy adapter modules: the two nodes, the bag player and the live-graph harness + demo.
-RCLPY_ADAPTERS = {"register_node.py", "preop_loader_node.py", "bag_player.py", "graph.py", "graph_demo.py"}
+# The rclpy adapter modules: the three nodes, the bag player and the live-graph harness + demo.
+RCLPY_ADAPTERS = {
+    "register_node.py",
+    "preop_loader_node.py",
+    "slicer_bridge_node.py",
+    "bag_player.py",
+    "graph.py",
+    "graph_demo.py",
+}
 ROS_PYTHON = (
     r"(rclpy|sensor_msgs|geometry_msgs|diagnostic_msgs|std_msgs|std_srvs|rcl_interfaces|builtin_interfaces|tf2_ros)"
 )

@@ -87,6 +87,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="overwrite --output / --plot / --moved files that exist")
     # Also accepted after the subcommand; SUPPRESS keeps a `liver-p2p -q register ...` in effect.
     p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="only print errors")
+    p.add_argument(
+        "--slicer",
+        metavar="HOST:PORT",
+        help="also send the model, TARGET, the CTToSensor transform and the verdict to 3D Slicer "
+        "(its OpenIGTLinkIF connector of type Server, e.g. localhost:18944); README 'See it in 3D Slicer'",
+    )
     p.set_defaults(func=run)
 
 
@@ -205,6 +211,11 @@ def run(args: argparse.Namespace) -> int:
     fiducials = (None, None)
     if args.source_fiducials is not None:  # the Registrar refuses NaN/inf pairs
         fiducials = (load_points(args.source_fiducials), load_points(args.target_fiducials))
+    slicer = None
+    if args.slicer:  # connected before registering: no Slicer is one line, not a lost registration
+        from ..igtl.commands import connect_to_slicer
+
+        slicer = connect_to_slicer(args.slicer)
     prefetch = _prefetch_icp_normals(source, config)
     try:
         return _register_all(
@@ -216,10 +227,13 @@ def run(args: argparse.Namespace) -> int:
             fiducials,
             initial_T,
             (outputs, plots, moved),
+            slicer,
         )
     finally:
         if prefetch is not None:
             prefetch.close()
+        if slicer is not None:
+            slicer.endpoint.close()
 
 
 def _prefetch_icp_normals(source, config):
@@ -242,7 +256,7 @@ def _prefetch_icp_normals(source, config):
     return BackgroundNormals(full, config.normal_radius_norm)
 
 
-def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths) -> int:
+def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths, slicer=None) -> int:
     """Register SOURCE to every view in one Registrar; write and print each result as it comes."""
     from ..registrar import Registrar
 
@@ -284,6 +298,10 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
             print(json.dumps(payload) if several else json.dumps(payload, indent=2), flush=True)
         for message in warnings:  # the node's WARN rules: the pose is still returned, but flagged
             LOG.warning("%s%s", f"{target_path}: " if several else "", message)
+        if slicer is not None:
+            from ..igtl.commands import send_registration
+
+            send_registration(slicer, source_path, source, target, result, warnings)
         written = _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved[i], plots[i])
         if not quiet:
             print(_summary(target_path, payload, outputs[i], written), file=summary_stream, flush=True)

@@ -21,6 +21,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="YAML configuration file (plain or ROS parameter file)")
     p.add_argument("--max-frames", type=int, default=0, help="register at most this many frames per bag (0: all)")
     p.add_argument("--json", help="also write the per-bag rows as JSON here")
+    p.add_argument(
+        "--slicer",
+        metavar="PORT",
+        type=int,
+        help="serve the replay to 3D Slicer on this OpenIGTLink port (its connector of type Client, e.g. 18944)",
+    )
+    p.add_argument(
+        "--slicer-wait",
+        metavar="S",
+        type=float,
+        default=30.0,
+        help="with --slicer: wait up to S s for Slicer to connect before replaying, and for the last messages "
+        "to leave after (default 30)",
+    )
     p.set_defaults(func=run)
 
 
@@ -41,6 +55,11 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"bag not found: {path}")
         if not is_bag_path(path):
             raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
+    slicer = None
+    if args.slicer is not None:
+        from ..igtl.commands import finish_replay, serve_replay
+
+        slicer = serve_replay(args.slicer, args.slicer_wait)
     rows = replay_bags(
         paths,
         config,
@@ -49,7 +68,10 @@ def run(args: argparse.Namespace) -> int:
         overwrite=args.force,
         max_frames=args.max_frames,
         plot_dir=args.plots,
+        observer=slicer,
     )
+    if slicer is not None:
+        finish_replay(slicer, args.slicer_wait)
     print(format_table(rows))
     for line in format_flags(rows):
         print(line)

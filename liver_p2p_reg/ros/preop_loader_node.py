@@ -11,14 +11,16 @@ from typing import Any, NoReturn
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
+from visualization_msgs.msg import Marker
 
-from ..cloud_io import load_points
+from ..cloud_io import MESH_FORMATS, load_mesh, load_points
 from ..errors import InputError, LiverP2PError
 from .pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
 
@@ -42,6 +44,23 @@ def load_model_m(path: str, units: str) -> np.ndarray:
     return points * UNITS_TO_M[units]
 
 
+def mesh_marker(path: str, units: str, frame_id: str, stamp: Time) -> Marker | None:
+    """The model file's triangles as a Marker TRIANGLE_LIST in metres (for /preop/mesh), None for a cloud."""
+    if Path(path).suffix.lower() not in MESH_FORMATS:
+        return None
+    vertices, triangles = load_mesh(path)
+    if len(triangles) == 0 or not np.isfinite(vertices).all():
+        return None
+    marker = Marker(ns="preop", id=0, type=Marker.TRIANGLE_LIST, action=Marker.ADD, frame_locked=True)
+    marker.header.frame_id, marker.header.stamp = frame_id, stamp
+    marker.pose.orientation.w = 1.0
+    marker.scale.x = marker.scale.y = marker.scale.z = 1.0
+    marker.color.r, marker.color.g, marker.color.b, marker.color.a = 0.8, 0.45, 0.35, 1.0
+    corners = vertices[triangles.reshape(-1)] * UNITS_TO_M[units]
+    marker.points = [Point(x=x, y=y, z=z) for x, y, z in corners.tolist()]
+    return marker
+
+
 class PreopLoaderNode(Node):
     """Loads the preop model once and publishes it latched (reliable + transient local)."""
 
@@ -53,6 +72,12 @@ class PreopLoaderNode(Node):
         units = self.declare_parameter("units", "mm").value
         model_m = load_model_m(model_path, units)
         stamp_ns = self.get_clock().now().nanoseconds
+        # the mesh itself, for viewers (the Slicer bridge, RViz); same stamp as its points: they pair by it
+        mesh = mesh_marker(model_path, units, frame_id, Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9))
+        if mesh is not None:
+            self.mesh_pub = self.create_publisher(Marker, "/preop/mesh", LATCHED_QOS)
+            self.mesh_pub.publish(mesh)
+            self.get_logger().info(f"published the mesh ({len(mesh.points) // 3} triangles) on /preop/mesh")
         self.points_pub = self.create_publisher(PointCloud2, "/preop/points", LATCHED_QOS)
         self.points_pub.publish(points_to_cloud(model_m, TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
         self.get_logger().info(f"published {len(model_m)} preop points from {model_path} on /preop/points ({frame_id})")

@@ -75,12 +75,15 @@ def replay_bag(
     registrar: Registrar | None = None,
     max_frames: int | None = None,
     plot_path: str | Path | None = None,
+    observer: object | None = None,
 ) -> ReplayRow:
     """Drive a NodeCore with a bag's messages in log-time order; optionally write inputs + outputs.
 
     Bag time stands in for the clock, so the rate limit and latest-only policy behave as live.
     max_frames: stop registering after this many registrations (quick tests); 0/None = all.
     plot_path: also draw the last registered frame (overlay.plot_registration) to this PNG.
+    observer: gets on_input(topic, msg) for every message read and on_output(CoreOutput) for
+    every output (the Slicer link of `replay --slicer`).
     """
     path = Path(path)
     info = _bag_info(path)
@@ -101,6 +104,8 @@ def replay_bag(
         nonlocal last_posed
         if output is None:
             return
+        if observer is not None:
+            observer.on_output(output)
         outputs.append(output)
         output_frames.append(frames)  # the core registers the latest cloud: the one just received
         if output.pose is not None and output.result is not None:
@@ -119,6 +124,8 @@ def replay_bag(
     try:
         for item in read_messages(path):
             last_ns = item.timestamp_ns
+            if observer is not None:
+                observer.on_input(item.topic, item.msg)
             if writer is not None and item.topic not in OUTPUT_TOPICS:
                 writer.write(item.topic, item.msgtype, item.timestamp_ns, item.msg)
             if item.msgtype != POINTCLOUD2:
@@ -257,6 +264,7 @@ def replay_bags(
     overwrite: bool = False,
     max_frames: int | None = None,
     plot_dir: str | Path | None = None,
+    observer: object | None = None,
 ) -> list[ReplayRow]:
     """Replay several bags with one Registrar (method caches shared); output bags go to out_dir/<name>,
     overlay PNGs of each bag's last registered frame to plot_dir/<name>.png."""
@@ -288,6 +296,7 @@ def replay_bags(
                 registrar=registrar,
                 max_frames=max_frames,
                 plot_path=plots[path],
+                observer=observer,
             )
         )
     return rows
