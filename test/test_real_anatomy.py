@@ -22,6 +22,7 @@ from liver_p2p_reg.phantom.real import (
     real_liver_id,
     real_livers_dir,
     real_split,
+    weld_vertices,
 )
 from liver_p2p_reg.phantom.simulate import simulate_liver
 
@@ -85,6 +86,14 @@ def test_bad_meshes_get_one_line(mutate, words) -> None:
     with pytest.raises(InputError, match=words) as info:
         liver_from_surface(v, f, name="bad.obj")
     assert "\n" not in str(info.value)
+
+
+def test_a_triangle_soup_is_welded_into_the_closed_surface_it_is() -> None:
+    proc = make_liver(4)
+    soup = proc.vertices_mm[proc.triangles].reshape(-1, 3)  # STL: three corners per triangle
+    v, f = weld_vertices(soup, np.arange(len(soup)).reshape(-1, 3))
+    assert len(v) == len(proc.vertices_mm) and is_watertight(f)
+    assert mesh_volume_mm3(v, f) == pytest.approx(mesh_volume_mm3(proc.vertices_mm, proc.triangles))
 
 
 def test_obj_reader_fans_polygons_and_rejects_bad_indices(tmp_path) -> None:

@@ -104,6 +104,17 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
+def weld_vertices(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices with identical coordinates (STL stores every triangle's corners separately)
+    and drop the faces that collapse; a mesh that is welded already is returned unchanged."""
+    unique, inverse = np.unique(vertices, axis=0, return_inverse=True)
+    if len(unique) == len(vertices):
+        return vertices, triangles
+    faces = inverse.reshape(-1)[triangles]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    return unique, faces[keep]
+
+
 def check_closed_surface(vertices: np.ndarray, triangles: np.ndarray, name: str) -> None:
     """InputError (one line) unless the mesh is a closed, manifold surface of plausible liver size in mm."""
     if len(triangles) < 4:
@@ -190,8 +201,9 @@ def liver_from_surface(
     smooth_iterations: int = SMOOTH_ITERATIONS,
 ) -> FileLiver:
     """A generator-ready liver from a closed surface mesh in mm (kept in its own frame, not re-centred)."""
-    vertices_mm = np.asarray(vertices_mm, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64)
+    vertices_mm, triangles = weld_vertices(
+        np.asarray(vertices_mm, dtype=np.float64), np.asarray(triangles, dtype=np.int64)
+    )
     check_closed_surface(vertices_mm, triangles, name)
     if mesh_volume_mm3(vertices_mm, triangles) < 0:  # inward-facing file: flip once
         triangles = triangles[:, ::-1].copy()
