@@ -39,6 +39,7 @@ HEAD_COLUMNS = (
     "noise_mm",
     "added_noise_mm",
     "crop_mode",
+    "density",
     "deformation_rms_mm",
     "rms_tre_mm",
     "max_tre_mm",

@@ -121,15 +121,16 @@ class Summary:
         if ORACLE not in self.methods or not self.bins:
             return [f"*No `{ORACLE}` rows: ratios to the oracle need the oracle.*"]
         lo, hi = self.bins[0], self.bins[-1]
+        ends = (lo, hi) if hi != lo else (lo,)  # one bin (camera crops): one column
         oracle = by_bin(select(self.main, method=ORACLE))
-        header = ["method", f"mean / oracle {BIN_LABELS[lo]}", f"mean / oracle {BIN_LABELS[hi]}"]
+        header = ["method", *(f"mean / oracle {BIN_LABELS[i]}" for i in ends)]
         rows = []
         for m in self.methods:
             if m == ORACLE:
                 continue
             groups = by_bin(select(self.main, method=m))
             cells = []
-            for i in (lo, hi):
+            for i in ends:
                 ratio = (
                     mean_std(groups[i])[0] / mean_std(oracle[i])[0] if groups[i].size and oracle[i].size else math.nan
                 )
