@@ -71,6 +71,13 @@ class Graph:
     def wait_attempts(self, since: int, n: int = 1, timeout_s: float = 60.0) -> list:
         return self.probe.wait_for(lambda: (a := self.attempts(since)) and len(a) >= n and a, timeout_s) or []
 
+    def counters(self, since: int = 0) -> dict[str, int]:
+        """The node's own cloud counters (received, registered, dropped) in its latest periodic status."""
+        statuses = [
+            values_of(s) for s, _ in self.probe.diagnostics(since, DIAG_NAME) if "received_clouds" in values_of(s)
+        ]
+        return {k: int(v) for k, v in statuses[-1].items() if k.endswith("_clouds")} if statuses else {}
+
     def preop_diags(self, since: int) -> list:
         return [s for s, _ in self.probe.diagnostics(since, PREOP_DIAG_NAME)]
 

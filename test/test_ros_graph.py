@@ -325,33 +325,68 @@ def test_idle_cpu_is_near_zero(fresh):
     assert share < 0.03, f"idle register_node used {share:.1%} of a core"
 
 
+FLOOD_CLOUDS = 100  # 10 s at 10 Hz ...
+FLOOD_MAX_CLOUDS = 300  # ... and on, up to 30 s, while the node has received fewer than FLOOD_RECEIVED
+FLOOD_RECEIVED = 3
+
+
 def test_million_point_flood_at_10_hz(fresh, capsys):
-    """1 M-point clouds at 10 Hz for 10 s: alive, bounded memory (latest-only), RSS reported."""
+    """1 M-point clouds at 10 Hz for 10 s: alive, registering the latest, bounded memory and work, RSS reported.
+
+    Each cloud is 12 MB, sent in fragments through Fast DDS's 512 KB shared-memory segment (the default
+    one that localhost-only discovery configures), which recycles fragments a lagging reader has not
+    taken yet: under CPU load most clouds never reach the node (from 2 of 300 to 7 of 100 on the 2-core
+    machine running a benchmark). So the flood goes on past 10 s until the node's own counters say it has received
+    FLOOD_RECEIVED clouds, or FLOOD_MAX_CLOUDS were sent.
+    """
     g = fresh
     g.send_model(BAG_B)  # a 20 % view: the dense copy stays smaller than the model
     _, frames_m = bag_frames_m(BAG_B)
     rng = np.random.default_rng(0)
     dense = frames_m[0][rng.integers(0, len(frames_m[0]), 1_000_000)] + rng.normal(0, 0.0005, (1_000_000, 3))
     msg = points_to_cloud(dense, TYPES, frame_id="camera", stamp_ns=1)
+    mark = g.mark()
+    before = g.probe.wait_for(lambda: g.counters(mark), 10)  # a periodic status after the model
+    assert before, "no periodic status from register_node"
+
+    def delta() -> dict[str, int]:
+        """The node's counters since the flood began (from its periodic status)."""
+        now = g.counters(since) or before
+        return {k: now[k] - before[k] for k in before}
+
+    def settled() -> dict[str, int] | None:
+        """Every cloud the node took registered (one diagnostic each) or superseded unregistered (latest-only)."""
+        d = delta()
+        registered = d["registered_clouds"]
+        done = d["received_clouds"] == registered + d["dropped_clouds"] and registered == len(g.attempts(since))
+        return d if done else None
+
     since, start = g.mark(), time.monotonic()
-    rss = []
-    for k in range(100):
-        time.sleep(max(0.0, start + 0.1 * k - time.monotonic()))
-        msg.header.stamp.sec, msg.header.stamp.nanosec = 10 + k // 10, (k % 10) * 100_000_000
+    rss, sent = [], 0
+    while sent < FLOOD_CLOUDS or (sent < FLOOD_MAX_CLOUDS and delta()["received_clouds"] < FLOOD_RECEIVED):
+        time.sleep(max(0.0, start + 0.1 * sent - time.monotonic()))
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 10 + sent // 10, (sent % 10) * 100_000_000
         g.probe.publish(TOPIC_INTRAOP, msg)
-        if k % 10 == 0:
+        if sent % 10 == 0:
             rss.append(g.node.rss_mb())
+        sent += 1
     took = time.monotonic() - start
-    g.wait_attempts(since, timeout_s=60)
-    time.sleep(1.0)
+    received = g.probe.wait_for(lambda: delta()["received_clouds"], 5.0)  # a later status counts the last
+    assert received, (
+        f"none of {sent} clouds reached register_node (alive: {g.node.alive()}; "
+        f"{g.mark() - since} /diagnostics messages since the flood began)"
+    )
+    counts = g.probe.wait_for(settled, 60) or delta()
     peak = g.node.rss_mb("VmHWM")
     attempts = g.attempts(since)
     with capsys.disabled():
         print(
-            f"\n  flood: 100 x 1M points in {took:.1f} s; {len(attempts)} registered; register_node RSS "
-            f"{min(rss):.0f}-{max(rss):.0f} MB during, peak (VmHWM, whole life) {peak:.0f} MB"
+            f"\n  flood: {sent} x 1M points in {took:.1f} s; register_node received {counts['received_clouds']}, "
+            f"registered {counts['registered_clouds']}, dropped {counts['dropped_clouds']} (latest-only); "
+            f"RSS {min(rss):.0f}-{max(rss):.0f} MB during, peak (VmHWM, whole life) {peak:.0f} MB"
         )
-    assert attempts and all(level_of(a) in (OK, WARN) for a in attempts), [a.message for a in attempts]
+    assert settled(), (counts, len(attempts))
+    assert all(level_of(a) in (OK, WARN) for a in attempts), [a.message for a in attempts]
     assert all("voxelized" in a.message for a in attempts), [a.message for a in attempts]  # bounded work
     assert g.node.alive() and peak < 3000, peak
     assert g.probe.reregister(timeout_s=120) is not None, "no answer from ~/reregister after the flood"

@@ -326,6 +326,27 @@ def test_a_cloud_waits_briefly_for_its_own_fiducials_while_ground_truth_streams(
     assert core.due(10.0)
 
 
+def test_a_stream_faster_than_the_fiducial_wait_is_still_registered():
+    """A newer cloud replaces a waiting one without restarting the wait: at 10 Hz without fiducials
+    (a model with markers, no cloud of it paired yet) every cloud used to push the wait 0.3 s on."""
+    from liver_p2p_reg.ros.node_core import FIDUCIAL_WAIT_S
+
+    core = core_with_preop()
+    core.set_preop_fiducials(liver_like(5))
+    registered = []
+    for k in range(20):  # 10 Hz for 2 s, the worker looking every 30 ms
+        now_s = 10.0 + 0.1 * k
+        core.on_intraop_points(liver_like(), "camera", k, now_s=now_s)
+        for t in (now_s, now_s + 0.03, now_s + 0.06, now_s + 0.09):
+            output = core.process_pending(t)
+            if output is not None:
+                registered.append((t, int(output.diagnostics[0].values["stamp_ns"])))
+    assert registered, "no cloud of a 10 Hz stream registered in 2 s"
+    first_s, first_stamp = registered[0]
+    assert first_s <= 10.0 + FIDUCIAL_WAIT_S + 0.03 and first_stamp == 3  # the latest cloud, after one wait
+    assert len(registered) >= 3  # then at the rate limit (2 Hz)
+
+
 def test_reconfigure_validates_the_method_and_keeps_the_cache():
     from liver_p2p_reg.errors import InputError
 

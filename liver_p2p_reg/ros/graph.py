@@ -191,14 +191,22 @@ class GraphProbe:
         self._client(Trigger, f"/{target}/reregister")
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self._closing = False
+        self.spin_error: BaseException | None = None  # why the probe's executor stopped, if it did
         self._thread = threading.Thread(target=self._spin, name="probe", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
         try:
             self.executor.spin()
-        except Exception:  # context shut down by close()
-            pass
+        except Exception as exc:
+            if not self._closing:  # close() shutting the context down is no error
+                self.spin_error = exc
+
+    def _check_spinning(self) -> None:
+        """A probe whose executor died records nothing more: say so instead of reporting silence."""
+        if not self._closing and not self._thread.is_alive():
+            raise RuntimeError(f"the probe's executor stopped: {self.spin_error!r}")
 
     def _recorder(self, topic: str) -> Callable[[Any], None]:
         def record(msg: Any) -> None:
@@ -209,10 +217,12 @@ class GraphProbe:
 
     # ---------------------------------------------------------------- reading what arrived
     def count(self, topic: str) -> int:
+        self._check_spinning()
         with self.lock:
             return len(self.received[topic])
 
     def since(self, topic: str, index: int = 0) -> list[Received]:
+        self._check_spinning()
         with self.lock:
             return list(self.received[topic][index:])
 
@@ -286,6 +296,7 @@ class GraphProbe:
         return self.call(SetParametersAtomically, f"/{self.target}/set_parameters_atomically", request).result
 
     def close(self) -> None:
+        self._closing = True
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)

@@ -39,7 +39,9 @@ HARDWARE_ID = "liver_p2p_reg"
 # A cloud arriving at exactly max_rate_hz is due although its arrival jitters this share of a period early.
 RATE_TOLERANCE = 0.05
 # While ground truth is expected, a cloud waits at most this long for its own same-stamp fiducials
-# (published just before it, on another topic) so its TRE is not lost to delivery order.
+# (published just before it, on another topic) so its TRE is not lost to delivery order. The wait
+# counts from the first cloud the pending slot held: a newer cloud replacing it does not restart it
+# (else a stream faster than 1 / FIDUCIAL_WAIT_S without fiducials was never registered).
 FIDUCIAL_WAIT_S = 0.3
 
 
@@ -105,6 +107,7 @@ class _Cloud:
     points_mm: np.ndarray | None = None
     n_raw: int = 0
     received_s: float | None = None  # arrival on the caller's clock (None: not given)
+    waiting_since_s: float | None = None  # arrival of the first cloud in the pending slot (fiducial wait)
 
 
 @dataclass
@@ -272,8 +275,11 @@ class NodeCore:
     def _receive(self, cloud: _Cloud) -> list[Diagnostic]:
         with self._lock:
             self.received += 1
+            cloud.waiting_since_s = cloud.received_s
             if self._pending is not None:
                 self.dropped += 1  # latest-only: the older cloud is never registered
+                if cloud.received_s is not None and self._pending.waiting_since_s is not None:
+                    cloud.waiting_since_s = min(cloud.received_s, self._pending.waiting_since_s)
             self._pending = cloud
             have_preop = self.preop_mm is not None
         if not have_preop:
@@ -297,8 +303,9 @@ class NodeCore:
             due_s = -np.inf
             if self.config.mode == "continuous" and self._rate_ref_s is not None:
                 due_s = self._rate_ref_s + (1.0 - RATE_TOLERANCE) / self.config.max_rate_hz
-        if cloud.received_s is not None and self.fiducials.expected() and not self.fiducials.has_frame(cloud.stamp_ns):
-            due_s = max(due_s, cloud.received_s + FIDUCIAL_WAIT_S)
+        waiting_since_s = cloud.waiting_since_s
+        if waiting_since_s is not None and self.fiducials.expected() and not self.fiducials.has_frame(cloud.stamp_ns):
+            due_s = max(due_s, waiting_since_s + FIDUCIAL_WAIT_S)
         return due_s
 
     def due(self, now_s: float | None = None) -> bool:
@@ -341,6 +348,7 @@ class NodeCore:
             self._rate_ref_s = None
             if self._pending is not None:
                 self._pending.received_s = None  # no fiducials are coming after the bag's end
+                self._pending.waiting_since_s = None
         return self.process_pending(0.0)
 
     def status(self) -> Diagnostic:
