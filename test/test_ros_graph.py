@@ -315,14 +315,22 @@ def _tf_carries(g):
     assert any(t.header == latest.header and t.transform == latest.transform for t in stamp)
 
 
+IDLE_WINDOWS = 4
+IDLE_WINDOW_S = 2.0
+
+
 def test_idle_cpu_is_near_zero(fresh):
     """Symptom 8: no polling timer: an idle node sleeps (was ~9 % of a core)."""
     g = fresh
     time.sleep(1.0)
-    before, start = g.node.cpu_s(), time.monotonic()
-    time.sleep(4.0)
-    share = (g.node.cpu_s() - before) / (time.monotonic() - start)
-    assert share < 0.03, f"idle register_node used {share:.1%} of a core"
+    # The quietest of several windows: a polling timer draws in every window, while a busy machine
+    # (CI beside other work) or the once-a-second diagnostics can make any single window noisy.
+    shares = []
+    for _ in range(IDLE_WINDOWS):
+        before, start = g.node.cpu_s(), time.monotonic()
+        time.sleep(IDLE_WINDOW_S)
+        shares.append((g.node.cpu_s() - before) / (time.monotonic() - start))
+    assert min(shares) < 0.03, f"idle register_node used {min(shares):.1%} of a core at least ({shares})"
 
 
 FLOOD_CLOUDS = 100  # 10 s at 10 Hz ...
