@@ -46,6 +46,11 @@ def _fmt(value: float, digits: int = 2) -> str:
     return DASH if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
+def _density(row: dict) -> str:
+    """A row's target density; rows written before the column existed (empty) were uniform."""
+    return str(row.get("density") or "uniform")
+
+
 def _pm(values: np.ndarray) -> str:
     mean, std = mean_std(values)
     return DASH if not math.isfinite(mean) else f"{mean:.2f} ± {std:.2f}"
@@ -164,7 +169,7 @@ class Summary:
 
     def table_density(self) -> list[str] | None:
         """Mean RMS-TRE per target density on the same crops and poses (density twins)."""
-        densities = sorted({str(r.get("density", "uniform")) for r in self.main})
+        densities = sorted({_density(r) for r in self.main})
         if len(densities) < 2 or "uniform" not in densities:
             return None
         header = ["method", *(f"{d}" for d in densities), *(f"{d} / uniform" for d in densities if d != "uniform")]
@@ -172,7 +177,7 @@ class Summary:
         table = []
         for m in self.methods:
             mine = select(self.main, method=m)
-            by_density = {d: [r for r in mine if str(r.get("density", "uniform")) == d] for d in densities}
+            by_density = {d: [r for r in mine if _density(r) == d] for d in densities}
             means = {d: mean_std(np.array([r["rms_tre_mm"] for r in v], float))[0] for d, v in by_density.items()}
             cells = [_pm(np.array([r["rms_tre_mm"] for r in by_density[d]], float)) for d in densities]
             cells += [_fmt(means[d] / means["uniform"]) for d in densities if d != "uniform"]
