@@ -32,6 +32,7 @@ from ..registrar import get_method
 from .messages import OutputTypes, diagnostic_array, pose_stamped, transform_stamped
 from .node_core import ERROR, OK, WARN, CoreOutput, Diagnostic, NodeCore
 from .pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
+from .rcl_log import log_at
 
 RCLPY_TYPES = OutputTypes(
     cloud=MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw)),
@@ -267,16 +268,7 @@ class RegisterNode(Node):
             )
 
     def _log(self, level: int, text: str) -> None:
-        # rclpy binds one severity to each call site: one call per severity, never a shared one
-        logger = self.get_logger()
-        if level >= logging.ERROR:
-            logger.error(text)
-        elif level >= logging.WARNING:
-            logger.warning(text)
-        elif level >= logging.INFO:
-            logger.info(text)
-        else:
-            logger.debug(text)
+        log_at(self.get_logger(), level, text)
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds

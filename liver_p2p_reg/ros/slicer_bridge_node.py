@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import logging
 from typing import Any
 
 import rclpy
@@ -21,6 +20,7 @@ from ..config import SlicerConfig
 from ..errors import LiverP2PError
 from ..igtl.bridge import SlicerBridge, open_endpoint
 from .bag_make import TOPIC_INTRAOP, TOPIC_PREOP
+from .rcl_log import log_at
 from .slicer_link import SlicerLink
 
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -71,13 +71,7 @@ class SlicerBridgeNode(Node):
         )
 
     def _log(self, level: int, text: str) -> None:
-        logger = self.get_logger()
-        if level >= logging.ERROR:
-            logger.error(text)
-        elif level >= logging.WARNING:
-            logger.warning(text)
-        else:
-            logger.info(text)
+        log_at(self.get_logger(), level, text)
 
     def _publish_status(self) -> None:
         self.link.tick()  # a cloud the rate limit held back, if no newer pose came since
