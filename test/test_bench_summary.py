@@ -150,8 +150,14 @@ def test_confidence_table_counts_the_warnings_on_bad_and_good_poses() -> None:
 
 def test_rows_from_before_the_density_column_count_as_uniform() -> None:
     """A resumed run mixes rows without a density (written before the column existed) and `uniform` ones."""
-    rows = [_row(i, m, 0.25, 5.0) | {"density": "" if i < 2 else "uniform"} for i in range(4) for m in ("procrustes", "a")]
+    rows = [
+        _row(i, m, 0.25, 5.0) | {"density": "" if i < 2 else "uniform"} for i in range(4) for m in ("procrustes", "a")
+    ]
     assert _summary(rows).table_density() is None
-    rows += [_row(i, m, 0.25, 6.0) | {"case_id": f"d{i}", "density": "mesh-vertices"} for i in range(4) for m in ("procrustes", "a")]
+    rows += [
+        _row(i, m, 0.25, 6.0) | {"case_id": f"d{i}", "density": "mesh-vertices"}
+        for i in range(4)
+        for m in ("procrustes", "a")
+    ]
     header = _summary(rows).table_density()[0]
     assert "| mesh-vertices | uniform |" in header and "|  |" not in header
