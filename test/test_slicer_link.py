@@ -37,6 +37,9 @@ def test_decimation_reads_only_the_kept_points_of_any_layout(rng: np.random.Gene
 def test_verdicts_become_strings_summaries_do_not(link: SlicerLink) -> None:
     types = rosbags_output_types()
     slicer = Recorder.connect(link.bridge.endpoint.port)
+    # Connected is not yet accepted: a peer the server has not registered gets only each device's
+    # latest message on arrival (by design), so both verdicts need the peer in place first.
+    assert link.bridge.endpoint.wait_for_peers(1, 10.0)
     try:
         summary = NodeCore().status()  # the node's 1 Hz summary: the last verdict plus its counters
         verdict = Diagnostic(OK, DIAG_NAME, "registered: residual 1.20 mm", {"residual_mm": "1.200"})
