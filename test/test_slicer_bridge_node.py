@@ -37,7 +37,7 @@ from visualization_msgs.msg import Marker  # noqa: E402
 
 from liver_p2p_reg.config import Config, SlicerConfig  # noqa: E402
 from liver_p2p_reg.ros.bag_io import typestore  # noqa: E402
-from liver_p2p_reg.ros.node_core import DIAG_NAME, LEVEL_NAMES  # noqa: E402
+from liver_p2p_reg.ros.node_core import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns  # noqa: E402
 from liver_p2p_reg.ros.replay import replay_bag  # noqa: E402
 from liver_p2p_reg.ros.slicer_bridge_node import STATUS_NAME  # noqa: E402
@@ -121,6 +121,7 @@ class Player:
         self.publishers = {t: self.node.create_publisher(TYPES[t], t, QOS[t]) for t in TYPES}
         self.statuses: list = []  # the bridge's own
         self.registration: list = []  # register_node's registration statuses, periodic ones included
+        self.models: list = []  # register_node's preop-model statuses
         self.poses: list = []
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 10)
         self.node.create_subscription(PoseStamped, "/registration/pose", self.poses.append, 10)
@@ -138,6 +139,7 @@ class Player:
     def _diag(self, msg: DiagnosticArray) -> None:
         self.statuses += [s for s in msg.status if s.name == STATUS_NAME]
         self.registration += [s for s in msg.status if s.name == DIAG_NAME]
+        self.models += [s for s in msg.status if s.name == PREOP_DIAG_NAME]
 
     def bridge_stats(self) -> dict[str, str]:
         return {kv.key: kv.value for kv in self.statuses[-1].values} if self.statuses else {}
@@ -401,6 +403,12 @@ def test_with_the_real_register_node(tmp_path: Path) -> None:
             raw = [(c.topic, bytes(data)) for c, _, data in reader.messages(connections=wanted)]
         player.publish("/preop/points", next(d for t, d in raw if t == "/preop/points"))
         slicer.wait_for("PreopModel")
+        # register_node must hold the model before the first cloud (a cloud before it is an ERROR verdict);
+        # its model status reaching this node also says its /diagnostics are discovered by now
+        while not player.models and time.monotonic() < end:
+            time.sleep(0.05)
+        assert player.models, "register_node never reported the preop model"
+        time.sleep(0.5)  # the bridge's match to register_node's /diagnostics, discovered alongside
         clouds = [d for t, d in raw if t == "/intraop/points"][:2]
         for i, cloud in enumerate(clouds):
             player.publish("/intraop/points", cloud)
