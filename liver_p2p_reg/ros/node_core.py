@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -412,16 +413,26 @@ class NodeCore:
             self._latest = _Cloud(cloud.frame_id, cloud.stamp_ns, points_mm=points, n_raw=n_raw)
         prep_ms = (time.perf_counter() - start) * 1e3
         cached = set(self.registrar.cache)
-        if self.config.mode == "survey" and reason != "reregister":  # ---- survey mode (survey.py)
+
+        def guarded(what: str, call: Callable[[], Any]) -> tuple[Any, CoreOutput | None]:
+            """(call(), None), or (None, the frame's ERROR output): the node must survive anything a method raises."""
             try:
-                step = self._survey().step(
-                    preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=self._origin()
-                )
+                return call(), None
             except LiverP2PError as exc:
-                return fail(ERROR, f"registration failed: {exc}")
-            except Exception as exc:  # the node must survive anything a method raises
-                LOG.exception("survey registration raised")
-                return fail(ERROR, f"registration crashed: {type(exc).__name__}: {exc}")
+                return None, fail(ERROR, f"registration failed: {exc}")
+            except Exception as exc:
+                LOG.exception("%s raised", what)
+                return None, fail(ERROR, f"registration crashed: {type(exc).__name__}: {exc}")
+
+        if self.config.mode == "survey" and reason != "reregister":  # ---- survey mode (survey.py)
+            step, failed = guarded(
+                "survey registration",
+                lambda: self._survey().step(
+                    preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=self._origin()
+                ),
+            )
+            if failed is not None:
+                return failed
             result, track_ms = step.result, None
             values.update(step.values)
             warnings += step.warnings
@@ -429,15 +440,14 @@ class NodeCore:
             result, track_ms = self._try_tracking(preop, points, fid_s, fid_t, cloud.frame_id, reason)
         values["tracked"] = str(result is not None and result.method == "track").lower()
         if result is None:
-            try:
-                result = self.registrar.register(
+            result, failed = guarded(
+                "registration",
+                lambda: self.registrar.register(
                     preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=self._origin()
-                )
-            except LiverP2PError as exc:
-                return fail(ERROR, f"registration failed: {exc}")
-            except Exception as exc:  # the node must survive anything a method raises
-                LOG.exception("registration raised")
-                return fail(ERROR, f"registration crashed: {type(exc).__name__}: {exc}")
+                ),
+            )
+            if failed is not None:
+                return failed
             if track_ms is not None:  # a rejected tracking attempt is part of this frame's latency
                 result.runtime_ms["track_rejected"] = track_ms
                 result.runtime_ms["total"] = result.runtime_ms.get("total", 0.0) + track_ms
