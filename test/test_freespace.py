@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from same_pose import CROSS_MACHINE_MM, surface_shift_mm
 from scipy.spatial.transform import Rotation
 
 from liver_p2p_reg.confidence import is_ambiguous, pose_warnings
@@ -123,8 +124,13 @@ def test_bad_sensor_origin_is_one_input_error() -> None:
         Registrar().register(source, front_view(source), method="icp", sensor_origin_mm=[0.0, 1.0])
 
 
-def test_unknown_origin_changes_nothing_bitwise() -> None:
-    """The results of main before free space existed (test/data, made by e37fd94's code on this frame)."""
+def test_unknown_origin_changes_nothing() -> None:
+    """The results of main before free space existed (test/data, made by e37fd94's code on this frame).
+
+    The reference was computed on another machine: other CPUs take other SIMD/FMA paths in torch,
+    Open3D and BLAS, so across machines the poses agree within CROSS_MACHINE_MM on the preop surface,
+    not bitwise (test_same_input_same_pose_bitwise checks what one machine computes twice).
+    """
     messages = list(read_messages(ROOT / "bags" / "phantom_sim_03_vis0.35"))
     preop = next(cloud_to_points_mm(m.msg) for m in messages if m.topic == "/preop/points")
     frame = next(cloud_to_points_mm(m.msg) for m in messages if m.topic == "/intraop/points")
@@ -134,11 +140,28 @@ def test_unknown_origin_changes_nothing_bitwise() -> None:
     for method in ("learned-p2p-icp", "learned-p2p", "fpfh-p2p-icp", "fpfh-ransac-icp"):
         result = registrar.register(preop, frame, method=method)
         key = method.replace("-", "_")
-        assert np.array_equal(result.T_target_source, reference[f"{key}_T"]), method
-        values = [result.residual_mm, result.uncertainty_mm, float(result.ambiguous), float(result.chosen)]
-        assert np.array_equal(values, reference[f"{key}_values"]), method
+        assert surface_shift_mm(result.T_target_source, reference[f"{key}_T"], preop) < CROSS_MACHINE_MM, method
+        residual, uncertainty, ambiguous, chosen = reference[f"{key}_values"]
+        assert abs(result.residual_mm - residual) < CROSS_MACHINE_MM, method
+        assert abs(result.uncertainty_mm - uncertainty) < CROSS_MACHINE_MM, method
+        assert (float(result.ambiguous), float(result.chosen)) == (ambiguous, chosen), method
         assert np.isnan(result.free_space_violation) and result.free_space == ""
         assert "free_space" not in result.runtime_ms
+
+
+def test_same_input_same_pose_bitwise() -> None:
+    """What one machine computes twice (a fresh Registrar, then the same one again) is bitwise the same."""
+    messages = list(read_messages(ROOT / "bags" / "phantom_sim_03_vis0.35"))
+    preop = next(cloud_to_points_mm(m.msg) for m in messages if m.topic == "/preop/points")
+    frame = next(cloud_to_points_mm(m.msg) for m in messages if m.topic == "/intraop/points")
+    for method in ("learned-p2p-icp", "fpfh-ransac-icp"):
+        registrar = Registrar()
+        first = registrar.register(preop, frame, method=method)
+        again = registrar.register(preop, frame, method=method)
+        fresh = Registrar().register(preop, frame, method=method)
+        for other in (again, fresh):
+            assert other.T_target_source.tobytes() == first.T_target_source.tobytes(), method
+            assert (other.residual_mm, other.uncertainty_mm) == (first.residual_mm, first.uncertainty_mm), method
 
 
 def test_camera_crops_store_the_eye_and_older_files_are_brought_up_to_date(tmp_path) -> None:
