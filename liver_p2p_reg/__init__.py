@@ -15,9 +15,9 @@ _LAZY = {
     "LiverP2PError": ".errors",
     "RegistrationError": ".errors",
     "WeightsError": ".errors",
-    "Registrar": ".registrar",
-    "available_methods": ".registrar",
-    "register": ".registrar",
+    "Registrar": ".registration.registrar",
+    "available_methods": ".registration.registrar",
+    "register": ".registration.registrar",
     "Candidate": ".result",
     "RegistrationResult": ".result",
 }
@@ -37,10 +37,10 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
-    from .config import Config
-    from .errors import InputError, LiverP2PError, RegistrationError, WeightsError
-    from .registrar import Registrar, available_methods, register
-    from .result import Candidate, RegistrationResult
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.errors import InputError, LiverP2PError, RegistrationError, WeightsError
+    from liver_p2p_reg.registration.registrar import Registrar, available_methods, register
+    from liver_p2p_reg.result import Candidate, RegistrationResult
 
 
 def __getattr__(name: str) -> Any:

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .o3d import o3d_module
-from .ply_pcd import read_pcd, read_ply, write_pcd, write_ply
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.o3d import o3d_module
+from liver_p2p_reg.ply_pcd import read_pcd, read_ply, write_pcd, write_ply
 
 LOG = logging.getLogger("liver_p2p_reg")
 

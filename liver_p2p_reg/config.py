@@ -13,7 +13,7 @@ from typing import Any
 
 import yaml
 
-from .errors import InputError
+from liver_p2p_reg.errors import InputError
 
 # Choices validated in `Config.validate`; kept here so the CLI can list them in --help.
 SELECTION_RULES = ("closest-point", "inlier-count")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from types import ModuleType
 
-from .errors import LiverP2PError
+from liver_p2p_reg.errors import LiverP2PError
 
 # `import open3d` also imports open3d.visualization (dash, plotly) and open3d.ml (scikit-learn,
 # pandas): over a second of a command's start-up, for modules this package never uses.

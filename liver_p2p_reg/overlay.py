@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .metrics import transform_points
-from .plotting import pyplot
-from .result import RegistrationResult
+from liver_p2p_reg.metrics import transform_points
+from liver_p2p_reg.plotting import pyplot
+from liver_p2p_reg.result import RegistrationResult
 
 # Target points farther than this from the moved source are drawn in the colour map's last colour.
 DISTANCE_CLIP_MM = 10.0

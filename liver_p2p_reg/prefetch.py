@@ -23,7 +23,7 @@ PACKAGE_PARENT = str(Path(__file__).resolve().parents[1])
 CHILD = """import sys
 sys.path.insert(0, sys.argv[1])
 import numpy as np
-from liver_p2p_reg.features.fpfh import outward_normals
+from liver_p2p_reg.registration.features.fpfh import outward_normals
 points = np.load(sys.argv[2])
 np.save(sys.argv[3], outward_normals(points, float(sys.argv[4]), int(sys.argv[5])))
 """

@@ -17,7 +17,7 @@ import torch
 
 from liver_p2p_reg.bench.cases import list_case_paths, read_case, resolve_dataset, sensor_origin_mm
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.registrar import Registrar
+from liver_p2p_reg.registration.registrar import Registrar
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -16,10 +16,10 @@ import numpy as np
 import torch
 
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.learned.provider import LearnedProvider
 from liver_p2p_reg.phantom.loader import PairSampler, build_store
-from liver_p2p_reg.pipelines import prepare
-from liver_p2p_reg.registrar import Registrar
+from liver_p2p_reg.registration.features.learned.provider import LearnedProvider
+from liver_p2p_reg.registration.preprocess import preprocess_pair
+from liver_p2p_reg.registration.registrar import Registrar
 
 
 def write_reference(path: str, weights: str) -> None:
@@ -51,7 +51,7 @@ def main() -> None:
         store = build_store(tmp, livers=1, deformations=1, seed=3, target_tets=1500, progress=False)
         case = PairSampler(store, seed=0, visibility_range=(args.visibility, args.visibility)).sample()
     config = Config(device=args.device, weights_path=args.weights, num_threads=args.threads)
-    prep = prepare(case["src_pcd"], case["tgt_pcd"], config)
+    prep = preprocess_pair(case["src_pcd"], case["tgt_pcd"], config)
     provider = LearnedProvider(weights_path=args.weights, device=args.device)
     src = torch.as_tensor(prep.source, dtype=torch.float32, device=args.device)
     tgt = torch.as_tensor(prep.target, dtype=torch.float32, device=args.device)

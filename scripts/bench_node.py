@@ -21,11 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from liver_p2p_reg.bags.io import read_messages, rosbags_types
+from liver_p2p_reg.bags.replay import replay_bags
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.ros.bag_io import read_messages, rosbags_types
-from liver_p2p_reg.ros.node_core import NodeCore
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud
-from liver_p2p_reg.ros.replay import replay_bags
+from liver_p2p_reg.stream.core import NodeCore
 
 ROOT = Path(__file__).resolve().parents[1]
 

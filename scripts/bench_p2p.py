@@ -14,7 +14,7 @@ import time
 import numpy as np
 import torch
 
-from liver_p2p_reg.p2p import P2PSettings, p2p_register
+from liver_p2p_reg.registration.p2p import P2PSettings, p2p_register
 
 
 def make_problem(n: int, m: int, d: int, seed: int) -> tuple[torch.Tensor, ...]:

@@ -11,9 +11,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # the issue's budget is per core
 import numpy as np  # noqa: E402
 
 from liver_p2p_reg.phantom.anatomy import make_liver  # noqa: E402
-from liver_p2p_reg.phantom.crop import VisibilityMeter  # noqa: E402
 from liver_p2p_reg.phantom.dataset import make_case  # noqa: E402
 from liver_p2p_reg.phantom.simulate import simulate_liver  # noqa: E402
+from liver_p2p_reg.registration.visibility import VisibilityMeter  # noqa: E402
 
 
 def main() -> int:

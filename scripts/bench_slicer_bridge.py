@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
+from liver_p2p_reg.bags.io import read_messages
 from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
+from liver_p2p_reg.igtl.link import SlicerLink
 from liver_p2p_reg.igtl.wire import StreamReader
-from liver_p2p_reg.ros.bag_io import read_messages
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m
-from liver_p2p_reg.ros.slicer_link import SlicerLink
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -104,9 +104,9 @@ def graph(bag: Path, rate_hz: float, seconds: float, cloud_points: int, idle_s: 
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
 
-    from liver_p2p_reg.ros.node_core import DIAG_NAME
     from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
     from liver_p2p_reg.ros.register_node import RCLPY_TYPES
+    from liver_p2p_reg.stream.core import DIAG_NAME
 
     env = {"ROS_DOMAIN_ID": str(random.SystemRandom().randint(1, 100)), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     os.environ.update(env)

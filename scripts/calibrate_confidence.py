@@ -19,12 +19,12 @@ import numpy as np
 import torch
 import yaml
 
-from liver_p2p_reg.confidence import pose_warnings
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm
 from liver_p2p_reg.phantom.loader import PairSampler
-from liver_p2p_reg.registrar import Registrar
+from liver_p2p_reg.registration.confidence import pose_warnings
+from liver_p2p_reg.registration.registrar import Registrar
 
 # (visibility range, crop mode, noise mm, pairs, seed)
 SETS = (

@@ -22,18 +22,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from liver_p2p_reg.baselines import kabsch_np
-from liver_p2p_reg.config import Config
-from liver_p2p_reg.metrics import rms_tre_mm, transform_points
-from liver_p2p_reg.phantom.crop import VisibilityMeter, camera_axes, camera_order, sample_surface, vertex_normals
-from liver_p2p_reg.phantom.dataset import case_name, generate_dataset, liver_id_for, read_case, sensor_origin_mm
-from liver_p2p_reg.phantom.simulate import simulate_liver
-from liver_p2p_reg.phantom.sweep import sweep_frames
-from liver_p2p_reg.phantom.testset import testset_spec
-from liver_p2p_reg.preprocess import statistical_inliers
-from liver_p2p_reg.registrar import Registrar
-from liver_p2p_reg.ros.bag_io import bag_size_bytes, read_messages
-from liver_p2p_reg.ros.bag_make import (
+from liver_p2p_reg.bags.io import bag_size_bytes, read_messages
+from liver_p2p_reg.bags.make import (
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_PREOP,
@@ -41,9 +31,20 @@ from liver_p2p_reg.ros.bag_make import (
     make_case_bag,
     make_sweep_bag,
 )
+from liver_p2p_reg.bags.replay import ReplayRow, replay_bag, replay_bags
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.metrics import rms_tre_mm, transform_points
+from liver_p2p_reg.phantom.crop import camera_axes, camera_order, sample_surface, vertex_normals
+from liver_p2p_reg.phantom.dataset import case_name, generate_dataset, liver_id_for, read_case, sensor_origin_mm
+from liver_p2p_reg.phantom.simulate import simulate_liver
+from liver_p2p_reg.phantom.sweep import sweep_frames
+from liver_p2p_reg.phantom.testset import testset_spec
+from liver_p2p_reg.registration.baselines import kabsch_np
+from liver_p2p_reg.registration.preprocess import statistical_inliers
+from liver_p2p_reg.registration.registrar import Registrar
+from liver_p2p_reg.registration.visibility import VisibilityMeter
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
-from liver_p2p_reg.ros.replay import ReplayRow, replay_bag, replay_bags
-from liver_p2p_reg.survey import FusedSurface
+from liver_p2p_reg.stream.survey import FusedSurface
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_BAG_BYTES = 3_000_000

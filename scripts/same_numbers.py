@@ -54,10 +54,9 @@ def extract_cases(n_bags: int, path: Path) -> None:
     sys.path.insert(0, str(ROOT))
     try:
         from liver_p2p_reg.bags.io import read_messages
-
         from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
     except ImportError:  # the layout before the move
-        from liver_p2p_reg.ros.bag_io import read_messages
+        from liver_p2p_reg.bags.io import read_messages
         from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
 
     arrays = {}
@@ -85,9 +84,9 @@ def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return T
 
 
-def run_tree(tree: Path, cases: Path, out: Path) -> dict[str, np.ndarray]:
+def run_tree(tree: Path, cases: Path, out: Path, threads: int) -> dict[str, np.ndarray]:
     """Register the cases with the package found in `tree` (a fresh process); its arrays."""
-    env = {"PYTHONPATH": str(tree), "OMP_NUM_THREADS": "2", "PATH": "/usr/bin:/bin"}
+    env = {"PYTHONPATH": str(tree), "OMP_NUM_THREADS": str(threads), "PATH": "/usr/bin:/bin"}
     done = subprocess.run(
         [sys.executable, "-c", CHILD, str(cases), str(out)], env=env, capture_output=True, text=True, cwd=tree
     )
@@ -102,6 +101,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--baseline", required=True, help="the commit to compare with (e.g. the one before a move)")
     parser.add_argument("--bags", type=int, default=6, help="how many bundled bags give a case (first frame each)")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="OMP_NUM_THREADS of both runs (Open3D's methods vary run to run with 2)"
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
@@ -113,8 +115,8 @@ def main() -> None:
         (tmp_path / "base.tar").write_bytes(archive)
         with tarfile.open(tmp_path / "base.tar") as tar:
             tar.extractall(tmp_path / "base", filter="data")
-        new = run_tree(ROOT, cases, tmp_path / "new.npz")
-        old = run_tree(tmp_path / "base", cases, tmp_path / "old.npz")
+        new = run_tree(ROOT, cases, tmp_path / "new.npz", args.threads)
+        old = run_tree(tmp_path / "base", cases, tmp_path / "old.npz", args.threads)
     methods = sorted({k.split("|")[0] for k in old} | {k.split("|")[0] for k in new})
     report, differing = {}, []
     for method in methods:
@@ -123,7 +125,11 @@ def main() -> None:
         report[method] = f"{same}/{len(keys)} arrays bitwise equal"
         if same != len(keys):
             differing.append(method)
-    print(json.dumps({"baseline": args.baseline, "cases": args.bags, "methods": report}, indent=1))
+    print(
+        json.dumps(
+            {"baseline": args.baseline, "cases": args.bags, "threads": args.threads, "methods": report}, indent=1
+        )
+    )
     if differing:
         sys.exit(f"different: {', '.join(differing)}")
 

@@ -7,13 +7,13 @@ import socket
 import threading
 from pathlib import Path
 
+from liver_p2p_reg.bags.replay import replay_bags
+from liver_p2p_reg.cli.slicer import finish_replay
 from liver_p2p_reg.config import Config, SlicerConfig
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
-from liver_p2p_reg.igtl.commands import finish_replay
+from liver_p2p_reg.igtl.link import SlicerLink
 from liver_p2p_reg.igtl.picture import collect, draw
 from liver_p2p_reg.igtl.wire import Message, StreamReader
-from liver_p2p_reg.ros.replay import replay_bags
-from liver_p2p_reg.ros.slicer_link import SlicerLink
 
 
 def receive(port: int, into: list[Message]) -> threading.Thread:

@@ -14,11 +14,11 @@ import argparse
 
 import numpy as np
 
-from liver_p2p_reg.baselines import kabsch_np
 from liver_p2p_reg.bench.cases import BIN_LABELS, list_case_paths, read_case, resolve_dataset, visibility_bin
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import rms_tre_mm
-from liver_p2p_reg.registrar import Registrar
+from liver_p2p_reg.registration.baselines import kabsch_np
+from liver_p2p_reg.registration.registrar import Registrar
 
 
 def main(argv: list[str] | None = None) -> int:

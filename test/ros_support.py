@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from liver_p2p_reg.ros.bag_make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
-from liver_p2p_reg.ros.bag_player import read_raw
-from liver_p2p_reg.ros.graph import GraphProbe, NodeProcess, level_of, set_isolated_environment, values_of
-from liver_p2p_reg.ros.node_core import DIAG_NAME, PREOP_DIAG_NAME
+from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
+from liver_p2p_reg.bags.player import read_raw
+from liver_p2p_reg.livegraph.graph import GraphProbe, NodeProcess, level_of, set_isolated_environment, values_of
+from liver_p2p_reg.stream.core import DIAG_NAME, PREOP_DIAG_NAME
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 BAG_A = BAGS / "insilico_L9000001_D00_T007_random"  # visibility 0.9: quick and OK
@@ -31,7 +31,7 @@ def bag_raw(bag: Path) -> dict[str, list[bytes]]:
 
 def bag_frames_m(bag: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     """The bag's preop points and intraop frames as (N, 3) metres."""
-    from liver_p2p_reg.ros.bag_io import read_messages
+    from liver_p2p_reg.bags.io import read_messages
     from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m
 
     preop, frames = None, []

@@ -11,13 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import liver_p2p_reg.registrar as registrar_module
 from liver_p2p_reg.bench.harness import read_rows
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import RegistrationError
 from liver_p2p_reg.metrics import mean_closest_point_mm
-from liver_p2p_reg.registrar import MethodContext, available_methods, method
+from liver_p2p_reg.registration.context import MethodContext
+from liver_p2p_reg.registration.methods import Method, add_method, remove_method
+from liver_p2p_reg.registration.registrar import available_methods
 from liver_p2p_reg.result import RegistrationResult
 
 
@@ -129,10 +130,10 @@ TEST_METHODS = {
 def test_methods() -> Iterator[None]:
     """Register the test-only methods for this module and remove them afterwards (other tests list methods)."""
     for name, fn in TEST_METHODS.items():
-        method(name)(fn)
+        add_method(name, Method(doc=fn.__doc__ or name, run=fn))
     yield
     for name in TEST_METHODS:
-        registrar_module._REGISTRY.pop(name, None)
+        remove_method(name)
 
 
 @pytest.fixture(scope="module")

@@ -113,8 +113,8 @@ def test_default_method_gets_the_icp_normals_from_a_child_and_the_same_pose(file
 
 def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
     from liver_p2p_reg.cloud_io import load_points
-    from liver_p2p_reg.features.fpfh import outward_normals
     from liver_p2p_reg.prefetch import BackgroundNormals, take_prefetched
+    from liver_p2p_reg.registration.features.fpfh import outward_normals
 
     points = load_points(files["source"]) / 100.0
     job = BackgroundNormals(points, 0.1)
@@ -124,13 +124,21 @@ def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
     assert not job.folder.exists()  # cleaned up once taken
 
 
-def test_the_method_table_names_exactly_the_registered_methods() -> None:
-    from liver_p2p_reg.method_names import METHOD_MODULES, method_names
-    from liver_p2p_reg.registrar import _REGISTRY, available_methods
+def test_the_method_table_is_explicit_and_plugins_are_added_by_a_call() -> None:
+    from liver_p2p_reg.errors import InputError
+    from liver_p2p_reg.registration.methods import METHODS, Method, add_method, method_names, remove_method
+    from liver_p2p_reg.registration.registrar import available_methods
 
-    assert method_names() == available_methods()
-    for module, names in METHOD_MODULES.items():
-        assert {_REGISTRY[n].__module__ for n in names} == {module}
+    assert method_names() == available_methods() == sorted(METHODS)
+    for name, row in METHODS.items():  # each row runs one pipeline
+        assert sum((bool(row.features), bool(row.estimate), row.prior, row.oracle)) == 1, name
+        assert not (row.p2p and not row.features), name
+    with pytest.raises(InputError, match="built in"):
+        add_method("icp", Method(doc="x", run=lambda *a: None))
+    add_method("plugin-test", Method(doc="a plug-in", run=lambda *a: None))
+    assert "plugin-test" in available_methods()
+    remove_method("plugin-test")
+    assert "plugin-test" not in available_methods()
 
 
 def test_one_loaded_network_serves_every_registrar(files: dict) -> None:
@@ -190,7 +198,7 @@ def test_every_phony_make_target_has_a_rule() -> None:
 def test_every_method_has_its_own_colour_and_the_default_is_not_the_oracles() -> None:
     from liver_p2p_reg.bench.plots import method_style
     from liver_p2p_reg.config import Config
-    from liver_p2p_reg.method_names import method_names
+    from liver_p2p_reg.registration.methods import method_names
 
     colours = {m: method_style(m)["color"] for m in method_names()}
     assert len(set(colours.values())) == len(colours)

@@ -77,7 +77,7 @@ def _start_installed_node(workspace: Path, exe: Path) -> None:
     from conftest import require_rclpy
 
     require_rclpy()
-    from liver_p2p_reg.ros.graph import isolated_env
+    from liver_p2p_reg.livegraph.graph import isolated_env
 
     env = {**_env(), **isolated_env(), "RCUTILS_COLORIZED_OUTPUT": "0"}
     log = workspace / "register_node.stderr"

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from liver_p2p_reg import Config, Registrar
-from liver_p2p_reg.confidence import is_ambiguous, pose_uncertainty
+from liver_p2p_reg.registration.confidence import is_ambiguous, pose_uncertainty
 from liver_p2p_reg.result import Candidate
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from liver_p2p_reg.matching import (
+from liver_p2p_reg.registration.matching import (
     dual_softmax,
     log_dual_softmax,
     log_dual_softmax_with_patches,
@@ -14,7 +14,7 @@ from liver_p2p_reg.matching import (
     mutual_nearest,
     score_matrix,
 )
-from liver_p2p_reg.procrustes import to_homogeneous, weighted_procrustes
+from liver_p2p_reg.registration.procrustes import to_homogeneous, weighted_procrustes
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -194,7 +194,7 @@ def test_patch_dual_softmax_equals_per_patch_computation(rng: np.random.Generato
 
 
 def test_statistical_inliers_drop_flying_pixels_and_keep_the_surface(rng: np.random.Generator) -> None:
-    from liver_p2p_reg.preprocess import statistical_inliers
+    from liver_p2p_reg.registration.preprocess import statistical_inliers
 
     u, v = rng.uniform(0, 100, (2, 4000))
     surface = np.stack([u, v, 0.002 * (u - 50) ** 2], axis=1)  # a gently curved 100 mm patch
@@ -217,7 +217,7 @@ def _voxel_means_reference(points: np.ndarray, voxel: float) -> np.ndarray:
 
 @pytest.mark.parametrize("voxel", [0.04, 0.3, 1e-3])
 def test_voxel_downsample_equals_per_cell_means(rng: np.random.Generator, voxel: float) -> None:
-    from liver_p2p_reg.preprocess import voxel_downsample
+    from liver_p2p_reg.registration.preprocess import voxel_downsample
 
     points = rng.normal(size=(3000, 3)) * [1.0, 0.5, 0.2]
     np.testing.assert_allclose(voxel_downsample(points, voxel), _voxel_means_reference(points, voxel), atol=1e-12)
@@ -225,8 +225,8 @@ def test_voxel_downsample_equals_per_cell_means(rng: np.random.Generator, voxel:
 
 def test_voxel_downsample_survives_cells_too_far_apart_for_one_int64_key() -> None:
     """A far outlier (e.g. a flying pixel in metres among millimetres) must not merge cells."""
-    from liver_p2p_reg.phantom.crop import count_voxels
-    from liver_p2p_reg.preprocess import voxel_downsample
+    from liver_p2p_reg.registration.preprocess import voxel_downsample
+    from liver_p2p_reg.registration.visibility import count_voxels
 
     points = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [5.1, 0.0, 0.0], [5.3, 0.0, 0.0], [3e7, -3e7, 3e7]])
     out = voxel_downsample(points, 1.0)  # spans ~(3e7)^3 cells: more than an int64 key can number

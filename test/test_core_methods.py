@@ -135,11 +135,12 @@ def test_global_baselines_without_inliers_raise_instead_of_identity(case) -> Non
 
 
 def test_icp_screening_picks_the_candidate_that_fits_after_icp(case) -> None:
-    from liver_p2p_reg.pipelines import _screen_candidates, prepare
+    from liver_p2p_reg.registration.hypotheses import screen_candidates
+    from liver_p2p_reg.registration.preprocess import preprocess_pair
 
     source, target, T, _, _ = case
     config = Config()
-    prep = prepare(source, target, config)
+    prep = preprocess_pair(source, target, config)
     s, cs, ct = prep.source_norm.scale_mm, prep.source_norm.centroid_mm, prep.target_norm.centroid_mm
     right = np.eye(4)
     right[:3, :3], right[:3, 3] = T[:3, :3], (T[:3, :3] @ cs + T[:3, 3] - ct) / s
@@ -148,9 +149,9 @@ def test_icp_screening_picks_the_candidate_that_fits_after_icp(case) -> None:
     flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # 180 deg about the source's z: a wrong pose ICP cannot fix
     wrong = right @ flip
     poses = [wrong, wrong.copy(), slightly_off]
-    assert _screen_candidates(poses, [0, 1, 2], prep, config, {})[0] == 2  # ranked last, fits best after ICP
+    assert screen_candidates(poses, [0, 1, 2], prep, config, {})[0] == 2  # ranked last, fits best after ICP
     # only the first candidate is screened when refine_candidates is 1
-    assert _screen_candidates(poses, [0, 1, 2], prep, config.replace(refine_candidates=1), {})[0] == 0
+    assert screen_candidates(poses, [0, 1, 2], prep, config.replace(refine_candidates=1), {})[0] == 0
 
 
 def test_icp_methods_report_the_screening_stage(case) -> None:

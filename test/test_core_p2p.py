@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from liver_p2p_reg.p2p import (
+from liver_p2p_reg.registration.p2p import (
     P2PSettings,
     closest_point_residuals,
     consensus_pose,
@@ -15,8 +15,8 @@ from liver_p2p_reg.p2p import (
     p2p_register,
     robust_refit,
 )
-from liver_p2p_reg.preprocess import voxel_downsample
-from liver_p2p_reg.procrustes import weighted_procrustes
+from liver_p2p_reg.registration.preprocess import voxel_downsample
+from liver_p2p_reg.registration.procrustes import weighted_procrustes
 
 
 def _surface(rng: np.random.Generator, n: int = 12000) -> np.ndarray:

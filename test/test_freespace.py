@@ -7,16 +7,16 @@ import pytest
 from same_pose import CROSS_MACHINE_MM, surface_shift_mm
 from scipy.spatial.transform import Rotation
 
-from liver_p2p_reg.confidence import is_ambiguous, pose_warnings
+from liver_p2p_reg.bags.io import read_messages
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.freespace import Scorer, penalized
-from liver_p2p_reg.learned.weights import BUNDLED_WEIGHTS
 from liver_p2p_reg.metrics import transform_points
-from liver_p2p_reg.pipelines import _norm_to_mm, prepare
-from liver_p2p_reg.registrar import Registrar
+from liver_p2p_reg.registration.confidence import is_ambiguous, pose_warnings
+from liver_p2p_reg.registration.features.learned.weights import BUNDLED_WEIGHTS
+from liver_p2p_reg.registration.freespace import Scorer, penalized
+from liver_p2p_reg.registration.preprocess import norm_to_mm, preprocess_pair
+from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.result import Candidate
-from liver_p2p_reg.ros.bag_io import read_messages
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,10 +98,10 @@ def test_scorer_batches_poses_and_refuses_an_origin_that_cannot_be_the_sensor() 
     T_true, T_flip = poses()
     target = transform_points(T_true, front_view(source))
     config = Config()
-    prep = prepare(source, target, config)
+    prep = preprocess_pair(source, target, config)
 
     def normalized(T: np.ndarray) -> np.ndarray:
-        return np.linalg.inv(_norm_to_mm(prep.target_norm)) @ T @ _norm_to_mm(prep.source_norm)
+        return np.linalg.inv(norm_to_mm(prep.target_norm)) @ T @ norm_to_mm(prep.source_norm)
 
     band = config.free_space_band_mm / prep.source_norm.scale_mm
     origin = prep.target_norm.apply(transform_points(T_true, EYE_MM[None]))[0]

@@ -6,8 +6,8 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from liver_p2p_reg.learned.descriptors import NUM_FEATURES, local_features
-from liver_p2p_reg.learned.model import MatcherNet, ModelConfig
+from liver_p2p_reg.registration.features.learned.descriptors import NUM_FEATURES, local_features
+from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
 
 
 def _surface(n: int, rng: np.random.Generator) -> np.ndarray:

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.learned.model import MatcherNet, ModelConfig
-from liver_p2p_reg.learned.train import TrainConfig, pair_loss, prepare_pair, train
-from liver_p2p_reg.learned.weights import load_weights
 from liver_p2p_reg.phantom.loader import PairSampler, build_store
+from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
+from liver_p2p_reg.registration.features.learned.weights import load_weights
+from liver_p2p_reg.training.train import TrainConfig, pair_loss, prepare_pair, train
 
 SMALL = {"width": 32, "layers": 1, "out_dim": 16, "max_nodes": 64}
 
@@ -100,7 +100,7 @@ def test_bad_training_config_is_an_input_error(tmp_path: Path, monkeypatch: pyte
 
 
 def test_fine_tuning_starts_from_init_weights(store: Path, tmp_path: Path) -> None:
-    from liver_p2p_reg.learned.weights import save_weights
+    from liver_p2p_reg.registration.features.learned.weights import save_weights
 
     torch.manual_seed(3)
     init = save_weights(MatcherNet(ModelConfig(**SMALL)), tmp_path / "init.safetensors")

@@ -12,9 +12,14 @@ import pytest
 import torch
 
 from liver_p2p_reg.errors import WeightsError
-from liver_p2p_reg.learned.model import MatcherNet, ModelConfig
-from liver_p2p_reg.learned.provider import LearnedProvider
-from liver_p2p_reg.learned.weights import BUNDLED_WEIGHTS, load_weights, save_weights, weights_metadata
+from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
+from liver_p2p_reg.registration.features.learned.provider import LearnedProvider
+from liver_p2p_reg.registration.features.learned.weights import (
+    BUNDLED_WEIGHTS,
+    load_weights,
+    save_weights,
+    weights_metadata,
+)
 
 REFERENCE = Path(__file__).parent / "data" / "learned_reference.npz"
 

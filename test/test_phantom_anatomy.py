@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.phantom.anatomy import edge_face_counts, make_liver, mesh_volume_mm3
+from liver_p2p_reg.phantom.anatomy import make_liver
+from liver_p2p_reg.registration.mechanics.surface import edge_face_counts, mesh_volume_mm3
 
 
 @pytest.mark.parametrize("seed", [0, 7, 123456])

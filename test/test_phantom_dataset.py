@@ -9,7 +9,6 @@ import pytest
 
 from liver_p2p_reg.cli import dataset_cmd
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.phantom.crop import VisibilityMeter
 from liver_p2p_reg.phantom.dataset import (
     DatasetSpec,
     generate_dataset,
@@ -20,6 +19,7 @@ from liver_p2p_reg.phantom.dataset import (
 )
 from liver_p2p_reg.phantom.loader import PairSampler, build_store
 from liver_p2p_reg.phantom.simulate import simulate_liver
+from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 
 @pytest.fixture(scope="module")
@@ -171,8 +171,8 @@ def test_read_case_accepts_the_public_p2p_layout(tmp_path) -> None:
 
 
 def test_voxel_count_matches_the_pipelines_voxelization(rng) -> None:
-    from liver_p2p_reg.phantom.crop import count_voxels
-    from liver_p2p_reg.preprocess import voxel_downsample
+    from liver_p2p_reg.registration.preprocess import voxel_downsample
+    from liver_p2p_reg.registration.visibility import count_voxels
 
     for scale in (0.1, 1.0, 3.0):
         pts = rng.normal(size=(5000, 3)) * scale - 0.3

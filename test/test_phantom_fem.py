@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from liver_p2p_reg.phantom.anatomy import make_liver, winding_number
-from liver_p2p_reg.phantom.fem import RMS_RANGE_MM, assemble, random_load_case, solve_displacement
+from liver_p2p_reg.phantom.anatomy import make_liver
 from liver_p2p_reg.phantom.simulate import simulate_liver
-from liver_p2p_reg.phantom.tetmesh import build_tetmesh
-from liver_p2p_reg.procrustes import rigid_fit_np as procrustes
+from liver_p2p_reg.registration.mechanics.fem import RMS_RANGE_MM, assemble, random_load_case, solve_displacement
+from liver_p2p_reg.registration.mechanics.surface import winding_number
+from liver_p2p_reg.registration.mechanics.tetmesh import build_tetmesh
+from liver_p2p_reg.registration.procrustes import rigid_fit_np as procrustes
 
 
 def test_embedding_interpolates_linear_fields_exactly() -> None:
@@ -56,7 +57,7 @@ def test_loads_are_self_equilibrated_and_supports_hold() -> None:
     u = solve_displacement(assemble(mesh), load, mesh.nodes_mm)
     assert np.abs(u).max() > 0
     # The support patch only moves rigidly (the infinitesimal rigid part was subtracted afterwards).
-    from liver_p2p_reg.phantom.fem import remove_infinitesimal_rigid
+    from liver_p2p_reg.registration.mechanics.fem import remove_infinitesimal_rigid
 
     patch = mesh.nodes_mm[load.fixed_nodes]
     assert np.abs(remove_infinitesimal_rigid(patch, u[load.fixed_nodes])).max() < 1e-9 * np.abs(u).max()

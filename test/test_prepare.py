@@ -13,12 +13,16 @@ import torch
 
 from liver_p2p_reg import Config, Registrar
 from liver_p2p_reg.errors import LiverP2PError
-from liver_p2p_reg.learned.prepare import PrepareSize, prepare_liver, training_config
-from liver_p2p_reg.learned.prepared import read_prepared_source, signature_mismatch, source_signature
-from liver_p2p_reg.learned.train import pair_loss, prepare_pair, training_sampler
-from liver_p2p_reg.learned.weights import load_weights
 from liver_p2p_reg.phantom.anatomy import make_liver
 from liver_p2p_reg.phantom.crop import make_target
+from liver_p2p_reg.registration.features.learned.patient import (
+    read_prepared_source,
+    signature_mismatch,
+    source_signature,
+)
+from liver_p2p_reg.registration.features.learned.weights import load_weights
+from liver_p2p_reg.training.patient import PrepareSize, prepare_liver, training_config
+from liver_p2p_reg.training.train import pair_loss, prepare_pair, training_sampler
 
 SMALL = PrepareSize(train_deformations=3, val_deformations=1, views=4, tets=1500)
 STEPS = 100
@@ -82,7 +86,7 @@ def test_prepared_file_loads_without_pickle_and_reproduces_its_output(prepared, 
 
 
 def test_precomputed_source_features_are_the_ones_the_network_would_compute(prepared, liver) -> None:
-    from liver_p2p_reg.learned.descriptors import local_features
+    from liver_p2p_reg.registration.features.learned.descriptors import local_features
 
     source = read_prepared_source(prepared[0])
     np.testing.assert_array_equal(source.f_src, local_features(source.vox_norm).astype(np.float32))
@@ -108,7 +112,7 @@ def test_the_same_liver_moved_still_matches_its_signature(liver) -> None:
 
 
 def test_node_core_reports_the_mismatch_as_warn(prepared) -> None:
-    from liver_p2p_reg.ros.node_core import WARN, NodeCore
+    from liver_p2p_reg.stream.core import WARN, NodeCore
 
     out, _ = prepared
     other = make_liver(22).vertices_mm

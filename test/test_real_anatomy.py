@@ -12,9 +12,9 @@ import pytest
 from liver_p2p_reg import Config, Registrar
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import rms_tre_mm
-from liver_p2p_reg.phantom.anatomy import is_watertight, make_liver, mesh_volume_mm3
+from liver_p2p_reg.phantom.anatomy import make_liver
 from liver_p2p_reg.phantom.artifacts import Artifacts
-from liver_p2p_reg.phantom.crop import VisibilityMeter, make_target
+from liver_p2p_reg.phantom.crop import make_target
 from liver_p2p_reg.phantom.real import (
     liver_from_surface,
     missing_real_livers_message,
@@ -25,6 +25,8 @@ from liver_p2p_reg.phantom.real import (
     weld_vertices,
 )
 from liver_p2p_reg.phantom.simulate import simulate_liver
+from liver_p2p_reg.registration.mechanics.surface import is_watertight, mesh_volume_mm3
+from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 needs_real = pytest.mark.skipif(real_livers_dir() is None, reason=missing_real_livers_message())
 
@@ -176,8 +178,8 @@ def test_full_view_registers_accurately() -> None:
 
 @needs_real
 def test_real_liver_loads_and_a_real_store_trains(tmp_path) -> None:
-    from liver_p2p_reg.learned.train import TrainConfig, train
     from liver_p2p_reg.phantom.real import load_real_liver
+    from liver_p2p_reg.training.train import TrainConfig, train
 
     liver = load_real_liver(real_split()["train"][0])
     assert is_watertight(liver.triangles) and len(liver.vertices_mm) > 5000

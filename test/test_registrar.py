@@ -92,7 +92,7 @@ def test_available_methods_is_a_sorted_list() -> None:
 
 
 def test_remember_latest_reuses_one_entry_per_kind(rng: np.random.Generator) -> None:
-    from liver_p2p_reg.registrar import remember_latest
+    from liver_p2p_reg.registration.context import remember_latest
 
     cache: dict = {}
     calls: list[int] = []

@@ -15,15 +15,15 @@ rclpy = require_rclpy()
 from ros_support import BAG_B  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 
-from liver_p2p_reg.ros.bag_io import read_messages  # noqa: E402
-from liver_p2p_reg.ros.bag_make import (  # noqa: E402
+from liver_p2p_reg.bags.io import read_messages  # noqa: E402
+from liver_p2p_reg.bags.make import (  # noqa: E402
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
 )
-from liver_p2p_reg.ros.bag_player import QOS_BY_TOPIC  # noqa: E402
-from liver_p2p_reg.ros.graph import GraphProbe, set_isolated_environment, stamp_ns  # noqa: E402
+from liver_p2p_reg.bags.player import QOS_BY_TOPIC  # noqa: E402
+from liver_p2p_reg.livegraph.graph import GraphProbe, set_isolated_environment, stamp_ns  # noqa: E402
 
 
 @pytest.fixture

@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 import yaml
 
+from liver_p2p_reg.bags.io import bag_topics, read_messages
+from liver_p2p_reg.bags.make import CASE_KEY, make_case_bag
+from liver_p2p_reg.bags.replay import OUTPUT_TOPICS, format_table, replay_bag
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.registrar import available_methods
-from liver_p2p_reg.ros.bag_io import bag_topics, read_messages
-from liver_p2p_reg.ros.bag_make import CASE_KEY, make_case_bag
+from liver_p2p_reg.registration.registrar import available_methods
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
-from liver_p2p_reg.ros.replay import OUTPUT_TOPICS, format_table, replay_bag
 
 PC2 = "sensor_msgs/msg/PointCloud2"
 

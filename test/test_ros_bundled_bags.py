@@ -5,10 +5,10 @@ from pathlib import Path
 
 import pytest
 
+from liver_p2p_reg.bags.io import bag_size_bytes, bag_topics
+from liver_p2p_reg.bags.replay import replay_bags
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.registrar import available_methods
-from liver_p2p_reg.ros.bag_io import bag_size_bytes, bag_topics
-from liver_p2p_reg.ros.replay import replay_bags
+from liver_p2p_reg.registration.registrar import available_methods
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 README = BAGS / "README.md"

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from liver_p2p_reg.bags.io import rosbags_types
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.registrar import available_methods
-from liver_p2p_reg.ros.bag_io import rosbags_types
-from liver_p2p_reg.ros.node_core import ERROR, OK, STALE, WARN, NodeCore
+from liver_p2p_reg.registration.registrar import available_methods
 from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
+from liver_p2p_reg.stream.core import ERROR, OK, STALE, WARN, NodeCore
 
 TYPES = rosbags_types()
 
@@ -315,7 +315,7 @@ def test_tre_needs_the_frames_own_fiducials_and_the_current_models():
 
 
 def test_a_cloud_waits_briefly_for_its_own_fiducials_while_ground_truth_streams():
-    from liver_p2p_reg.ros.node_core import FIDUCIAL_WAIT_S
+    from liver_p2p_reg.stream.core import FIDUCIAL_WAIT_S
 
     core = core_with_preop()
     core.set_preop_fiducials(liver_like(5))
@@ -329,7 +329,7 @@ def test_a_cloud_waits_briefly_for_its_own_fiducials_while_ground_truth_streams(
 def test_a_stream_faster_than_the_fiducial_wait_is_still_registered():
     """A newer cloud replaces a waiting one without restarting the wait: at 10 Hz without fiducials
     (a model with markers, no cloud of it paired yet) every cloud used to push the wait 0.3 s on."""
-    from liver_p2p_reg.ros.node_core import FIDUCIAL_WAIT_S
+    from liver_p2p_reg.stream.core import FIDUCIAL_WAIT_S
 
     core = core_with_preop()
     core.set_preop_fiducials(liver_like(5))

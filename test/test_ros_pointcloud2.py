@@ -5,8 +5,8 @@ import struct
 import numpy as np
 import pytest
 
+from liver_p2p_reg.bags.io import rosbags_types, typestore
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.ros.bag_io import rosbags_types, typestore
 from liver_p2p_reg.ros.pointcloud2 import FLOAT32, FLOAT64, cloud_to_points_m, cloud_to_points_mm, points_to_cloud
 
 TYPES = rosbags_types()

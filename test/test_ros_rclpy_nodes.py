@@ -16,7 +16,7 @@ from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from liver_p2p_reg.errors import InputError  # noqa: E402
-from liver_p2p_reg.registrar import available_methods  # noqa: E402
+from liver_p2p_reg.registration.registrar import available_methods  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud  # noqa: E402
 from liver_p2p_reg.ros.preop_loader_node import PreopLoaderNode  # noqa: E402
 from liver_p2p_reg.ros.register_node import LATCHED_QOS, RCLPY_TYPES, RegisterNode  # noqa: E402

@@ -35,13 +35,13 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
+from liver_p2p_reg.bags.io import typestore  # noqa: E402
+from liver_p2p_reg.bags.replay import replay_bag  # noqa: E402
 from liver_p2p_reg.config import Config, SlicerConfig  # noqa: E402
-from liver_p2p_reg.ros.bag_io import typestore  # noqa: E402
-from liver_p2p_reg.ros.node_core import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME  # noqa: E402
+from liver_p2p_reg.igtl.link import level_of, pose_to_T_mm  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns  # noqa: E402
-from liver_p2p_reg.ros.replay import replay_bag  # noqa: E402
 from liver_p2p_reg.ros.slicer_bridge_node import STATUS_NAME  # noqa: E402
-from liver_p2p_reg.ros.slicer_link import level_of, pose_to_T_mm  # noqa: E402
+from liver_p2p_reg.stream.core import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME  # noqa: E402
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "insilico_L9000001_D00_T007_random"
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

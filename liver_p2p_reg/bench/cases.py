@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
 
 # Visibility bins of the paper's Table I: [0.2,0.3) ... [0.8,0.9), and the closed [0.9,1.0].
 BIN_EDGES = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
@@ -51,7 +51,7 @@ def visibility_bin(visibility: float) -> int | None:
 def read_case(path: Path) -> dict[str, Any]:
     """Read one case NPZ into a dict of arrays and Python scalars; InputError if unusable."""
     try:
-        from ..phantom.dataset import read_case as phantom_read_case  # the generator's own reader
+        from liver_p2p_reg.phantom.dataset import read_case as phantom_read_case  # the generator's own reader
     except ImportError:
         phantom_read_case = None
     try:
@@ -95,7 +95,7 @@ def case_info(path: Path) -> CaseInfo:
 
 def sensor_origin_mm(data: dict[str, Any]) -> np.ndarray | None:
     """The camera position a case stores (mm, target frame); None when it has none (random crops, older files)."""
-    from ..phantom.dataset import sensor_origin_mm as stored_origin  # the generator owns the key
+    from liver_p2p_reg.phantom.dataset import sensor_origin_mm as stored_origin  # the generator owns the key
 
     return stored_origin(data)
 
@@ -145,7 +145,7 @@ def resolve_dataset(dataset: str, data_root: Path | None, livers: list[int] | No
     if path.suffix or "/" in dataset:
         raise InputError(f"dataset folder {dataset} does not exist")
     try:
-        from ..phantom import testset
+        from liver_p2p_reg.phantom import testset
     except ImportError:
         raise InputError(
             f"named test set {dataset!r} needs the phantom generator (liver_p2p_reg.phantom.testset)"
@@ -163,8 +163,8 @@ def planned_cases(dataset: str, preset: str, limit: int | None) -> tuple[list[in
     if Path(dataset).is_dir() or Path(dataset).suffix or "/" in dataset:
         return None
     try:
-        from ..phantom.realsets import REAL_SETS
-        from ..phantom.testset import expected_cases
+        from liver_p2p_reg.phantom.realsets import REAL_SETS
+        from liver_p2p_reg.phantom.testset import expected_cases
     except ImportError:
         return None
     if dataset in REAL_SETS:  # built whole, from the real livers
@@ -181,7 +181,7 @@ def planned_cases(dataset: str, preset: str, limit: int | None) -> tuple[list[in
 def list_case_paths(folder: Path) -> list[Path]:
     """All case NPZs of a dataset folder, in a stable order."""
     try:
-        from ..phantom.testset import testset_cases
+        from liver_p2p_reg.phantom.testset import testset_cases
     except ImportError:
         testset_cases = None
     paths: list[Path] = []

@@ -18,11 +18,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from ..config import Config
-from ..errors import InputError, LiverP2PError
-from ..metrics import rms_tre_mm, tre_mm
-from ..registrar import Registrar, available_methods
-from .cases import CaseInfo, add_target_noise, case_seed, first_per_bin, read_case, sensor_origin_mm
+from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_seed, first_per_bin, read_case, sensor_origin_mm
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.metrics import rms_tre_mm, tre_mm
+from liver_p2p_reg.registration.registrar import Registrar, available_methods
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +133,7 @@ class BenchmarkSpec:
 
     def settings(self) -> dict[str, Any]:
         """The settings recorded in OUT/settings.json; a rerun must match them."""
-        from .cases import fingerprint
+        from liver_p2p_reg.bench.cases import fingerprint
 
         clean = [c for c in self.cases if c.added_noise_mm == 0]  # noisy copies are additive
         return {

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..plotting import pyplot
-from .cases import BIN_EDGES, BIN_LABELS
-from .stats import METHOD_ORDER, Row, by_bin, main_rows, order_methods, select, success_curve, where
+from liver_p2p_reg.bench.cases import BIN_EDGES, BIN_LABELS
+from liver_p2p_reg.bench.stats import METHOD_ORDER, Row, by_bin, main_rows, order_methods, select, success_curve, where
+from liver_p2p_reg.plotting import pyplot
 
 TAUS_MM = np.linspace(0.0, 40.0, 81)
 ORACLE = "procrustes"
@@ -24,7 +24,7 @@ OTHER_COLOURS = (
 def method_style(method: str, default_method: str | None = None) -> dict:
     """Matplotlib line style of a method: colour, line style and width (see OTHER_COLOURS)."""
     if default_method is None:
-        from ..config import Config
+        from liver_p2p_reg.config import Config
 
         default_method = Config().method
     if "[" in method:  # a tagged run of a method ([fs], [prepared]): its method's colour, dotted
@@ -33,7 +33,7 @@ def method_style(method: str, default_method: str | None = None) -> dict:
         return {"color": "black", "linestyle": "--", "linewidth": 1.5}
     if method == default_method:
         return {"color": "tab:red", "linestyle": "-", "linewidth": 2.5}
-    from ..method_names import method_names
+    from liver_p2p_reg.registration.methods import method_names
 
     known = set(METHOD_ORDER) | set(method_names()) | {method}
     others = [m for m in order_methods(known) if m not in (ORACLE, default_method)]
@@ -42,7 +42,7 @@ def method_style(method: str, default_method: str | None = None) -> dict:
 
 def _label(method: str, default_method: str | None = None) -> str:
     if default_method is None:
-        from ..config import Config
+        from liver_p2p_reg.config import Config
 
         default_method = Config().method
     return {ORACLE: f"{ORACLE} (oracle)", default_method: f"{default_method} (default)"}.get(method, method)

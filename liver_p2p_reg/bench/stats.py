@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import ranksums
 
-from .cases import BIN_LABELS, visibility_bin
+from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
 
 Row = dict[str, Any]
 ALPHA = 0.05  # significance level of the rank-sum tests (the paper's)

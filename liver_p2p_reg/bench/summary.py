@@ -11,13 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from ..confidence import pose_warnings
-from ..config import Config
-from ..errors import InputError
-from . import plots
-from .cases import BIN_EDGES, BIN_LABELS, visibility_bin
-from .harness import ABLATION_K, ORACLE
-from .stats import (
+from liver_p2p_reg.bench import plots
+from liver_p2p_reg.bench.cases import BIN_EDGES, BIN_LABELS, visibility_bin
+from liver_p2p_reg.bench.harness import ABLATION_K, ORACLE
+from liver_p2p_reg.bench.stats import (
     ALPHA,
     SAFETY_TAU_MM,
     SUCCESS_TAU_MM,
@@ -34,6 +31,9 @@ from .stats import (
     success_rate,
     where,
 )
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.confidence import pose_warnings
 
 SLOW_MEDIAN_MS = 5000.0  # methods slower than this per case (median) are marked "slow"
 LOW_DEFORMATION_MM = (0.0, 6.0)  # the paper's Table III deformation ranges (fiducial RMS, mm)

@@ -31,7 +31,7 @@ def _version(dist: str) -> str:
 
 def code_version() -> str:
     """Git commit of the package's checkout (with `+dirty` for local changes), or the package version."""
-    from .. import __version__
+    from liver_p2p_reg import __version__
 
     root = Path(__file__).resolve().parents[2]
     try:

@@ -11,8 +11,8 @@ import importlib
 import logging
 import sys
 
-from .. import __version__
-from ..errors import LiverP2PError
+from liver_p2p_reg import __version__
+from liver_p2p_reg.errors import LiverP2PError
 
 # Each module defines `add_parser(subparsers)` and sets `func(args) -> int` on its parser.
 _SUBCOMMAND_MODULES = (

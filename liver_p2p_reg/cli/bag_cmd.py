@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
 
 if TYPE_CHECKING:  # imported when a subcommand runs, so `liver-p2p --help` stays instant
     import numpy as np
@@ -58,8 +58,8 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _make(args: argparse.Namespace, case: dict) -> int:
-    from ..ros.bag_io import bag_size_bytes
-    from ..ros.bag_make import make_case_bag
+    from liver_p2p_reg.bags.io import bag_size_bytes
+    from liver_p2p_reg.bags.make import make_case_bag
 
     out = make_case_bag(
         args.out,
@@ -83,7 +83,7 @@ def _make(args: argparse.Namespace, case: dict) -> int:
 
 
 def run_make(args: argparse.Namespace) -> int:
-    from ..ros.bag_make import load_case_npz
+    from liver_p2p_reg.bags.make import load_case_npz
 
     if args.case:
         if args.source or args.target:
@@ -91,7 +91,7 @@ def run_make(args: argparse.Namespace) -> int:
         return _make(args, load_case_npz(args.case))
     if not (args.source and args.target):
         raise InputError("bag make needs --case NPZ, or --source and --target files")
-    from ..cloud_io import load_points
+    from liver_p2p_reg.cloud_io import load_points
 
     case: dict = {
         "source_mm": load_points(args.source, seed=args.seed),
@@ -105,14 +105,14 @@ def run_make(args: argparse.Namespace) -> int:
 
 
 def run_import(args: argparse.Namespace) -> int:
-    from ..ros.bag_make import load_case_npz
+    from liver_p2p_reg.bags.make import load_case_npz
 
     return _make(args, load_case_npz(args.npz))
 
 
 def run_play(args: argparse.Namespace) -> int:
     try:
-        from ..ros.bag_player import main_play
+        from liver_p2p_reg.bags.player import main_play
     except ImportError as exc:
         raise InputError(f"bag play needs rclpy ({exc}): pip install -e '.[ros]' or source ROS 2 Jazzy") from None
     if not args.rate > 0:
@@ -123,7 +123,7 @@ def run_play(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from ..ros.bag_io import bag_custom_data, bag_size_bytes, bag_topics
+    from liver_p2p_reg.bags.io import bag_custom_data, bag_size_bytes, bag_topics
 
     path = Path(args.bag)
     if not path.exists():

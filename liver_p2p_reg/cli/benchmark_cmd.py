@@ -7,8 +7,8 @@ import json
 import shlex
 from pathlib import Path
 
-from ..config import DEVICES, Config
-from ..errors import InputError
+from liver_p2p_reg.config import DEVICES, Config
+from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -121,10 +121,17 @@ def _noise_levels(text: str | None) -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..bench.cases import case_info, list_case_paths, planned_cases, resolve_dataset, select_cases, with_noise
-    from ..bench.harness import BenchmarkSpec, check_settings, run_benchmark
-    from ..bench.sysinfo import machine_info
-    from ..registrar import available_methods, known_methods  # known_methods imports no torch or Open3D
+    from liver_p2p_reg.bench.cases import (
+        case_info,
+        list_case_paths,
+        planned_cases,
+        resolve_dataset,
+        select_cases,
+        with_noise,
+    )
+    from liver_p2p_reg.bench.harness import BenchmarkSpec, check_settings, run_benchmark
+    from liver_p2p_reg.bench.sysinfo import machine_info
+    from liver_p2p_reg.registration.methods import method_names  # the table: imports no torch or Open3D
 
     if args.summary_only:
         return _summary_only(args)
@@ -133,12 +140,12 @@ def run(args: argparse.Namespace) -> int:
         k: v for k, v in (("device", args.device), ("seed", args.seed), ("num_threads", args.threads)) if v is not None
     }
     config = config.replace(**overrides) if overrides else config
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else available_methods()
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else method_names()
     if not methods:
-        raise InputError("no methods to run (--methods is empty; is any method module installed?)")
-    unknown = [m for m in methods if m not in known_methods()]
+        raise InputError("no methods to run (--methods is empty)")
+    unknown = [m for m in methods if m not in method_names()]
     if unknown:  # before a named test set is generated, which can take minutes
-        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(known_methods())}")
+        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(method_names())}")
     if config.device == "cuda" and not _cuda_available():
         raise InputError("--device cuda: no CUDA device is available to torch here")
     if args.readme and not Path(args.readme).is_file():
@@ -166,8 +173,8 @@ def run(args: argparse.Namespace) -> int:
             )
     prepared: dict[str, str] = {}
     if args.prepare_minutes > 0:
-        from ..bench.prepared import prepare_test_livers
-        from ..phantom.testset import default_root
+        from liver_p2p_reg.bench.patient import prepare_test_livers
+        from liver_p2p_reg.phantom.testset import default_root
 
         prepared = prepare_test_livers(
             cases,
@@ -205,8 +212,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dict, command: str) -> None:
-    from ..bench.harness import SETTINGS_JSON
-    from ..bench.summary import relative_link, replace_readme_block, write_summary
+    from liver_p2p_reg.bench.harness import SETTINGS_JSON
+    from liver_p2p_reg.bench.summary import relative_link, replace_readme_block, write_summary
 
     settings = json.loads((out / SETTINGS_JSON).read_text())
     summary = write_summary(out, rows, settings, machine, command)
@@ -221,7 +228,7 @@ def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dic
 
 def _summary_only(args: argparse.Namespace) -> int:
     """Rewrite the reports of an existing OUT; machine and command are those recorded by its last run."""
-    from ..bench.harness import CASES_CSV, SETTINGS_JSON, read_rows
+    from liver_p2p_reg.bench.harness import CASES_CSV, SETTINGS_JSON, read_rows
 
     out = Path(args.out)
     if not (out / CASES_CSV).is_file() or not (out / SETTINGS_JSON).is_file():
@@ -232,7 +239,7 @@ def _summary_only(args: argparse.Namespace) -> int:
     if machine_path.is_file():
         machine = json.loads(machine_path.read_text())
     else:  # a run from before machine.json existed: describe this machine, as the run likely used it
-        from ..bench.sysinfo import machine_info
+        from liver_p2p_reg.bench.sysinfo import machine_info
 
         settings = json.loads((out / SETTINGS_JSON).read_text())
         machine = {**machine_info(settings.get("config", {}).get("device", "cpu")), "note": "recorded at summary time"}

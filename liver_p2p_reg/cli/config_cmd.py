@@ -7,8 +7,8 @@ from pathlib import Path
 
 import yaml
 
-from ..config import Config
-from ..errors import InputError
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

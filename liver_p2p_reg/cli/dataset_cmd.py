@@ -7,7 +7,7 @@ import json
 import logging
 from pathlib import Path
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -50,9 +50,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_generate(args: argparse.Namespace) -> int:
-    from ..phantom.dataset import DatasetSpec, generate_dataset
-    from ..phantom.loader import build_store
-    from ..phantom.testset import ensure_testset
+    from liver_p2p_reg.phantom.dataset import DatasetSpec, generate_dataset
+    from liver_p2p_reg.phantom.loader import build_store
+    from liver_p2p_reg.phantom.testset import ensure_testset
 
     logging.getLogger("skfem").setLevel(logging.WARNING)  # one INFO line per assembly otherwise
     chosen = [x for x in (args.out and not args.testset, args.store, args.testset) if x]
@@ -87,8 +87,8 @@ def run_generate(args: argparse.Namespace) -> int:
 
 
 def run_stats(args: argparse.Namespace) -> int:
-    from ..phantom.dataset import read_manifest
-    from ..phantom.stats import STAT_COLUMNS, plot_histograms, summarize
+    from liver_p2p_reg.phantom.dataset import read_manifest
+    from liver_p2p_reg.phantom.stats import STAT_COLUMNS, plot_histograms, summarize
 
     directory = Path(args.dir)
     rows = read_manifest(directory)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import Config
-from ..errors import InputError
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
 
 
 def bundled_bags_dir() -> Path | None:
@@ -43,8 +43,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..o3d import quiet_open3d
-    from ..ros.replay import format_flags, format_table, replay_bags
+    from liver_p2p_reg.bags.replay import format_flags, format_table, replay_bags
+    from liver_p2p_reg.o3d import quiet_open3d
 
     quiet_open3d()  # RANSAC's C++ warnings would interleave with the table on stdout
 
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     graph = None
     if not args.replay:
         try:
-            from ..ros import graph_demo  # the rclpy adapter: importable only where rclpy is
+            from liver_p2p_reg.livegraph import demo as graph_demo  # the rclpy adapter: importable only where rclpy is
         except ImportError as exc:
             print(f"rclpy not importable ({exc}): running the ROS-free replay instead of the live graph", flush=True)
         else:
@@ -89,7 +89,7 @@ def _run_graph(graph_demo, paths: list[Path], config: Config, out: Path) -> tupl
 def _report_graph(graph: tuple[list, float], replay_rows: list, out: Path) -> int:
     import numpy as np
 
-    from ..ros.graph_demo import format_graph_table
+    from liver_p2p_reg.livegraph.demo import format_graph_table
 
     rows, startup_s = graph
     replay_tre = {r.bag: r.rms_tre_mm for r in replay_rows}

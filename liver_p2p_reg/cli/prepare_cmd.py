@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
 
         if not torch.cuda.is_available():
             raise InputError("--device cuda: torch sees no CUDA device")
-    from ..learned.prepare import prepare_file
+    from liver_p2p_reg.training.patient import prepare_file
 
     card = prepare_file(
         mesh,

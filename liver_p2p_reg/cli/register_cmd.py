@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..config import SELECTION_RULES
-from ..errors import InputError, LiverP2PError
+from liver_p2p_reg.config import SELECTION_RULES
+from liver_p2p_reg.errors import InputError, LiverP2PError
 
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 MOVED_SUFFIXES = (".ply", ".pcd", ".xyz", ".npy")
@@ -22,8 +22,8 @@ LOG = logging.getLogger("liver_p2p_reg")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    from ..config import Config
-    from ..method_names import method_names
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.registration.methods import method_names
 
     p = subparsers.add_parser(
         "register",
@@ -97,7 +97,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _config(args: argparse.Namespace):
-    from ..config import Config
+    from liver_p2p_reg.config import Config
 
     config = Config.from_yaml(args.config) if args.config else Config()
     overrides = {
@@ -181,7 +181,7 @@ def sensor_origin(text: str | None) -> list[float] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..registrar import check_method_name
+    from liver_p2p_reg.registration.methods import check_method_name
 
     args.sensor_origin_mm = sensor_origin(args.sensor_origin)
     targets = [Path(t) for t in args.targets]
@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--method track refines a prior pose: give it with --initial-transform FILE")
     if args.initial_transform is not None and config.method != "track":
         raise InputError("--initial-transform is used by --method track only")
-    from ..cloud_io import check_point_file, load_points
+    from liver_p2p_reg.cloud_io import check_point_file, load_points
 
     source_path = check_point_file(args.source)
     for path in [*targets, args.source_fiducials, args.target_fiducials]:
@@ -213,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
         fiducials = (load_points(args.source_fiducials), load_points(args.target_fiducials))
     slicer = None
     if args.slicer:  # connected before registering: no Slicer is one line, not a lost registration
-        from ..igtl.commands import connect_to_slicer
+        from liver_p2p_reg.cli.slicer import connect_to_slicer
 
         slicer = connect_to_slicer(args.slicer)
     prefetch = _prefetch_icp_normals(source, config)
@@ -240,13 +240,13 @@ def _prefetch_icp_normals(source, config):
     """Start computing the ICP's source normals in a child process (prefetch.py), which imports
     Open3D there while this process imports torch: learned `-icp` methods only, the ones that need
     both. The child works on exactly the points the pipeline will (the Registrar's finite points,
-    normalized as `pipelines.prepare` does); should they differ, the pipeline computes its own."""
+    normalized as `preprocess.preprocess_pair` does); should they differ, the pipeline computes its own."""
     if not (config.method.startswith("learned") and config.method.endswith("-icp")) or "open3d" in sys.modules:
         return None  # another method, or Open3D is here already (an STL/OBJ source): nothing to gain
     import numpy as np
 
-    from ..prefetch import BackgroundNormals
-    from ..preprocess import source_normalization
+    from liver_p2p_reg.prefetch import BackgroundNormals
+    from liver_p2p_reg.registration.preprocess import source_normalization
 
     finite = source[np.isfinite(source).all(axis=1)]
     try:
@@ -258,7 +258,7 @@ def _prefetch_icp_normals(source, config):
 
 def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths, slicer=None) -> int:
     """Register SOURCE to every view in one Registrar; write and print each result as it comes."""
-    from ..registrar import Registrar
+    from liver_p2p_reg.registration.registrar import Registrar
 
     quiet = bool(getattr(args, "quiet", False))
     several = len(views) > 1
@@ -299,7 +299,7 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
         for message in warnings:  # the node's WARN rules: the pose is still returned, but flagged
             LOG.warning("%s%s", f"{target_path}: " if several else "", message)
         if slicer is not None:
-            from ..igtl.commands import send_registration
+            from liver_p2p_reg.cli.slicer import send_registration
 
             send_registration(slicer, source_path, source, target, result, warnings)
         written = _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved[i], plots[i])
@@ -309,7 +309,7 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
 
 
 def _warnings(result, config) -> list[str]:
-    from ..confidence import result_warnings
+    from liver_p2p_reg.registration.confidence import result_warnings
 
     warnings = list(result_warnings(result, config).values())
     if result.free_space.startswith("off"):  # an origin was given but cannot be the target's sensor
@@ -320,13 +320,13 @@ def _warnings(result, config) -> list[str]:
 def _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved: Path | None, plot: Path | None):
     written = []
     if moved is not None:
-        from ..cloud_io import save_points
-        from ..metrics import transform_points
+        from liver_p2p_reg.cloud_io import save_points
+        from liver_p2p_reg.metrics import transform_points
 
         save_points(moved, transform_points(result.T_target_source, source))
         written.append(moved)
     if plot is not None:
-        from ..overlay import plot_registration
+        from liver_p2p_reg.overlay import plot_registration
 
         plot_registration(
             source,

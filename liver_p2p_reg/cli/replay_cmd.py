@@ -6,8 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from ..config import NODE_MODES, Config
-from ..errors import InputError
+from liver_p2p_reg.config import NODE_MODES, Config
+from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -39,15 +39,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..registrar import check_method_name
+    from liver_p2p_reg.registration.methods import check_method_name
 
     config = Config.from_yaml(args.config) if args.config else Config()
     changes = {k: v for k, v in (("method", args.method), ("mode", args.mode)) if v}
     if changes:
         config = config.replace(**changes)
     check_method_name(config.method)  # before reading any bag or importing torch
-    from ..ros.bag_io import is_bag_path
-    from ..ros.replay import format_flags, format_table, replay_bags
+    from liver_p2p_reg.bags.io import is_bag_path
+    from liver_p2p_reg.bags.replay import format_flags, format_table, replay_bags
 
     paths = [Path(b) for b in args.bags]
     for path in paths:
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
     slicer = None
     if args.slicer is not None:
-        from ..igtl.commands import finish_replay, serve_replay
+        from liver_p2p_reg.cli.slicer import finish_replay, serve_replay
 
         slicer = serve_replay(args.slicer, args.slicer_wait)
     rows = replay_bags(

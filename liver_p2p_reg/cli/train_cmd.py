@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     """Train; print where the best weights are."""
     import torch
 
-    from ..learned.train import TrainConfig, export_weights, train
+    from liver_p2p_reg.training.train import TrainConfig, export_weights, train
 
     if args.export:
         import subprocess

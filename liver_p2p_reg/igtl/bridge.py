@@ -6,10 +6,10 @@ import time
 
 import numpy as np
 
-from ..config import SlicerConfig
-from ..errors import InputError
-from . import scene, wire
-from .endpoint import Endpoint, IgtlClient, IgtlServer, LogFn
+from liver_p2p_reg.config import SlicerConfig
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.igtl import scene, wire
+from liver_p2p_reg.igtl.endpoint import Endpoint, IgtlClient, IgtlServer, LogFn
 
 
 def open_endpoint(config: SlicerConfig, log: LogFn | None = None) -> Endpoint:

@@ -19,8 +19,8 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from ..errors import InputError
-from .wire import ProtocolError, StreamReader
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.igtl.wire import ProtocolError, StreamReader
 
 LogFn = Callable[[int, str], None]
 _LOG = logging.getLogger("liver_p2p_reg.igtl")

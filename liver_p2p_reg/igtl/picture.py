@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .wire import Message, decode_polydata, decode_string, decode_transform
+from liver_p2p_reg.igtl.wire import Message, decode_polydata, decode_string, decode_transform
 
 
 @dataclass

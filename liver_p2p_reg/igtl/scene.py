@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
 
 _FLIP_XY = np.diag([-1.0, -1.0, 1.0, 1.0])  # RAS <-> LPS, its own inverse (a rotation: keeps triangle winding)
 # Each point is drawn as a right triangle in one of three axis planes, in turn, so that from any

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError, LiverP2PError
+from liver_p2p_reg.errors import InputError, LiverP2PError
 
 HEADER = struct.Struct(">H12s20sIIQQ")  # version, type, device, seconds, 2^-32 fraction, body size, CRC
 HEADER_SIZE = HEADER.size  # 58

@@ -19,7 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from skimage.measure import marching_cubes
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.mechanics.surface import mesh_volume_mm3
 
 # Final extents are drawn inside these ranges (mm): width x, depth y, height z. They sit a
 # little inside the issue's 140-220 / 80-130 / 100-170 mm so smoothing never pushes them out.
@@ -186,24 +187,6 @@ def _taubin(vertices: np.ndarray, triangles: np.ndarray, iterations: int, lam: f
     return v
 
 
-def edge_face_counts(triangles: np.ndarray) -> np.ndarray:
-    """How many faces share each undirected edge (2 everywhere for a closed manifold surface)."""
-    e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
-    return counts
-
-
-def is_watertight(triangles: np.ndarray) -> bool:
-    """Every edge shared by exactly two faces."""
-    return bool(len(triangles) > 0 and np.all(edge_face_counts(triangles) == 2))
-
-
-def mesh_volume_mm3(vertices: np.ndarray, triangles: np.ndarray) -> float:
-    """Signed volume by the divergence theorem (positive for outward-facing triangles)."""
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
 def _largest_component(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Keep the connected component with most faces (random waves can pinch off tiny islands)."""
     from scipy.sparse import coo_matrix
@@ -264,26 +247,3 @@ def make_liver(seed: int, spacing_mm: float = MESH_SPACING_MM, smooth_iterations
         raw_center=raw_center,
         scale_xyz=scale,
     )
-
-
-def winding_number(vertices: np.ndarray, triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Generalized winding number of a closed surface at points: ~1 inside, ~0 outside.
-
-    Sum of signed solid angles of the triangles (Van Oosterom-Strackee formula) over 4 pi.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    out = np.zeros(len(points))
-    tri = vertices[triangles]  # (F, 3, 3)
-    for start in range(0, len(points), 64):
-        p = points[start : start + 64]
-        a, b, c = (tri[None, :, i, :] - p[:, None, :] for i in range(3))  # (P, F, 3)
-        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
-        det = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
-        dots = (
-            la * lb * lc
-            + np.einsum("pfi,pfi->pf", a, b) * lc
-            + np.einsum("pfi,pfi->pf", b, c) * la
-            + np.einsum("pfi,pfi->pf", c, a) * lb
-        )
-        out[start : start + 64] = np.arctan2(det, dots).sum(axis=1) * 2.0 / (4.0 * np.pi)
-    return out

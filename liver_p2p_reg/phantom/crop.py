@@ -15,9 +15,8 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ..errors import InputError, LiverP2PError
-from ..preprocess import source_normalization, target_normalization, voxel_downsample, voxel_keys
-from .artifacts import (
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.phantom.artifacts import (
     DENSITY_MODES,
     Artifacts,
     background_patch,
@@ -28,35 +27,12 @@ from .artifacts import (
     mesh_vertex_view,
     virtual_eye,
 )
+from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 CROP_MODES = ("random", "camera")
-VOXEL_SIZE_NORM = 0.04
 VISIBILITY_TOLERANCE = 0.03
 MIN_VISIBILITY = 0.05
 TRANSLATION_RANGE_MM = 100.0
-
-
-def count_voxels(points: np.ndarray, voxel_size: float) -> int:
-    """Number of occupied voxels = len(preprocess.voxel_downsample(points, voxel_size)), without
-    the per-voxel means: the crop bisection calls it often."""
-    if len(points) == 0:
-        return 0
-    return int(np.unique(voxel_keys(points, voxel_size)).size)
-
-
-class VisibilityMeter:
-    """M/N of target clouds against one fixed source, with the pipeline's normalization."""
-
-    def __init__(self, source_mm: np.ndarray, voxel_size_norm: float = VOXEL_SIZE_NORM) -> None:
-        self.norm = source_normalization(source_mm)
-        self.voxel = voxel_size_norm
-        self.n_source = len(voxel_downsample(self.norm.apply(source_mm), voxel_size_norm))
-
-    def __call__(self, target_mm: np.ndarray) -> float:
-        if len(target_mm) == 0:
-            return 0.0
-        tnorm = target_normalization(target_mm, self.norm)
-        return count_voxels(tnorm.apply(target_mm), self.voxel) / self.n_source
 
 
 def sample_surface(vertices: np.ndarray, triangles: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, LiverP2PError
-from .crop import CROP_MODES, VisibilityMeter, make_target
-from .simulate import SimulatedLiver, simulate_liver
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.phantom.crop import CROP_MODES, make_target
+from liver_p2p_reg.phantom.simulate import SimulatedLiver, simulate_liver
+from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 log = logging.getLogger(__name__)
 

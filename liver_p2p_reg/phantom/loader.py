@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, LiverP2PError
-from .artifacts import DENSITY_MODES, Artifacts
-from .crop import CROP_MODES, VisibilityMeter, make_target
-from .dataset import (
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.phantom.artifacts import DENSITY_MODES, Artifacts
+from liver_p2p_reg.phantom.crop import CROP_MODES, make_target
+from liver_p2p_reg.phantom.dataset import (
     GENERATOR_VERSION,
     MAX_CAMERA_VISIBILITY,
     MAX_LIVERS_PER_SEED,
@@ -28,7 +28,8 @@ from .dataset import (
     RESERVED_SEEDS,
     liver_id_for,
 )
-from .simulate import SimulatedLiver, simulate_liver
+from liver_p2p_reg.phantom.simulate import SimulatedLiver, simulate_liver
+from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 STORE_VERSION = 1
 
@@ -63,7 +64,7 @@ def write_store_liver(path: Path, sim: SimulatedLiver) -> None:
 
 
 def _store_real_liver(args: tuple[str, int, int, str]) -> str:
-    from .real import load_real_liver, real_liver_id
+    from liver_p2p_reg.phantom.real import load_real_liver, real_liver_id
 
     stem, deformations, target_tets, out = args
     path = Path(out) / f"liver_{real_liver_id(stem):07d}.npz"
@@ -82,7 +83,7 @@ def build_real_store(
     progress: bool = True,
 ) -> Path:
     """FEM-deform the real livers `stems` (../shared/data/livers) into a training store."""
-    from .real import require_real_livers
+    from liver_p2p_reg.phantom.real import require_real_livers
 
     require_real_livers()
     if deformations < 1:

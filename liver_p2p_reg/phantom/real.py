@@ -23,9 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from .anatomy import GridSDF, LiverMesh, edge_face_counts, mesh_volume_mm3, surface_from_grid
-from .dataset import MAX_LIVERS_PER_SEED, REAL_LIVER_SEED
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.phantom.anatomy import GridSDF, LiverMesh, surface_from_grid
+from liver_p2p_reg.phantom.dataset import MAX_LIVERS_PER_SEED, REAL_LIVER_SEED
+from liver_p2p_reg.registration.mechanics.surface import edge_face_counts, mesh_volume_mm3
 
 ENV_REAL_LIVERS = "LIVER_P2P_REAL_LIVERS"
 SPLIT_PATH = Path(__file__).resolve().parent.parent / "data" / "real_livers_split.json"

@@ -6,10 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
-from .anatomy import LiverMesh, make_liver
-from .fem import assemble, calibrate, random_load_case, solve_displacement
-from .tetmesh import TetMesh, build_tetmesh
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.phantom.anatomy import LiverMesh, make_liver
+from liver_p2p_reg.registration.mechanics.fem import assemble, calibrate, random_load_case, solve_displacement
+from liver_p2p_reg.registration.mechanics.tetmesh import TetMesh, build_tetmesh
 
 MAX_FIDUCIALS = 300
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..plotting import pyplot
-from .dataset import VISIBILITY_BINS
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.phantom.dataset import VISIBILITY_BINS
+from liver_p2p_reg.plotting import pyplot
 
 STAT_COLUMNS = (
     ("deformation_rms_mm", "deformation RMS (mm)"),

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .crop import camera_axes, visible_from
+from liver_p2p_reg.phantom.crop import camera_axes, visible_from
 
 
 @dataclass

@@ -21,8 +21,8 @@ import os
 from dataclasses import asdict
 from pathlib import Path
 
-from ..errors import InputError
-from .dataset import (
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.phantom.dataset import (
     COMPLETE_MARKER,
     DatasetSpec,
     case_is_current,
@@ -54,7 +54,7 @@ def default_root() -> Path:
 
 def known_sets() -> list[str]:
     """Every named set: the in silico ones and the real-anatomy ones (realsets.py)."""
-    from .realsets import REAL_SETS
+    from liver_p2p_reg.phantom.realsets import REAL_SETS
 
     return sorted(TESTSETS) + sorted(REAL_SETS)
 
@@ -103,7 +103,7 @@ def ensure_testset(
     without it finishes the set. What is built, and about how big, is announced first. The
     real-anatomy sets (realsets.py) are built whole.
     """
-    from .realsets import REAL_SETS, ensure_real_set
+    from liver_p2p_reg.phantom.realsets import REAL_SETS, ensure_real_set
 
     if name in REAL_SETS:
         return ensure_real_set(name, Path(root) if root is not None else default_root(), progress=progress)

@@ -6,8 +6,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from .node_core import Diagnostic, PoseOutput
-from .pointcloud2 import MessageTypes, make_header
+from liver_p2p_reg.ros.pointcloud2 import MessageTypes, make_header
+from liver_p2p_reg.stream.core import Diagnostic, PoseOutput
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class OutputTypes:
 
 def rosbags_output_types() -> OutputTypes:
     """Output message classes from the rosbags Jazzy typestore."""
-    from .bag_io import rosbags_types, typestore
+    from liver_p2p_reg.bags.io import rosbags_types, typestore
 
     t = typestore().types
     return OutputTypes(

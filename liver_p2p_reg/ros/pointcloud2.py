@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from liver_p2p_reg.errors import InputError
 
 # sensor_msgs/PointField datatype constants (identical in every ROS 2 distribution).
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)

@@ -20,9 +20,9 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker
 
-from ..cloud_io import MESH_FORMATS, load_mesh, load_points
-from ..errors import InputError, LiverP2PError
-from .pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
+from liver_p2p_reg.cloud_io import MESH_FORMATS, load_mesh, load_points
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
 
 TYPES = MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw))
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

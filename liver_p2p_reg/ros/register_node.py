@@ -26,13 +26,13 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from ..config import Config
-from ..errors import LiverP2PError
-from ..registrar import get_method
-from .messages import OutputTypes, diagnostic_array, pose_stamped, transform_stamped
-from .node_core import ERROR, OK, WARN, CoreOutput, Diagnostic, NodeCore
-from .pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
-from .rcl_log import log_at
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import LiverP2PError
+from liver_p2p_reg.registration.methods import check_method_name
+from liver_p2p_reg.ros.messages import OutputTypes, diagnostic_array, pose_stamped, transform_stamped
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
+from liver_p2p_reg.ros.rcl_log import log_at
+from liver_p2p_reg.stream.core import ERROR, OK, WARN, CoreOutput, Diagnostic, NodeCore
 
 RCLPY_TYPES = OutputTypes(
     cloud=MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw)),
@@ -183,7 +183,7 @@ class RegisterNode(Node):
             return SetParametersResult(successful=True)
         try:  # validate now (against earlier sets not yet applied), so the answer carries the reason ...
             config = self._accepted.replace(**changes)
-            get_method(config.method)
+            check_method_name(config.method)
         except LiverP2PError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         # ... and apply on the worker, between registrations, without blocking this callback

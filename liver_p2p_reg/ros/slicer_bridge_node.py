@@ -16,12 +16,12 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import Marker
 
-from ..config import SlicerConfig
-from ..errors import LiverP2PError
-from ..igtl.bridge import SlicerBridge, open_endpoint
-from .bag_make import TOPIC_INTRAOP, TOPIC_PREOP
-from .rcl_log import log_at
-from .slicer_link import SlicerLink
+from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_PREOP
+from liver_p2p_reg.config import SlicerConfig
+from liver_p2p_reg.errors import LiverP2PError
+from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
+from liver_p2p_reg.igtl.link import SlicerLink
+from liver_p2p_reg.ros.rcl_log import log_at
 
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 TOPIC_MESH = "/preop/mesh"

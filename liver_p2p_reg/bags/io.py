@@ -1,0 +1,191 @@
+"""Read rosbag2 directories / bare MCAP files and write MCAP rosbag2 directories with `rosbags` (no ROS needed)."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterator
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.ros.pointcloud2 import MessageTypes
+
+# rosbag2 metadata version 9 is what Jazzy's rosbag2 (0.26) writes: QoS profiles as a YAML list.
+BAG_VERSION = 9
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+
+
+@lru_cache(maxsize=1)
+def typestore() -> Any:
+    """The Jazzy message typestore of rosbags (message classes for reading and writing)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def rosbags_types() -> MessageTypes:
+    """PointCloud2 building blocks as rosbags message classes."""
+    types = typestore().types
+    return MessageTypes(
+        PointCloud2=types[POINTCLOUD2],
+        PointField=types["sensor_msgs/msg/PointField"],
+        Header=types["std_msgs/msg/Header"],
+        Time=types["builtin_interfaces/msg/Time"],
+        wrap_bytes=lambda raw: np.frombuffer(raw, dtype=np.uint8).copy(),
+    )
+
+
+def msg_class(msgtype: str) -> type:
+    """A rosbags message class by ROS type name (e.g. 'geometry_msgs/msg/PoseStamped')."""
+    return typestore().types[msgtype]
+
+
+def is_bag_path(path: Path) -> bool:
+    """True for a rosbag2 directory (with metadata.yaml or .mcap files) or a bare .mcap file."""
+    path = Path(path)
+    if path.is_file():
+        return path.suffix == ".mcap"
+    return path.is_dir() and ((path / "metadata.yaml").is_file() or any(path.glob("*.mcap")))
+
+
+@dataclass
+class BagMessage:
+    """One deserialized message in log-time order."""
+
+    topic: str
+    msgtype: str
+    timestamp_ns: int
+    msg: Any
+
+
+def read_messages(path: str | Path, topics: list[str] | None = None) -> Iterator[BagMessage]:
+    """Yield the messages of a rosbag2 directory or bare .mcap file in timestamp order.
+
+    Raises InputError for a missing or unreadable bag.
+    """
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"bag not found: {path}")
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) != 1:  # a folder of one MCAP without metadata.yaml: read the file itself
+            raise InputError(f"{path} is not a rosbag2 directory (no metadata.yaml)")
+        path = mcaps[0]
+    try:
+        with AnyReader([path], default_typestore=typestore()) as reader:
+            conns = [c for c in reader.connections if topics is None or c.topic in topics]
+            for conn, timestamp, raw in reader.messages(connections=conns):
+                yield BagMessage(conn.topic, conn.msgtype, int(timestamp), reader.deserialize(raw, conn.msgtype))
+    except (AnyReaderError, ValueError, KeyError, OSError) as exc:
+        raise InputError(
+            f"cannot read bag {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+        ) from None
+    except Exception as exc:  # rosbags raises its own error classes per storage backend
+        if type(exc).__module__.startswith("rosbags"):
+            raise InputError(f"cannot read bag {path}: {exc}") from None
+        raise
+
+
+def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
+    """topic -> (msgtype, message count) of a bag."""
+    from rosbags.highlevel import AnyReader
+
+    path = Path(path)
+    with AnyReader([path], default_typestore=typestore()) as reader:
+        return {name: (info.msgtype, info.msgcount) for name, info in reader.topics.items()}
+
+
+def _qos(*, latched: bool, best_effort: bool = False, depth: int = 1) -> Any:
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    zero = QosTime(0, 0)  # 0 = the RMW default (infinite) deadline/lifespan/lease
+    return Qos(
+        history=QosHistory.KEEP_LAST,
+        depth=depth,
+        reliability=QosReliability.BEST_EFFORT if best_effort else QosReliability.RELIABLE,
+        durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+        deadline=zero,
+        lifespan=zero,
+        liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=zero,
+        avoid_ros_namespace_conventions=False,
+    )
+
+
+# Offered QoS recorded per topic so `ros2 bag play` republishes latched topics as latched.
+LATCHED_TOPICS = ("/preop/points", "/preop/fiducials")
+
+
+class BagWriter:
+    """Write a rosbag2 directory (metadata.yaml + MCAP) that `ros2 bag play` on Jazzy accepts."""
+
+    def __init__(self, path: str | Path, *, overwrite: bool = False, custom_data: dict[str, str] | None = None) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path = Path(path)
+        if self.path.exists():
+            if not overwrite:
+                raise InputError(f"output bag {self.path} exists (use --force to overwrite)")
+            if self.path.is_dir():
+                shutil.rmtree(self.path)
+            else:
+                self.path.unlink()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        for key, value in (custom_data or {}).items():  # shown by `ros2 bag info`, read back by replay
+            self._writer.set_custom_data(key, value)
+        self._writer.open()
+        self._connections: dict[str, Any] = {}
+
+    def write(self, topic: str, msgtype: str, timestamp_ns: int, msg: Any) -> None:
+        """Serialize a rosbags message object and append it."""
+        self.write_raw(topic, msgtype, timestamp_ns, typestore().serialize_cdr(msg, msgtype))
+
+    def write_raw(self, topic: str, msgtype: str, timestamp_ns: int, raw: bytes) -> None:
+        """Append an already serialized (CDR) message, e.g. one recorded from a live topic."""
+        conn = self._connections.get(topic)
+        if conn is None:
+            qos = _qos(latched=topic in LATCHED_TOPICS)
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore(), offered_qos_profiles=[qos])
+            self._connections[topic] = conn
+        self._writer.write(conn, int(timestamp_ns), raw)
+
+    def close(self) -> None:
+        self._writer.close()
+        # rosbags records itself as the distro; say jazzy, the distribution these bags target
+        meta = self.path / "metadata.yaml"
+        meta.write_text(meta.read_text().replace("ros_distro: rosbags", "ros_distro: jazzy", 1))
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def bag_custom_data(path: str | Path) -> dict[str, str]:
+    """The custom_data mapping of a rosbag2 directory's metadata.yaml ({} for bare MCAP files)."""
+    import yaml
+
+    meta = Path(path) / "metadata.yaml"
+    if not meta.is_file():
+        return {}
+    info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information", {})
+    return {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
+
+
+def bag_size_bytes(path: str | Path) -> int:
+    """Total size of a bag directory or file in bytes."""
+    path = Path(path)
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())

@@ -1,1 +1,0 @@
-"""Per-point feature providers (FPFH, learned) behind one small interface."""

@@ -1,0 +1,218 @@
+"""ROS-free glue from ROS messages (rclpy or rosbags objects, or CDR bytes) and node-core outputs to the Slicer bridge.
+
+slicer_bridge_node (rclpy), `liver-p2p replay --slicer` (rosbags) and the tests drive this same
+object. Bad input messages are counted and logged, never raised: the link must outlive them.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_PREOP
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.igtl.bridge import SlicerBridge
+from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_points_mm, stamp_to_ns
+from liver_p2p_reg.stream.core import DIAG_NAME, LEVEL_NAMES, CoreOutput
+
+LOG = logging.getLogger("liver_p2p_reg.slicer")
+# NodeCore.status() adds these counters to the last registration's diagnostic for its periodic
+# (1 Hz) summary; a status carrying them repeats a registration already forwarded.
+PERIODIC_STATUS_KEY = "received_clouds"
+KEPT_CLOUDS = 64  # decimated intraop clouds kept to pair with the pose of the same stamp (2 s at 30 Hz)
+MARKER_TRIANGLE_LIST = 11  # visualization_msgs/Marker.TRIANGLE_LIST
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+
+
+def decimated_points_mm(msg: Any, max_points: int) -> np.ndarray:
+    """x/y/z of at most `max_points` evenly spread points of a PointCloud2 (mm), decoding only those."""
+    width, height = int(msg.width), int(msg.height)
+    n = width * height
+    if n <= max_points:
+        return cloud_to_points_mm(msg)
+    point_step = int(msg.point_step)
+    row_step = max(int(msg.row_step), width * point_step)
+    index = np.linspace(0, n - 1, max_points).round().astype(np.int64)
+    raw = np.frombuffer(memoryview(msg.data).cast("B"), dtype=np.uint8)
+    if raw.size < (height - 1) * row_step + width * point_step:
+        raise InputError(f"PointCloud2 data is truncated: {raw.size} bytes for {height}x{width} points")
+    if row_step == width * point_step:  # no row padding: whole points are rows of one 2-D view
+        rows = raw[: n * point_step].reshape(n, point_step)[index]
+    else:
+        starts = (index // width) * row_step + (index % width) * point_step
+        rows = raw[starts[:, None] + np.arange(point_step)]
+    view = SimpleNamespace(
+        fields=msg.fields,
+        height=1,
+        width=max_points,
+        point_step=point_step,
+        row_step=point_step * max_points,
+        is_bigendian=msg.is_bigendian,
+        data=rows.reshape(-1),
+    )
+    return cloud_to_points_mm(view)
+
+
+def pose_to_T_mm(pose: Any) -> np.ndarray:
+    """geometry_msgs/Pose (metres, quaternion) -> 4x4 T (mm)."""
+    q = pose.orientation
+    quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    position = np.array([pose.position.x, pose.position.y, pose.position.z], dtype=np.float64)
+    if not (np.isfinite(quaternion).all() and np.isfinite(position).all()) or not np.linalg.norm(quaternion) > 0:
+        raise InputError("pose has a non-finite position or a zero/non-finite quaternion")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(quaternion).as_matrix()
+    T[:3, 3] = position * MM_PER_M
+    return T
+
+
+def level_of(level: Any) -> int:
+    """DiagnosticStatus.level as an int (rclpy gives bytes, rosbags an int)."""
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
+
+
+class SlicerLink:
+    """Feeds a SlicerBridge from the registration's topics: model, clouds, poses, diagnostics."""
+
+    def __init__(self, bridge: SlicerBridge, log: Callable[[int, str], None] | None = None) -> None:
+        self.bridge = bridge
+        self.config = bridge.config
+        self._log = log or (lambda level, text: LOG.log(level, text))
+        self._lock = threading.Lock()
+        self._clouds: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp -> decimated points (sensor, mm)
+        self._mesh_stamp: int | None = None  # header stamp of the last mesh sent (its points need no resend)
+        self._last_cloud_s = -np.inf
+        self._deferred: tuple[np.ndarray, int] | None = None  # a pose's cloud held back by cloud_rate_hz
+        self.counters = {
+            "models_sent": 0,
+            "poses_sent": 0,
+            "clouds_sent": 0,
+            "clouds_missing": 0,  # a pose whose cloud was not received (best-effort QoS) or no longer kept
+            "clouds_superseded": 0,  # held back by cloud_rate_hz, then replaced by a newer pose's
+            "statuses_sent": 0,
+            "bad_messages": 0,
+        }
+
+    # ---------------------------------------------------------------- ROS messages
+    def on_preop_msg(self, msg: Any) -> None:
+        """/preop/points: sent as the model unless the mesh of the same model (same stamp) was."""
+        stamp = stamp_to_ns(msg.header.stamp)
+        if self._mesh_stamp == stamp:
+            return
+        self._guard("/preop/points", lambda: self._send_model(cloud_to_points_mm(msg), None, stamp))
+
+    def on_mesh_msg(self, msg: Any) -> None:
+        """/preop/mesh (visualization_msgs/Marker TRIANGLE_LIST, metres): the model as a mesh."""
+
+        def send() -> None:
+            if int(msg.type) != MARKER_TRIANGLE_LIST:
+                raise InputError(f"/preop/mesh marker type {msg.type} is not TRIANGLE_LIST ({MARKER_TRIANGLE_LIST})")
+            corners = np.array([(p.x, p.y, p.z) for p in msg.points], dtype=np.float64).reshape(-1, 3) * MM_PER_M
+            if len(corners) == 0 or len(corners) % 3:
+                raise InputError(f"/preop/mesh has {len(corners)} points (a positive multiple of 3 needed)")
+            vertices, corner_vertex = np.unique(corners, axis=0, return_inverse=True)
+            stamp = stamp_to_ns(msg.header.stamp)
+            self._send_model(vertices, corner_vertex.reshape(-1, 3), stamp)
+            self._mesh_stamp = stamp
+
+        self._guard("/preop/mesh", send)
+
+    def on_intraop_msg(self, msg: Any) -> None:
+        """/intraop/points: decimated now (bounded work and memory) and kept until its pose arrives."""
+
+        def keep() -> None:
+            points = decimated_points_mm(msg, self.config.max_cloud_points)
+            with self._lock:
+                self._clouds[stamp_to_ns(msg.header.stamp)] = points
+                while len(self._clouds) > KEPT_CLOUDS:
+                    self._clouds.popitem(last=False)
+
+        self._guard("/intraop/points", keep)
+
+    def on_intraop_cdr(self, raw: bytes) -> None:
+        """/intraop/points as serialized CDR bytes (an rclpy raw subscription skips deserializing clouds)."""
+        from liver_p2p_reg.bags.io import typestore
+
+        try:
+            msg = typestore().deserialize_cdr(raw, POINTCLOUD2)
+        except Exception as exc:  # rosbags raises its own error types for malformed CDR
+            self._bad("/intraop/points", f"not a PointCloud2 ({type(exc).__name__})")
+            return
+        self.on_intraop_msg(msg)
+
+    def on_pose_msg(self, msg: Any) -> None:
+        """/registration/pose: the CTToSensor TRANSFORM, then the cloud that was registered."""
+        self._guard("/registration/pose", lambda: self.send_pose(pose_to_T_mm(msg.pose), stamp_to_ns(msg.header.stamp)))
+
+    def on_diagnostics_msg(self, msg: Any) -> None:
+        """/diagnostics: a STRING for each registration attempt (not for the periodic summary)."""
+        stamp = stamp_to_ns(msg.header.stamp)
+        for status in msg.status:
+            if status.name != DIAG_NAME or any(kv.key == PERIODIC_STATUS_KEY for kv in status.values):
+                continue
+            level = LEVEL_NAMES.get(level_of(status.level), str(level_of(status.level)))
+            self.bridge.send_status(level, status.message, stamp)
+            self.counters["statuses_sent"] += 1
+
+    # ---------------------------------------------------------------- bag replay (ros/replay.py observer)
+    def on_input(self, topic: str, msg: Any) -> None:
+        if topic == TOPIC_PREOP:
+            self.on_preop_msg(msg)
+        elif topic == TOPIC_INTRAOP:
+            self.on_intraop_msg(msg)
+
+    def on_output(self, output: CoreOutput) -> None:
+        stamp = output.pose.stamp_ns if output.pose is not None else 0
+        if output.pose is not None:
+            self._guard("pose", lambda: self.send_pose(output.pose.T_sensor_ct_mm, stamp))
+        for diag in output.diagnostics:
+            if diag.name == DIAG_NAME:
+                self.bridge.send_status(diag.level_name, diag.message, stamp)
+                self.counters["statuses_sent"] += 1
+
+    # ---------------------------------------------------------------- sending
+    def send_pose(self, T_sensor_ct_mm: np.ndarray, stamp_ns: int) -> None:
+        self.bridge.send_pose(T_sensor_ct_mm, stamp_ns)  # first: the latency that matters
+        self.counters["poses_sent"] += 1
+        with self._lock:
+            cloud = self._clouds.get(stamp_ns)
+            self.counters["clouds_superseded"] += self._deferred is not None
+            self.counters["clouds_missing"] += cloud is None
+            self._deferred = None if cloud is None else (cloud, stamp_ns)
+        self.tick()
+
+    def tick(self, force: bool = False) -> None:
+        """Send the last pose's cloud if cloud_rate_hz allows it now (or `force`); call it now and then."""
+        now = time.monotonic()
+        rate_hz = self.config.cloud_rate_hz
+        with self._lock:
+            if self._deferred is None or rate_hz == 0 or (not force and now - self._last_cloud_s < 1.0 / rate_hz):
+                return
+            (cloud, stamp_ns), self._deferred = self._deferred, None
+            self._last_cloud_s = now
+        self.bridge.send_cloud(cloud, stamp_ns)
+        self.counters["clouds_sent"] += 1
+
+    def _send_model(self, points_mm: np.ndarray, triangles: np.ndarray | None, stamp_ns: int) -> None:
+        sent = self.bridge.send_model(points_mm, triangles, stamp_ns)
+        self.counters["models_sent"] += 1
+        kind = f"mesh of {len(triangles)} triangles" if triangles is not None else "points"
+        self._log(logging.INFO, f"preop model sent to Slicer as {self.config.model_device}: {sent} {kind}")
+
+    def _guard(self, topic: str, action: Callable[[], None]) -> None:
+        try:
+            action()
+        except (InputError, ValueError) as exc:
+            self._bad(topic, str(exc))
+
+    def _bad(self, topic: str, reason: str) -> None:
+        self.counters["bad_messages"] += 1
+        self._log(logging.WARNING, f"ignoring {topic} message: {reason}")

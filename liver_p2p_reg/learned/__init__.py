@@ -1,1 +1,0 @@
-"""Learned rotation-invariant point matcher: invariant descriptors, network, weights, training, pipelines."""

@@ -1,0 +1,168 @@
+"""The matcher network: invariant point features -> node self/cross attention with distance bias -> descriptors."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from liver_p2p_reg.registration.features.learned.descriptors import NUM_FEATURES
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture hyper-parameters (stored with the weights so a checkpoint rebuilds its net)."""
+
+    in_dim: int = NUM_FEATURES
+    width: int = 64
+    heads: int = 4
+    layers: int = 3
+    out_dim: int = 48
+    distance_bins: int = 32  # piecewise-linear attention bias over node distance
+    distance_max_norm: float = 2.0  # pairwise node distances live in [0, 2] in the unit sphere
+    points_per_node: int = 8
+    max_nodes: int = 256
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def mlp(sizes: list[int]) -> nn.Sequential:
+    """Linear + LayerNorm + GELU stack; the last layer is plain linear."""
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            layers += [nn.LayerNorm(sizes[i + 1]), nn.GELU()]
+    return nn.Sequential(*layers)
+
+
+def farthest_points(points: torch.Tensor, k: int) -> torch.Tensor:
+    """k indices by farthest point sampling from index 0 (invariant: uses distances only).
+
+    Runs in NumPy float64 on the CPU: the loop is sequential and tiny per step, where torch's
+    per-op overhead (or a GPU sync per step) would dominate.
+    """
+    pts = points.detach().to("cpu", torch.float64).numpy()
+    k = min(k, len(pts))
+    chosen = np.zeros(k, dtype=np.int64)
+    dist = ((pts - pts[0]) ** 2).sum(axis=1)
+    for i in range(1, k):
+        nxt = int(np.argmax(dist))
+        chosen[i] = nxt
+        np.minimum(dist, ((pts - pts[nxt]) ** 2).sum(axis=1), out=dist)
+    return torch.from_numpy(chosen).to(points.device)
+
+
+class Attention(nn.Module):
+    """Multi-head attention with an optional additive per-head bias (pre-norm residual block + FFN)."""
+
+    def __init__(self, width: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.norm_q = nn.LayerNorm(width)
+        self.norm_kv = nn.LayerNorm(width)
+        self.q = nn.Linear(width, width)
+        self.kv = nn.Linear(width, 2 * width)
+        self.out = nn.Linear(width, width)
+        self.ffn = nn.Sequential(
+            nn.LayerNorm(width), nn.Linear(width, 2 * width), nn.GELU(), nn.Linear(2 * width, width)
+        )
+
+    def forward(self, x: torch.Tensor, ctx: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+        n, w = x.shape
+        h = self.heads
+        q = self.q(self.norm_q(x)).view(n, h, w // h).transpose(0, 1)
+        k, v = self.kv(self.norm_kv(ctx)).view(ctx.shape[0], 2, h, w // h).permute(1, 2, 0, 3)
+        att = F.scaled_dot_product_attention(q[None], k[None], v[None], attn_mask=None if bias is None else bias[None])
+        x = x + self.out(att[0].transpose(0, 1).reshape(n, w))
+        return x + self.ffn(x)
+
+
+class MatcherNet(nn.Module):
+    """Per-point descriptors for a (source, target) pair; invariant because only invariant
+    features and pairwise distances enter (no coordinates)."""
+
+    def __init__(self, cfg: ModelConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg = cfg or ModelConfig()
+        self.embed = mlp([cfg.in_dim, cfg.width, cfg.width])
+        # Learned attention bias per layer and head as a function of distance only (GeoTransformer-like).
+        self.distance_bias = nn.Parameter(torch.zeros(cfg.layers, cfg.distance_bins + 1, cfg.heads))
+        self.self_att = nn.ModuleList(Attention(cfg.width, cfg.heads) for _ in range(cfg.layers))
+        self.cross_att = nn.ModuleList(Attention(cfg.width, cfg.heads) for _ in range(cfg.layers))
+        self.head = mlp([2 * cfg.width, cfg.width, cfg.out_dim])
+        self.overlap = mlp([2 * cfg.width, cfg.width, 1])
+
+    def _nodes(self, points: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """FPS nodes, point embeddings max-pooled onto their nearest node.
+
+        Geometry runs in float64 so FPS picks and nearest-node ties do not flip under a
+        rotation. Returns point->node distances (N, n), node feats (n, w), node distances (n, n).
+        """
+        cfg = self.cfg
+        pts = points.double()
+        n_nodes = max(4, min(cfg.max_nodes, points.shape[0] // cfg.points_per_node))
+        nodes = pts[farthest_points(pts, n_nodes)]
+        d_point_node = torch.cdist(pts, nodes)
+        owner = d_point_node.argmin(dim=1)
+        pooled = torch.full((n_nodes, h.shape[1]), -1e4, dtype=h.dtype, device=h.device)
+        pooled = pooled.scatter_reduce(0, owner[:, None].expand_as(h), h, reduce="amax", include_self=True)
+        return d_point_node, pooled, torch.cdist(nodes, nodes).to(h.dtype)
+
+    def _biases(self, dist: torch.Tensor) -> list[torch.Tensor]:
+        """Per-layer (heads, n, n) attention bias: linear interpolation in a learned distance table."""
+        cfg = self.cfg
+        pos = (dist / cfg.distance_max_norm * cfg.distance_bins).clamp(0, cfg.distance_bins - 1e-4)
+        lo = pos.floor().long()
+        frac = (pos - lo)[..., None]
+        # One gather for all layers and heads: (bins + 1, layers * heads).
+        table = self.distance_bias.permute(1, 0, 2).reshape(cfg.distance_bins + 1, -1)
+        bias = table[lo] * (1 - frac) + table[lo + 1] * frac  # (n, n, layers * heads)
+        bias = bias.view(*dist.shape, cfg.layers, cfg.heads).permute(2, 3, 0, 1)
+        return [b.contiguous() for b in bias]
+
+    def _to_points(self, d_point_node: torch.Tensor, node_feat: torch.Tensor) -> torch.Tensor:
+        """Inverse-distance interpolation of node context from the 3 nearest nodes."""
+        k = min(3, node_feat.shape[0])
+        dk, ik = d_point_node.topk(k, dim=1, largest=False)
+        w = (1.0 / (dk + 1e-3)).to(node_feat.dtype)
+        w = w / w.sum(dim=1, keepdim=True)
+        return (node_feat[ik] * w[..., None]).sum(dim=1)
+
+    def encode(self, points: torch.Tensor, features: torch.Tensor) -> tuple:
+        """One cloud's own part, before any attention: point embeddings, point->node
+        distances, node features and per-layer attention biases. Depends on that cloud only,
+        so a fixed source can be encoded once and passed to `forward` as `source_context`."""
+        h = self.embed(features)
+        d_point_node, nodes, d_nodes = self._nodes(points, h)
+        return h, d_point_node, nodes, self._biases(d_nodes)
+
+    def forward(
+        self,
+        src: torch.Tensor,
+        tgt: torch.Tensor,
+        f_src: torch.Tensor,
+        f_tgt: torch.Tensor,
+        with_overlap: bool = False,
+        source_context: tuple | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """src (N,3), tgt (M,3), invariant features -> x_S (N,d), x_T (M,d) normalized
+        [, overlap logits (N,), (M,) when `with_overlap` (training only)].
+        `source_context`: `encode(src, f_src)` computed earlier (inference on a fixed source)."""
+        hs, pns, gs, bs = source_context if source_context is not None else self.encode(src, f_src)
+        ht, pnt, gt, bt = self.encode(tgt, f_tgt)
+        for i in range(self.cfg.layers):
+            gs = self.self_att[i](gs, gs, bs[i])
+            gt = self.self_att[i](gt, gt, bt[i])
+            gs, gt = self.cross_att[i](gs, gt), self.cross_att[i](gt, gs)
+        cs = torch.cat([hs, self._to_points(pns, gs)], dim=1)
+        ct = torch.cat([ht, self._to_points(pnt, gt)], dim=1)
+        xs = F.normalize(self.head(cs), dim=1)
+        xt = F.normalize(self.head(ct), dim=1)
+        if not with_overlap:
+            return xs, xt, None, None
+        return xs, xt, self.overlap(cs)[:, 0], self.overlap(ct)[:, 0]

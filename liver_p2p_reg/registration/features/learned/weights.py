@@ -1,0 +1,72 @@
+"""Safetensors load/save of the matcher (architecture in the header metadata; never pickle)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from liver_p2p_reg.errors import WeightsError
+from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
+
+BUNDLED_WEIGHTS = Path(__file__).resolve().parents[3] / "weights" / "matcher_v3.safetensors"
+FORMAT = "liver_p2p_reg.matcher/1"
+
+
+def save_weights(model: MatcherNet, path: str | Path, extra: dict[str, str] | None = None) -> Path:
+    """Write the model's tensors and its ModelConfig (JSON in the safetensors metadata)."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
+    meta = {"format": FORMAT, "model_config": json.dumps(model.cfg.to_dict()), **(extra or {})}
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata=meta)
+    tmp.chmod(0o644)  # package data: readable by everyone (the temp file is created private)
+    tmp.replace(path)
+    return path
+
+
+def load_weights(path: str | Path | None = None, device: str | torch.device = "cpu") -> MatcherNet:
+    """Rebuild the matcher from a safetensors file (default: the bundled weights) in eval mode.
+
+    Raises WeightsError with one line for a missing, corrupt or incompatible file.
+    """
+    from safetensors import SafetensorError, safe_open
+
+    path = Path(path) if path else BUNDLED_WEIGHTS
+    if not path.is_file():
+        raise WeightsError(f"matcher weights not found: {path}")
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            meta = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise WeightsError(f"matcher weights {path} are unreadable (not a valid safetensors file): {exc}") from None
+    from liver_p2p_reg.registration.features.learned.patient import PREPARED_FORMAT
+
+    if meta.get("format") == PREPARED_FORMAT:  # a patient-prepared file: its network part
+        tensors = {k: v for k, v in tensors.items() if not k.startswith("prepared.")}
+    elif meta.get("format") != FORMAT:
+        raise WeightsError(f"matcher weights {path} have format {meta.get('format')!r}, expected {FORMAT!r}")
+    try:
+        cfg = ModelConfig(**json.loads(meta["model_config"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise WeightsError(f"matcher weights {path}: bad model_config metadata ({exc})") from None
+    model = MatcherNet(cfg)
+    try:
+        model.load_state_dict(tensors, strict=True)
+    except RuntimeError as exc:
+        first = str(exc).splitlines()[0] if str(exc) else "shape mismatch"
+        raise WeightsError(f"matcher weights {path} do not fit the network: {first}") from None
+    return model.to(device).eval()
+
+
+def weights_metadata(path: str | Path) -> dict[str, str]:
+    """The string metadata stored in a safetensors header."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt", device="cpu") as f:
+        return dict(f.metadata() or {})

@@ -1,0 +1,127 @@
+"""Scoring and choosing pose hypotheses: ICP screening, free space, uncertainty, a one-pose result."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.registration.confidence import pose_uncertainty
+from liver_p2p_reg.registration.context import MethodContext
+from liver_p2p_reg.registration.freespace import Scorer, penalized
+from liver_p2p_reg.registration.preprocess import PreprocessedPair, denormalize_transform, residual_norm
+from liver_p2p_reg.registration.refine import refine_pose
+from liver_p2p_reg.result import Candidate, RegistrationResult
+
+
+def uncertainty_mm(T_norm: np.ndarray, prep: PreprocessedPair, config: Config, times: dict[str, float]) -> float:
+    """`confidence.pose_uncertainty` of a final pose on the voxelized clouds (ICP's gate and trim), in mm.
+
+    Records its time as the "confidence" stage in `times`.
+    """
+    t = time.perf_counter()
+    value = pose_uncertainty(
+        T_norm, prep.source, prep.target, max_corr=config.icp_max_corr_norm, trim_ratio=config.icp_trim_ratio
+    )
+    times["confidence"] = lap_ms(t)
+    return value * prep.source_norm.scale_mm
+
+
+def screen_candidates(
+    poses_norm: list[np.ndarray],
+    order: list[int],
+    prep: PreprocessedPair,
+    config: Config,
+    cache: dict[str, Any],
+    scorer: Scorer | None = None,
+) -> tuple[int, list[tuple[int, np.ndarray, float, float]]]:
+    """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins
+    (with a known sensor origin: the lowest residual made worse by its free-space violation).
+
+    Returns the winner's index and every screened (index, pose, residual, violation), normalized
+    units; the full refinement then starts from the winner's own pose (not from the screened one),
+    so that a winner P2P also chose gets exactly the unscreened result.
+    """
+    tried: list[np.ndarray] = []
+    screened: list[tuple[int, np.ndarray, float]] = []
+    for i in order:
+        T = poses_norm[i]
+        # near-duplicates (< ~5 deg and 0.05 normalized apart) would converge to the same pose
+        if any(
+            np.linalg.norm(T[:3, :3] - P[:3, :3]) < 0.1 and np.linalg.norm(T[:3, 3] - P[:3, 3]) < 0.05 for P in tried
+        ):
+            continue
+        tried.append(T)
+        T_s = refine_pose(
+            T, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
+        )
+        screened.append((i, T_s, residual_norm(T_s, prep)))
+        if len(tried) >= config.refine_candidates:
+            break
+    assert screened  # order holds at least the chosen candidate
+    violation = scorer([T_s for _, T_s, _ in screened]) if scorer is not None else np.full(len(screened), np.nan)
+    keys = [penalized(res, v, config.free_space_weight) for (_, _, res), v in zip(screened, violation, strict=True)]
+    best = int(np.argmin(keys))  # the first of equals, as P2P's own choice
+    return screened[best][0], [(i, T_s, res, float(v)) for (i, T_s, res), v in zip(screened, violation, strict=True)]
+
+
+def free_space_scorer(prep: PreprocessedPair, config: Config, ctx: MethodContext) -> Scorer | None:
+    """The free-space scorer of this registration's view; None without a known sensor origin."""
+    if ctx.sensor_origin_mm is None:
+        return None
+    origin = prep.target_norm.apply(ctx.sensor_origin_mm[None])[0]
+    band = config.free_space_band_mm / prep.source_norm.scale_mm
+    return Scorer(prep.source, prep.target, origin, config.voxel_size_norm, band)
+
+
+def free_space_choice(out: Any, violation: np.ndarray, config: Config) -> int:
+    """P2P's selection rule with each candidate's score made worse by its free-space violation."""
+    ok = out.ok.cpu().numpy()
+    if not ok.any():
+        return out.chosen
+    factor = 1.0 + config.free_space_weight * np.nan_to_num(violation, nan=0.0)
+    if config.selection == "inlier-count":
+        score = -out.inliers.cpu().numpy().astype(np.float64) / factor
+    else:
+        score = out.residual.double().cpu().numpy() * factor
+    return int(np.argmin(np.where(ok, score, np.inf)))
+
+
+def final_free_space(scorer: Scorer | None, T_norm: np.ndarray, times: dict[str, float]) -> tuple[float, str]:
+    """The final pose's violation and the scorer's status; records the scorer's time as the "free_space" stage."""
+    if scorer is None:
+        return float("nan"), ""
+    violation = float(scorer([T_norm])[0])
+    times["free_space"] = scorer.ms
+    return violation, scorer.status
+
+
+def single_result(
+    T_norm: np.ndarray, prep: PreprocessedPair, times: dict[str, float], name: str, config: Config, ctx: MethodContext
+) -> RegistrationResult:
+    """The result of a one-hypothesis method (no P2P candidates) from its normalized transform."""
+    uncertainty = uncertainty_mm(T_norm, prep, config, times)
+    residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
+    T_mm = denormalize_transform(T_norm, prep.source_norm, prep.target_norm)
+    violation, free_space = final_free_space(free_space_scorer(prep, config, ctx), T_norm, times)
+    return RegistrationResult(
+        T_target_source=T_mm,
+        method="",
+        residual_mm=residual,
+        runtime_ms=times,
+        candidates=[Candidate(name, T_mm, residual, 0, free_space_violation=violation)],
+        chosen=0,
+        uncertainty_mm=uncertainty,
+        free_space_violation=violation,
+        free_space=free_space,
+        visibility=prep.visibility,
+        n_source=len(prep.source),
+        n_target=len(prep.target),
+    )
+
+
+def lap_ms(start: float) -> float:
+    """Milliseconds since `start` (a perf_counter reading)."""
+    return (time.perf_counter() - start) * 1e3

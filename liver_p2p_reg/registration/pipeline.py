@@ -1,0 +1,289 @@
+"""The registration pipelines as direct calls: preprocess -> features -> matching [-> P2P] [-> screen, ICP]
+-> uncertainty and free space -> result in mm; the one-estimate baselines, a prior pose and the oracle.
+
+`methods.run_method` calls one of the four `run_*` functions below with its table row's options.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError, RegistrationError
+from liver_p2p_reg.registration import baselines
+from liver_p2p_reg.registration.context import MethodContext
+from liver_p2p_reg.registration.freespace import penalized
+from liver_p2p_reg.registration.hypotheses import (
+    final_free_space,
+    free_space_choice,
+    free_space_scorer,
+    lap_ms,
+    screen_candidates,
+    single_result,
+    uncertainty_mm,
+)
+from liver_p2p_reg.registration.preprocess import (
+    denormalize_transform,
+    norm_to_mm,
+    preprocess_pair,
+    residual_norm,
+)
+from liver_p2p_reg.registration.refine import refine_pose
+from liver_p2p_reg.result import Candidate, RegistrationResult
+
+if TYPE_CHECKING:  # torch and the P2P module are imported where used: the Open3D baselines need neither
+    from liver_p2p_reg.registration.features.base import FeatureProvider
+    from liver_p2p_reg.registration.p2p import P2PSettings
+
+# The one-estimate methods' global step (normalized, voxelized clouds -> a normalized 4x4).
+ESTIMATORS: dict[str, Callable[[np.ndarray, np.ndarray, Config, dict[str, Any]], np.ndarray]] = {
+    "ransac": baselines.fpfh_ransac,
+    "fgr": baselines.fast_global_registration,
+    "icp": baselines.icp_from_identity,
+}
+
+
+def feature_provider(
+    features: str, config: Config, ctx: MethodContext, source_mm: np.ndarray, warnings: list[str]
+) -> FeatureProvider | Callable[[], FeatureProvider]:
+    """The provider of a table row's `features` ("fpfh" | "learned"); the learned one as a function
+    making it, so torch and the weights load only once the inputs passed the preprocessing."""
+    if features == "fpfh":
+        from liver_p2p_reg.registration.features.fpfh import FPFHProvider
+
+        return FPFHProvider(config.normal_radius_norm, config.fpfh_radius_norm)
+    if features == "learned":
+
+        def make() -> FeatureProvider:
+            from liver_p2p_reg.registration.features.learned.provider import learned_provider  # torch
+
+            return learned_provider(config, ctx.cache, source_mm, warnings)
+
+        return make
+    raise InputError(f"unknown features {features!r}; choose fpfh or learned")
+
+
+def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
+    """Map the Config onto the P2P module's settings."""
+    from liver_p2p_reg.registration.p2p import P2PSettings, geometric_radii
+
+    return P2PSettings(
+        k=config.k,
+        temperature=config.temperature,
+        confidence_threshold=config.confidence_threshold,
+        selection=config.selection,
+        inlier_radius=config.inlier_radius_norm,
+        candidate_proposal=config.candidate_proposal,
+        use_p2p=use_p2p,
+        mutual_only=config.mutual_only,
+        max_patch_rows=config.max_patch_rows,
+        consensus_seeds=config.consensus_seeds,
+        consensus_sigma=config.consensus_sigma_norm,
+        refit_radii=geometric_radii(
+            config.refit_radius_start_norm, config.refit_radius_end_norm, config.refit_iterations
+        ),
+    )
+
+
+def run_feature_pipeline(
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    config: Config,
+    ctx: MethodContext,
+    provider: str | FeatureProvider | Callable[[], FeatureProvider],
+    *,
+    use_p2p: bool,
+    refine: bool,
+) -> RegistrationResult:
+    """preprocess -> features -> dual-softmax matching [-> P2P] [-> refine] -> result in mm.
+
+    `provider`: a table row's features ("fpfh" | "learned"), a provider, or a function making one:
+    it is called after the inputs passed the preprocessing, so a bad input (swapped clouds, too few
+    points) is reported before torch or a model is loaded.
+    """
+    warnings: list[str] = []
+    if isinstance(provider, str):
+        provider = feature_provider(provider, config, ctx, source_mm, warnings)
+    times: dict[str, float] = {}
+    t = time.perf_counter()
+    prep = preprocess_pair(source_mm, target_mm, config, ctx.cache)
+    prepare_ms = lap_ms(t)
+    import torch
+
+    from liver_p2p_reg.registration.p2p import p2p_register
+
+    if config.device == "cuda" and not torch.cuda.is_available():
+        raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
+    if callable(provider):  # first call in a process: the model's loading counts in "total" only
+        provider = provider()
+    t = time.perf_counter()
+    device = torch.device(config.device)
+    src = torch.as_tensor(prep.source, dtype=torch.float32, device=device)
+    tgt = torch.as_tensor(prep.target, dtype=torch.float32, device=device)
+    times["preprocess"] = prepare_ms + lap_ms(t)
+    t = time.perf_counter()
+    with torch.no_grad():
+        x_src, x_tgt = provider.describe(src, tgt, ctx.cache)
+        times["features"] = lap_ms(t)
+        out = p2p_register(src, tgt, x_src, x_tgt, p2p_settings(config, use_p2p))
+    times.update(out.runtime_ms)
+    scale = prep.source_norm.scale_mm
+    R, tr = out.R.double().cpu().numpy(), out.t.double().cpu().numpy()
+    candidates, poses_norm = [], []
+    for i, name in enumerate(out.names):
+        T_norm = np.eye(4)
+        T_norm[:3, :3], T_norm[:3, 3] = R[i], tr[i]
+        poses_norm.append(T_norm)
+        candidates.append(
+            Candidate(
+                name=name,
+                T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
+                residual_mm=float(out.residual[i]) * scale,
+                n_matches=int(out.n_matches[i]),
+                ok=bool(out.ok[i]),
+                inliers=int(out.inliers[i]),
+            )
+        )
+    chosen = out.chosen
+    scorer = free_space_scorer(prep, config, ctx)
+    if scorer is not None and scorer.view is not None:
+        violation = scorer(poses_norm)
+        for candidate, v in zip(candidates, violation, strict=True):
+            candidate.free_space_violation = float(v)
+        chosen = free_space_choice(out, violation, config)
+    if not candidates[chosen].ok:
+        raise RegistrationError(
+            f"{provider.name}: no candidate had >= 3 non-degenerate matches (visibility {prep.visibility:.2f})"
+        )
+    T_norm = poses_norm[chosen]
+    residual = float(out.residual[chosen])
+    screened: list[Candidate] = []
+    if refine and config.refine_candidates > 1:
+        t = time.perf_counter()
+        if scorer is None or scorer.view is None:
+            others = sorted(
+                (i for i, c in enumerate(candidates) if c.ok and i != chosen), key=lambda i: out.residual[i]
+            )
+        else:
+            others = sorted(
+                (i for i, c in enumerate(candidates) if c.ok and i != chosen),
+                key=lambda i: penalized(
+                    float(out.residual[i]), candidates[i].free_space_violation, config.free_space_weight
+                ),
+            )
+        chosen, tried = screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache, scorer)
+        screened = [
+            Candidate(
+                name=candidates[i].name,
+                T_target_source=denormalize_transform(T_s, prep.source_norm, prep.target_norm),
+                residual_mm=res * scale,
+                n_matches=candidates[i].n_matches,
+                inliers=candidates[i].inliers,
+                free_space_violation=v,
+            )
+            for i, T_s, res, v in tried
+        ]
+        T_norm = poses_norm[chosen]
+        times["screen"] = lap_ms(t)
+    if refine:
+        t = time.perf_counter()
+        T_norm = refine_pose(T_norm, prep, config, ctx.cache)
+        residual = residual_norm(T_norm, prep)
+        times["refine"] = lap_ms(t)
+    uncertainty = uncertainty_mm(T_norm, prep, config, times)
+    violation_final, free_space = final_free_space(scorer, T_norm, times)
+    return RegistrationResult(
+        T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
+        method=provider.name,
+        residual_mm=residual * scale,
+        warnings=warnings,
+        runtime_ms=times,
+        candidates=candidates,
+        screened=screened,
+        uncertainty_mm=uncertainty,
+        free_space_violation=violation_final,
+        free_space=free_space,
+        chosen=chosen,
+        n_matches=candidates[chosen].n_matches,
+        visibility=prep.visibility,
+        n_source=len(prep.source),
+        n_target=len(prep.target),
+    )
+
+
+def run_global_pipeline(
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    config: Config,
+    ctx: MethodContext,
+    estimate: str,
+    *,
+    refine: bool,
+) -> RegistrationResult:
+    """preprocess -> one global estimate (ESTIMATORS: RANSAC, FGR, ICP) [-> refine] -> result in mm."""
+    times: dict[str, float] = {}
+    t = time.perf_counter()
+    prep = preprocess_pair(source_mm, target_mm, config, ctx.cache)
+    times["preprocess"] = lap_ms(t)
+    t = time.perf_counter()
+    T_norm = np.asarray(ESTIMATORS[estimate](prep.source, prep.target, config, ctx.cache), dtype=np.float64)
+    times["estimate"] = lap_ms(t)
+    if not np.isfinite(T_norm).all():
+        raise RegistrationError("the estimator returned a non-finite transform")
+    if refine:
+        t = time.perf_counter()
+        T_norm = refine_pose(T_norm, prep, config, ctx.cache)
+        times["refine"] = lap_ms(t)
+    return single_result(T_norm, prep, times, "estimate", config, ctx)
+
+
+def run_from_prior(
+    source_mm: np.ndarray, target_mm: np.ndarray, config: Config, ctx: MethodContext, name: str, *, refine: bool
+) -> RegistrationResult:
+    """The result of a prior pose (`initial_T_mm`), refined by ICP or as given."""
+    if ctx.initial_T_mm is None:
+        raise InputError(f"method '{name}' starts from a prior pose and needs initial_T_mm (the previous registration)")
+    t = time.perf_counter()
+    prep = preprocess_pair(source_mm, target_mm, config, ctx.cache)
+    times = {"preprocess": lap_ms(t)}
+    T_norm = np.linalg.inv(norm_to_mm(prep.target_norm)) @ ctx.initial_T_mm @ norm_to_mm(prep.source_norm)
+    if refine:
+        t = time.perf_counter()
+        T_norm = refine_pose(T_norm, prep, config, ctx.cache)
+        times["refine"] = lap_ms(t)
+    return single_result(T_norm, prep, times, "tracked" if refine else "given", config, ctx)
+
+
+def run_oracle(source_mm: np.ndarray, target_mm: np.ndarray, config: Config, ctx: MethodContext) -> RegistrationResult:
+    """Oracle: least-squares rigid fit of the ground-truth fiducials (lower bound of rigid error)."""
+    if ctx.source_fiducials_mm is None or ctx.target_fiducials_mm is None:
+        raise InputError("method 'procrustes' is the ground-truth oracle and needs source and target fiducials")
+    if len(ctx.source_fiducials_mm) < 3:
+        raise InputError("method 'procrustes' needs at least 3 fiducial pairs")
+    t = time.perf_counter()
+    T = baselines.kabsch_np(ctx.source_fiducials_mm, ctx.target_fiducials_mm)
+    times = {"estimate": lap_ms(t)}
+    prep = preprocess_pair(source_mm, target_mm, config, ctx.cache)
+    T_norm = np.linalg.inv(norm_to_mm(prep.target_norm)) @ T @ norm_to_mm(prep.source_norm)
+    residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
+    uncertainty = uncertainty_mm(T_norm, prep, config, times)
+    violation, free_space = final_free_space(free_space_scorer(prep, config, ctx), T_norm, times)
+    return RegistrationResult(
+        T_target_source=T,
+        method="procrustes",
+        residual_mm=residual,
+        runtime_ms=times,
+        candidates=[Candidate("fiducials", T, residual, len(ctx.source_fiducials_mm), free_space_violation=violation)],
+        chosen=0,
+        uncertainty_mm=uncertainty,
+        free_space_violation=violation,
+        free_space=free_space,
+        n_matches=len(ctx.source_fiducials_mm),
+        visibility=prep.visibility,
+        n_source=len(prep.source),
+        n_target=len(prep.target),
+    )

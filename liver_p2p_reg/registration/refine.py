@@ -1,0 +1,115 @@
+"""Robust (trimmed) point-to-plane ICP refinement of a rigid transform, source -> partial target."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from liver_p2p_reg.registration.context import remember_latest
+from liver_p2p_reg.registration.features.fpfh import outward_normals
+
+if TYPE_CHECKING:
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.registration.preprocess import PreprocessedPair
+
+
+def _rotation(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the axis-angle vector omega (Rodrigues)."""
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = omega / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def source_search_index(source: np.ndarray, normal_radius: float) -> tuple[cKDTree, np.ndarray]:
+    """The k-d tree and outward normals of the source: built once per preoperative model."""
+    return cKDTree(source), outward_normals(source, normal_radius)
+
+
+def trimmed_icp(
+    T_init: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    *,
+    max_iterations: int = 50,
+    max_corr: float = 0.1,
+    trim_ratio: float = 0.8,
+    normal_radius: float = 0.1,
+    max_target_points: int = 4000,
+    tol: float = 1e-3,
+    source_index: tuple[cKDTree, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Refine T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.
+
+    Pairs go from each target point to its closest source point: the target is partial, so
+    every target point has a counterpart on the complete source but not the other way round.
+    The source k-d tree and normals are built once; target points are moved into the source
+    frame instead. Units are whatever the clouds use (normalized in the pipelines). It stops
+    when a step moves less than `tol` (1e-3 normalized, ~0.1 mm / 0.06 deg): the trimmed pair set
+    keeps changing below that, so a tighter tol mostly runs to `max_iterations` for nothing.
+    """
+    T = np.asarray(T_init, dtype=np.float64).copy()
+    if len(target) > max_target_points:  # even subsample keeps the cost bounded
+        target = target[:: int(np.ceil(len(target) / max_target_points))]
+    tree, normals = source_index if source_index is not None else source_search_index(source, normal_radius)
+    T_inv = np.linalg.inv(T)
+    for _ in range(max_iterations):
+        q = target @ T_inv[:3, :3].T + T_inv[:3, 3]  # target in the source frame
+        # The bound prunes the tree search; pairs beyond it are dropped anyway (dist = inf).
+        dist, idx = tree.query(q, k=1, distance_upper_bound=max_corr)
+        keep = np.flatnonzero(dist < max_corr)
+        if len(keep) < 6:
+            break
+        d_keep = dist[keep]
+        # The trim_ratio quantile's pairs: linear interpolation puts the quantile between the
+        # (lo)th and (lo+1)th smallest distance, so "<= quantile" keeps those up to the lo-th.
+        lo = int(np.floor((len(d_keep) - 1) * trim_ratio))
+        sel = keep[d_keep <= np.partition(d_keep, lo)[lo]]
+        p, s, n = q[sel], source[idx[sel]], normals[idx[sel]]
+        # Linearized: find small (omega, dt) moving q onto the source planes; solved by its
+        # 6x6 normal equations (lstsq there too, so a degenerate fit cannot raise).
+        A = np.hstack([np.cross(p, n), n])
+        b = -np.einsum("ij,ij->i", p - s, n)
+        x, *_ = np.linalg.lstsq(A.T @ A, A.T @ b, rcond=None)
+        step = np.eye(4)
+        step[:3, :3] = _rotation(x[:3])
+        step[:3, 3] = x[3:]
+        T_inv = step @ T_inv
+        if np.linalg.norm(x) < tol:
+            break
+    return np.linalg.inv(T_inv)
+
+
+def refine_pose(
+    T_norm: np.ndarray,
+    prep: PreprocessedPair,
+    config: Config,
+    cache: dict[str, Any],
+    *,
+    max_points: int | None = None,
+    max_iterations: int | None = None,
+) -> np.ndarray:
+    """Trimmed point-to-plane ICP of a normalized pose on the full (un-voxelized) clouds of `prep`."""
+    # The preoperative source is the same frame after frame: reuse its k-d tree and normals.
+    index = remember_latest(
+        cache,
+        "icp-source-index",
+        prep.source_full,
+        (config.normal_radius_norm,),
+        lambda: source_search_index(prep.source_full, config.normal_radius_norm),
+    )
+    return trimmed_icp(
+        T_norm,
+        prep.source_full,
+        prep.target_full,
+        max_iterations=max_iterations or config.icp_max_iterations,
+        max_corr=config.icp_max_corr_norm,
+        trim_ratio=config.icp_trim_ratio,
+        max_target_points=max_points or config.icp_max_points,
+        normal_radius=config.normal_radius_norm,
+        source_index=index,
+    )

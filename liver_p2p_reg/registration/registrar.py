@@ -1,0 +1,155 @@
+"""The public registration API: `Registrar(config).register(source_mm, target_mm)`.
+
+The CLI, the benchmark, bag replay and the ROS node all call this and nothing else. It checks
+the inputs, looks the method up in the table (methods.py), runs it, and adds the ambiguity test
+and the TRE against ground truth.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.alloc import reuse_freed_memory
+from liver_p2p_reg.cloud_io import as_float_array, clean_points, require_plausible_extent
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.metrics import rms_tre_mm, tre_mm
+from liver_p2p_reg.registration.context import MethodContext
+from liver_p2p_reg.registration.methods import check_method_name, method_names, run_method
+from liver_p2p_reg.result import RegistrationResult
+
+
+def available_methods() -> list[str]:
+    """Names of all methods (the table in methods.py, plug-ins included), sorted."""
+    return method_names()
+
+
+# Why a cloud of implausible size is refused (it would still "register", to a meaningless pose).
+UNITS_HINT = (
+    "points are read as millimetres and a liver is 50-300 mm across: convert the cloud, "
+    "or set expected_extent_min_mm / expected_extent_max_mm for other objects"
+)
+
+
+class Registrar:
+    """Registers complete preoperative surfaces to partial intraoperative ones (mm in, mm out)."""
+
+    def __init__(self, config: Config | None = None, **overrides: Any) -> None:
+        config = config or Config()
+        self.config = config.replace(**overrides) if overrides else config.validate()
+        self.cache: dict[str, Any] = {}
+        if self.config.reuse_freed_memory:
+            reuse_freed_memory()  # process-wide, once; see alloc.py
+
+    def register(
+        self,
+        source_mm: np.ndarray,
+        target_mm: np.ndarray,
+        *,
+        method: str | None = None,
+        source_fiducials_mm: np.ndarray | None = None,
+        target_fiducials_mm: np.ndarray | None = None,
+        initial_T_mm: np.ndarray | None = None,
+        sensor_origin_mm: np.ndarray | None = None,
+    ) -> RegistrationResult:
+        """Estimate T_target_source (4x4, mm). Raises InputError / RegistrationError.
+
+        `initial_T_mm` is a prior pose, used by the `track` method (ICP from the prior).
+        `sensor_origin_mm` is where the target's depth sensor stood (3 numbers, mm, target frame):
+        then every hypothesis is also scored by free-space consistency (freespace.py), which
+        enters the selection, the ambiguity test and `result.free_space_violation`. None (unknown)
+        changes nothing.
+        """
+        start = time.perf_counter()
+        source = clean_points(source_mm, "source", min_points=self.config.min_points)
+        target = clean_points(target_mm, "target", min_points=self.config.min_points)
+        for points, name in ((source, "source"), (target, "target")):
+            require_plausible_extent(
+                points, name, self.config.expected_extent_min_mm, self.config.expected_extent_max_mm, UNITS_HINT
+            )
+        fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
+        name = method or self.config.method
+        check_method_name(name)
+        ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm), _check_origin(sensor_origin_mm))
+        result = run_method(name, source, target, self.config, ctx)
+        result.method = name
+        # After an ICP screening its refined hypotheses are the better evidence of a rival pose.
+        from liver_p2p_reg.registration.confidence import (
+            is_ambiguous,  # scipy: imported with the first registration, not with the API
+        )
+
+        cfg = self.config
+        hypotheses = result.screened or result.candidates
+        result.ambiguous = is_ambiguous(
+            hypotheses, source, cfg.ambiguity_residual_ratio, cfg.ambiguity_pose_mm, cfg.free_space_weight
+        )
+        if fid_s is not None and fid_t is not None:
+            result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
+            result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
+        result.runtime_ms["total"] = (time.perf_counter() - start) * 1e3
+        return result
+
+    def warm_up(self, source_mm: np.ndarray, method: str | None = None) -> float:
+        """Compute everything the method caches about a new source (its preprocessing, source
+        features, model weights, ICP index) before the first real target arrives; returns ms.
+
+        It registers the source to a fixed partial view of itself through the normal code path,
+        so no method needs a hook of its own; the result is discarded and errors are ignored
+        (the first real registration reports them).
+        """
+        start = time.perf_counter()
+        try:
+            source = clean_points(source_mm, "source", min_points=self.config.min_points)
+            centre = source[np.argmax(source[:, 0])]  # a deterministic cap of the surface
+            near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(len(source) // 3, 3)]
+            self.register(source, source[near], method=method)
+        except LiverP2PError:
+            pass
+        return (time.perf_counter() - start) * 1e3
+
+
+def register(
+    source_mm: np.ndarray, target_mm: np.ndarray, method: str | None = None, **kwargs: Any
+) -> RegistrationResult:
+    """One-call convenience: `register(source_mm, target_mm, method="fpfh-p2p", k=5)`."""
+    fiducials = {k: kwargs.pop(k) for k in ("source_fiducials_mm", "target_fiducials_mm") if k in kwargs}
+    return Registrar(**kwargs).register(source_mm, target_mm, method=method, **fiducials)
+
+
+def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
+    if T is None:
+        return None
+    T = as_float_array(T, "initial_T_mm")
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f"initial_T_mm must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InputError("initial_T_mm must be a rigid transform (its 3x3 block is not a rotation)")
+    return T
+
+
+def _check_origin(origin: np.ndarray | None) -> np.ndarray | None:
+    if origin is None:
+        return None
+    origin = as_float_array(origin, "sensor origin").reshape(-1)
+    if origin.shape != (3,) or not np.isfinite(origin).all():
+        raise InputError(f"the sensor origin must be 3 finite numbers (mm, target frame), got {origin.tolist()}")
+    return origin
+
+
+def _check_fiducials(fid_s: np.ndarray | None, fid_t: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if fid_s is None or fid_t is None:
+        return (
+            None if fid_s is None else as_float_array(fid_s, "source fiducials"),
+            None if fid_t is None else as_float_array(fid_t, "target fiducials"),
+        )
+    fid_s, fid_t = as_float_array(fid_s, "source fiducials"), as_float_array(fid_t, "target fiducials")
+    if fid_s.shape != fid_t.shape or fid_s.ndim != 2 or fid_s.shape[1] != 3:
+        raise InputError(f"fiducials must be two (F, 3) arrays of the same shape, got {fid_s.shape} and {fid_t.shape}")
+    if not (np.isfinite(fid_s).all() and np.isfinite(fid_t).all()):
+        # unlike cloud points they are paired one to one, so a bad one cannot just be dropped
+        raise InputError("fiducials contain NaN or infinite coordinates")
+    return fid_s, fid_t
