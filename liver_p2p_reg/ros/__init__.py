@@ -1,1 +1,1 @@
-"""ROS 2 side of liver_p2p_reg: ROS-free node core, PointCloud2 conversion, bag I/O and replay; rclpy adapters."""
+"""ROS 2 adapters: the rclpy nodes, PointCloud2 and output message conversion, topic names and QoS profiles."""

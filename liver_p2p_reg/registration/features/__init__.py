@@ -1,0 +1,1 @@
+"""Point features: FPFH (Open3D) and the learned matcher, behind one FeatureProvider interface."""

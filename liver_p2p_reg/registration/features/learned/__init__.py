@@ -1,0 +1,1 @@
+"""The learned point matcher: its network, descriptors, weights (safetensors) and feature provider."""
