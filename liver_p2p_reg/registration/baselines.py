@@ -120,6 +120,7 @@ def fast_global_registration(source: np.ndarray, target: np.ndarray, config: Con
     """Fast Global Registration (Zhou et al. 2016) on FPFH matches (Open3D)."""
     o3d = o3d_module()
     reg = o3d.pipelines.registration
+    o3d.utility.random.seed(config.seed)  # FGR's tuple test samples from Open3D's generator too
     f_src, f_tgt = _fpfh_features(source, target, config, cache)
     option = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=config.ransac_max_corr_norm)
     result = reg.registration_fgr_based_on_feature_matching(_cloud(source), _cloud(target), f_src, f_tgt, option)
