@@ -228,3 +228,8 @@ def test_register_command_takes_the_sensor_origin(tmp_path, capsys) -> None:
     assert out["free_space"] == "" and out["free_space_violation"] is None
     assert main([*argv, "--sensor-origin", "1,2"]) == 2
     assert "--sensor-origin must be three finite numbers" in capsys.readouterr().err
+    # typed with a space and a minus sign, as a user types coordinates (argparse alone reads it as an option)
+    assert main([*argv, "--sensor-origin", "-10,0,5"]) == 0
+    assert json.loads(capsys.readouterr().out)["free_space"] != ""
+    assert main([*argv, "--sensor-origin", "-1,2"]) == 2
+    assert "--sensor-origin must be three finite numbers" in capsys.readouterr().err

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
 import sys
 
 from liver_p2p_reg import __version__
@@ -60,10 +61,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Options whose value may start with a minus (coordinates): argparse would read `-10,0,5` as an option.
+_SIGNED_VALUE_OPTIONS = ("--sensor-origin",)
+
+
+def attach_signed_values(argv: list[str]) -> list[str]:
+    """`--sensor-origin -10,0,5` -> `--sensor-origin=-10,0,5`, so a value typed with a minus sign is a value."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        token = argv[i]
+        if token in _SIGNED_VALUE_OPTIONS and i + 1 < len(argv) and re.match(r"^-[\d.]", argv[i + 1]):
+            out.append(f"{token}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(token)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit status (0 ok, 1 internal error, 2 bad input)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(attach_signed_values(sys.argv[1:] if argv is None else list(argv)))
     # Our messages at INFO; other libraries' (scikit-fem's solver lines, ...) only from WARNING up,
     # so they do not interleave with progress bars and tables.
     logging.basicConfig(level=logging.WARNING, format="liver-p2p: %(levelname)s: %(message)s", stream=sys.stderr)

@@ -62,7 +62,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--sensor-origin",
         metavar="X,Y,Z",
         help="where the depth sensor stood when it saw TARGET (mm, TARGET's frame; (0,0,0) for a cloud in the "
-        "sensor's own frame; write --sensor-origin=-10,0,5 when it starts with a minus): poses that put "
+        "sensor's own frame; e.g. --sensor-origin -10,0,5): poses that put "
         "SOURCE's surface where the sensor saw none are then ruled out (free space); default: unknown",
     )
     p.add_argument(
