@@ -1,4 +1,8 @@
-"""One liver and its FEM deformations: anatomy -> tetrahedral mesh -> fiducials -> deformed surfaces."""
+"""One liver and its deformations: anatomy -> tetrahedral mesh -> fiducials -> deformed surfaces.
+
+Two families: "fem" (linear elasticity, the generator's default) and "arap" (as-rigid-as-possible
+with handles, arap.py: a deformation no linear-elastic model reproduces).
+"""
 
 from __future__ import annotations
 
@@ -12,6 +16,7 @@ from liver_p2p_reg.registration.mechanics.fem import assemble, calibrate, random
 from liver_p2p_reg.registration.mechanics.tetmesh import TetMesh, build_tetmesh
 
 MAX_FIDUCIALS = 300
+DEFORMATION_FAMILIES = ("fem", "arap")
 
 
 def float32_exact(points: np.ndarray) -> np.ndarray:
@@ -61,11 +66,17 @@ def select_fiducials(mesh: TetMesh, seed: int, max_count: int = MAX_FIDUCIALS) -
 
 
 def simulate_liver(
-    seed: int, n_deformations: int, target_tets: int = 10_000, liver: LiverMesh | None = None
+    seed: int,
+    n_deformations: int,
+    target_tets: int = 10_000,
+    liver: LiverMesh | None = None,
+    family: str = "fem",
 ) -> SimulatedLiver:
-    """Generate liver `seed` and `n_deformations` random FEM deformations of it."""
+    """Generate liver `seed` and `n_deformations` random deformations of it of one family ("fem" | "arap")."""
     if n_deformations < 0:
         raise InputError(f"number of deformations must be >= 0, got {n_deformations}")
+    if family not in DEFORMATION_FAMILIES:
+        raise InputError(f"unknown deformation family {family!r}; choose one of: {', '.join(DEFORMATION_FAMILIES)}")
     liver = liver if liver is not None else make_liver(seed)
     mesh = build_tetmesh(liver, target_tets=target_tets)
     fid_ids = select_fiducials(mesh, seed)
@@ -79,6 +90,9 @@ def simulate_liver(
         coarse_vertices_mm=getattr(liver, "coarse_vertices_mm", None),
     )
     if n_deformations == 0:
+        return sim
+    if family == "arap":
+        sim.deformations = _arap_deformations(sim, liver, mesh, fid_ids, n_deformations)
         return sim
     system = assemble(mesh)
     ids, weights = mesh.embed(liver.vertices_mm)
@@ -108,3 +122,36 @@ def simulate_liver(
             )
         )
     return sim
+
+
+def _arap_deformations(
+    sim: SimulatedLiver, liver: LiverMesh, mesh: TetMesh, fid_ids: np.ndarray, n_deformations: int
+) -> list[Deformation]:
+    """The "arap" family: handle-driven as-rigid-as-possible deformations (arap.py), FEM-family magnitudes."""
+    from liver_p2p_reg.phantom.arap import arap_deformation, random_handle_case
+
+    ids, weights = mesh.embed(liver.vertices_mm)
+    coarse = sim.coarse_vertices_mm
+    coarse_embedding = mesh.embed(coarse) if coarse is not None else None
+    out = []
+    for d in range(n_deformations):
+        # Own streams ([seed, 5, d]): the FEM family's ([seed, 2, d]) stay as they are.
+        case = random_handle_case(mesh, np.random.default_rng([sim.liver_id, 5, d]))
+        aligned, rms, angle = arap_deformation(mesh, case, fid_ids)
+        disp = aligned - mesh.nodes_mm
+        fids = aligned[fid_ids]
+        coarse_mm = None
+        if coarse_embedding is not None:
+            coarse_mm = float32_exact(coarse + mesh.interpolate(disp, *coarse_embedding))
+        out.append(
+            Deformation(
+                surface_mm=float32_exact(liver.vertices_mm + mesh.interpolate(disp, ids, weights)),
+                fiducials_mm=fids,
+                rms_mm=rms,
+                max_mm=float(np.max(np.linalg.norm(fids - sim.fiducials_mm, axis=1))),
+                n_fixed_nodes=len(case.fixed_nodes),
+                rigid_rotation_deg=angle,
+                coarse_mm=coarse_mm,
+            )
+        )
+    return out
