@@ -2,6 +2,14 @@
 
 Defaults live here and only here. `config/registration.yaml` (the ROS parameter file) is
 generated from these defaults with `liver-p2p config --ros` and a test checks that it matches.
+
+Flat outside, sectioned inside. Users write flat names (`Config(k=5)`, `config.k`, `replace(k=5)`,
+YAML keys, ROS parameters), so those stay. Each field is declared once, with its default, in the
+section of the stage that reads it (`P2PSection`, `IcpSection`, ...); Config inherits all sections,
+and a stage takes its section's view (`config.p2p`, a copy), so no stage keeps defaults of its own
+(the P2P module's settings class did, two of them not Config's). Inheritance, because nested
+section objects would nest the flat names (`config.p2p.k`, nested YAML), and a list of each
+section's names beside flat fields would be a second list to keep in step with them.
 """
 
 from __future__ import annotations
@@ -9,10 +17,11 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
+from liver_p2p_reg.config_io import from_mapping, read_yaml_mapping
 from liver_p2p_reg.errors import InputError
 
 # Choices validated in `Config.validate`; kept here so the CLI can list them in --help.
@@ -46,13 +55,33 @@ MINIMUMS: dict[str, float] = {
 
 
 @dataclass
-class Config:
-    """Every tunable of the registration pipeline and of the node logic, with defaults."""
+class RuntimeSection:
+    """What runs and where."""
 
-    # --- registration pipeline -------------------------------------------------------
     # Default: the method the latest benchmarks favour (README "Default method" gives the numbers).
     method: str = "learned-p2p-icp"
-    k: int = 5  # number of P2P patch candidates
+    device: str = "cpu"
+    num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    # Linux/glibc: keep freed large buffers in the process heap (alloc.py); faster frames on large
+    # views, identical results, the process keeps its peak memory
+    reuse_freed_memory: bool = True
+    seed: int = 0
+
+
+@dataclass
+class InputSection:
+    """Input checks: what a cloud must look like to be registered at all."""
+
+    min_points: int = 100  # fewer valid intraop points than this is an error
+    max_input_points: int = 1_000_000  # clouds this large are voxelized before anything else (bounded memory)
+    expected_extent_min_mm: float = 20.0  # clouds smaller than this look like wrong units
+    expected_extent_max_mm: float = 600.0  # clouds larger than this look like wrong units
+
+
+@dataclass
+class PreprocessSection:
+    """Preprocessing: outlier removal, normalization, voxelization."""
+
     # intraop cloud: drop points whose mean distance to their neighbours is above mean + this
     # many std (flying pixels, specks); 0 disables
     outlier_std_ratio: float = 2.0
@@ -61,12 +90,31 @@ class Config:
     # a target may voxelize to at most this many times the source's voxels: a full view with
     # sensor noise occupies a few percent more voxels than the model; swapped files are ~2-5x
     max_target_ratio: float = 1.25
+
+
+@dataclass
+class FeatureSection:
+    """Point features (FPFH, the learned matcher's weights) and the FPFH+RANSAC baseline."""
+
+    normal_radius_norm: float = 0.1  # normal estimation radius (normalized units)
+    fpfh_radius_norm: float = 0.25  # FPFH feature radius (normalized units)
+    weights_path: str = ""  # empty: the weights bundled with the package
+    ransac_max_corr_norm: float = 0.05  # FPFH+RANSAC max correspondence distance (paper)
+    ransac_max_iterations: int = 100000
+    ransac_confidence: float = 0.999
+
+
+@dataclass
+class P2PSection:
+    """Dual-softmax matching and the P2P module: patch candidates, their fits, the selection."""
+
     temperature: float = 0.1  # dual-softmax temperature applied to the score matrix
     confidence_threshold: float = 0.0  # minimum dual-softmax confidence of a kept match
+    mutual_only: bool = False  # True: strict mutual-NN matches (the paper); False: each row's best, confidence-weighted
+    k: int = 5  # number of P2P patch candidates
     selection: str = "closest-point"  # P2P candidate selection rule
     inlier_radius_norm: float = 0.05  # tau of the inlier-count rule (normalized units)
     candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
-    mutual_only: bool = False  # True: strict mutual-NN matches (the paper); False: each row's best, confidence-weighted
     max_patch_rows: int = 1024  # P2P matches an even subsample of about this many rows per patch; 0: all (the paper)
     refit_iterations: int = 6  # robust re-fits of each candidate on its own consistent matches; 0: off (the paper)
     refit_radius_start_norm: float = 0.3  # first re-fit radius (normalized units) ...
@@ -76,25 +124,31 @@ class Config:
     # majority); 0: off (the paper)
     consensus_seeds: int = 64
     consensus_sigma_norm: float = 0.1  # pairwise-distance mismatch at which two matches stop being compatible
-    fpfh_radius_norm: float = 0.25  # FPFH feature radius (normalized units)
-    normal_radius_norm: float = 0.1  # normal estimation radius (normalized units)
-    ransac_max_corr_norm: float = 0.05  # FPFH+RANSAC max correspondence distance (paper)
-    ransac_max_iterations: int = 100000
-    ransac_confidence: float = 0.999
-    icp_max_iterations: int = 50
-    icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
-    icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
-    icp_max_points: int = 1000  # ICP uses an even subsample of at most this many target points (speed)
+
+
+@dataclass
+class IcpSection:
+    """ICP: the screening of P2P's candidates and the refinement of the chosen one."""
+
     # `-icp` feature pipelines: a short ICP screens up to this many distinct P2P candidates and the
     # one that fits best after it is refined (small smooth views fit several poses almost equally
     # well before ICP); 1: refine only the candidate P2P chose
     refine_candidates: int = 6
     screen_icp_points: int = 400  # screening ICP: intraop points ...
     screen_icp_iterations: int = 15  # ... and iterations per candidate
-    weights_path: str = ""  # empty: the weights bundled with the package
-    device: str = "cpu"
-    num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
-    # --- free space: used when the target's sensor origin is known (node, --sensor-origin, camera crops)
+    icp_max_iterations: int = 50
+    icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
+    icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
+    icp_max_points: int = 1000  # ICP uses an even subsample of at most this many target points (speed)
+
+
+@dataclass
+class FreeSpaceSection:
+    """Free space: used when the target's sensor origin is known (node, --sensor-origin, camera crops)."""
+
+    # intraop clouds arrive in their sensor's own frame (the ROS convention), so the sensor sits at
+    # (0, 0, 0) there and free space is checked; false for clouds transformed into another frame
+    sensor_at_frame_origin: bool = True
     # moved preop surface more than this in front of the observed surface, along the sensor's rays,
     # violates free space (the band tolerates deformation and noise; freespace.py)
     free_space_band_mm: float = 10.0
@@ -102,22 +156,30 @@ class Config:
     # residual x (1 + this x violation), violation = share of the view's footprint the pose
     # contradicts; chosen on validation camera crops by docs/freespace/rule.md
     free_space_weight: float = 0.5
-    free_space_warn: float = 0.1  # a pose contradicting more than this share of the view's footprint -> WARN
-    # Linux/glibc: keep freed large buffers in the process heap (alloc.py); faster frames on large
-    # views, identical results, the process keeps its peak memory
-    reuse_freed_memory: bool = True
-    seed: int = 0
 
-    # --- node logic (register_node, bag replay) ------------------------------------
-    mode: str = "continuous"
-    max_rate_hz: float = 2.0  # continuous mode: at most this many registrations per s
-    min_points: int = 100  # fewer valid intraop points than this is an error
-    max_input_points: int = 1_000_000  # clouds this large are voxelized before anything else (bounded memory)
+
+@dataclass
+class VerdictSection:
+    """Confidence and verdict: when a registration is reported WARN or ambiguous."""
+
     residual_warn_mm: float = 4.0  # mean closest-point residual above this -> WARN
     # pose uncertainty (expected organ-point displacement under the fit's misfit, confidence.py)
     # above this -> WARN; chosen on the training store's validation livers, never the test set
     # (scripts/calibrate_confidence.py; README "Confidence" has the test-set effect)
     uncertainty_warn_mm: float = 15.0
+    free_space_warn: float = 0.1  # a pose contradicting more than this share of the view's footprint -> WARN
+    # a rival hypothesis (after ICP screening if the method screens) with a residual within this
+    # factor of the best ...
+    ambiguity_residual_ratio: float = 1.2
+    ambiguity_pose_mm: float = 15.0  # ... and a pose differing by this much -> ambiguous
+
+
+@dataclass
+class StreamSection:
+    """The node logic (register_node, bag replay): mode, rate, tracking, survey."""
+
+    mode: str = "continuous"
+    max_rate_hz: float = 2.0  # continuous mode: at most this many registrations per s
     # continuous mode: refine the last good pose by ICP on the next cloud (method `track`) and
     # keep it if it fits as well as the last full registration; else run the full method
     track_previous_pose: bool = True
@@ -128,15 +190,67 @@ class Config:
     survey_step: float = 0.05
     survey_voxel_mm: float = 2.0  # fused surface: one mean point per voxel of this edge ...
     survey_max_points: int = 20000  # ... doubled whenever it would hold more points than this
-    # a rival hypothesis (after ICP screening if the method screens) with a residual within this
-    # factor of the best ...
-    ambiguity_residual_ratio: float = 1.2
-    ambiguity_pose_mm: float = 15.0  # ... and a pose differing by this much -> ambiguous
-    expected_extent_min_mm: float = 20.0  # clouds smaller than this look like wrong units
-    expected_extent_max_mm: float = 600.0  # clouds larger than this look like wrong units
-    # intraop clouds arrive in their sensor's own frame (the ROS convention), so the sensor sits at
-    # (0, 0, 0) there and free space is checked; false for clouds transformed into another frame
-    sensor_at_frame_origin: bool = True
+
+
+S = TypeVar("S")
+
+
+def _view(config: Config, section: type[S]) -> S:
+    """A copy of one section's fields: the stage reading it cannot change the Config."""
+    return section(**{f.name: getattr(config, f.name) for f in fields(section)})
+
+
+# The sections last stage first: a dataclass takes its bases' fields from the last base to the
+# first, so Config's fields (and `liver-p2p config`, the ROS parameter file) run in pipeline order.
+@dataclass
+class Config(
+    StreamSection,
+    VerdictSection,
+    FreeSpaceSection,
+    IcpSection,
+    P2PSection,
+    FeatureSection,
+    PreprocessSection,
+    InputSection,
+    RuntimeSection,
+):
+    """Every tunable of the registration pipeline and of the node logic: the sections above, flat."""
+
+    @property
+    def runtime(self) -> RuntimeSection:
+        return _view(self, RuntimeSection)
+
+    @property
+    def input_checks(self) -> InputSection:
+        return _view(self, InputSection)
+
+    @property
+    def preprocess(self) -> PreprocessSection:
+        return _view(self, PreprocessSection)
+
+    @property
+    def features(self) -> FeatureSection:
+        return _view(self, FeatureSection)
+
+    @property
+    def p2p(self) -> P2PSection:
+        return _view(self, P2PSection)
+
+    @property
+    def icp(self) -> IcpSection:
+        return _view(self, IcpSection)
+
+    @property
+    def free_space(self) -> FreeSpaceSection:
+        return _view(self, FreeSpaceSection)
+
+    @property
+    def verdict(self) -> VerdictSection:
+        return _view(self, VerdictSection)
+
+    @property
+    def stream(self) -> StreamSection:
+        return _view(self, StreamSection)
 
     def validate(self) -> Config:
         """Check ranges and choices; raise InputError with a one-line message if bad."""
@@ -195,21 +309,12 @@ class Config:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> Config:
         """Build from a mapping, coercing ints to floats where needed; validate."""
-        return _from_mapping(cls, values, "configuration key")
+        return from_mapping(cls, values, "configuration key")
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> Config:
         """Load a plain mapping or a ROS 2 parameter file (`<node>: ros__parameters: ...`)."""
-        path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except OSError as exc:
-            raise InputError(f"cannot read config {path}: {exc.strerror or exc}") from None
-        except yaml.YAMLError as exc:
-            raise InputError(f"config {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
-        if not isinstance(data, dict):
-            raise InputError(f"config {path} must be a mapping")
-        return cls.from_dict(_flatten_ros_params(data))
+        return cls.from_dict(read_yaml_mapping(path))
 
     def to_ros_yaml(self) -> str:
         """The ROS 2 parameter file text for both nodes (wildcard node name)."""
@@ -220,59 +325,6 @@ class Config:
         )
         body = yaml.safe_dump({"/**": {"ros__parameters": self.to_dict()}}, sort_keys=False)
         return header + body
-
-
-def _flatten_ros_params(data: dict[str, Any]) -> dict[str, Any]:
-    """Accept `{node: {ros__parameters: {...}}}` as well as a plain mapping."""
-    for value in data.values():
-        if isinstance(value, dict) and "ros__parameters" in value:
-            merged: dict[str, Any] = {}
-            for node_block in data.values():
-                if isinstance(node_block, dict):
-                    merged.update(node_block.get("ros__parameters", {}))
-            return merged
-    return data
-
-
-def _coerce(name: str, value: Any, kind: type) -> Any:
-    """Coerce a YAML/CLI/ROS value to the field's type with a clear error."""
-    if kind is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "false"):
-            return value.lower() == "true"
-        raise InputError(f"{name} must be true or false, got {value!r}")
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, (int, str)):
-            raise InputError(f"{name} must be an integer, got {value!r}")
-        try:
-            return int(value)
-        except ValueError:
-            raise InputError(f"{name} must be an integer, got {value!r}") from None
-    if kind is float:
-        if isinstance(value, bool):
-            raise InputError(f"{name} must be a number, got {value!r}")
-        try:
-            return float(value)
-        except (TypeError, ValueError):
-            raise InputError(f"{name} must be a number, got {value!r}") from None
-    if kind is str:
-        if value is None:
-            return ""
-        return str(value)
-    return value
-
-
-def _from_mapping(cls: type, values: dict[str, Any], what: str) -> Any:
-    """A settings dataclass from a mapping, each value coerced to its field's type; validated."""
-    defaults = cls()
-    known = {f.name for f in fields(cls)}
-    kwargs: dict[str, Any] = {}
-    for name, value in values.items():
-        if name not in known:
-            raise InputError(f"unknown {what} {name!r}")
-        kwargs[name] = _coerce(name, value, type(getattr(defaults, name)))
-    return cls(**kwargs).validate()
 
 
 # --- the OpenIGTLink link to 3D Slicer (slicer_bridge_node, `register --slicer`, `replay --slicer`) ---
@@ -343,4 +395,4 @@ class SlicerConfig:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> SlicerConfig:
         """Build from a mapping (ROS parameters, CLI options) with the same coercion as Config; validate."""
-        return _from_mapping(cls, values, "Slicer link setting")
+        return from_mapping(cls, values, "Slicer link setting")

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
 import yaml
 
+from liver_p2p_reg import config as config_module
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
@@ -19,6 +21,39 @@ def test_ros_parameter_file_is_generated_from_defaults() -> None:
     assert text == Config().to_ros_yaml(), "regenerate: liver-p2p config --ros --write config/registration.yaml --force"
     params = yaml.safe_load(text)["/**"]["ros__parameters"]
     assert Config.from_dict(params) == Config()
+
+
+# Config's section views and the section each stands for.
+VIEWS = {
+    "runtime": config_module.RuntimeSection,
+    "input_checks": config_module.InputSection,
+    "preprocess": config_module.PreprocessSection,
+    "features": config_module.FeatureSection,
+    "p2p": config_module.P2PSection,
+    "icp": config_module.IcpSection,
+    "free_space": config_module.FreeSpaceSection,
+    "verdict": config_module.VerdictSection,
+    "stream": config_module.StreamSection,
+}
+
+
+def test_every_field_is_in_one_section_and_the_views_carry_the_config() -> None:
+    sections = [c for c in vars(config_module).values() if isinstance(c, type) and c.__name__.endswith("Section")]
+    assert set(sections) == set(VIEWS.values()) == set(Config.__bases__)
+    names = [f.name for section in sections for f in dataclasses.fields(section)]
+    assert len(names) == len(set(names)), "a field declared in two sections (the later one would win silently)"
+    assert set(names) == {f.name for f in dataclasses.fields(Config)}
+    assert [f.name for f in dataclasses.fields(Config)][0] == "method"  # the sections' fields in pipeline order
+    config = Config().replace(k=7, icp_max_iterations=3, mode="once", free_space_warn=0.5)
+    for attr, section in VIEWS.items():
+        view = getattr(config, attr)
+        assert type(view) is section
+        assert all(getattr(view, f.name) == getattr(config, f.name) for f in dataclasses.fields(section)), attr
+    assert (config.p2p.k, config.icp.icp_max_iterations, config.stream.mode) == (7, 3, "once")
+    assert config.verdict.free_space_warn == 0.5
+    view = config.p2p
+    view.k = 2  # a copy: a stage cannot change the Config
+    assert config.k == 7 and config.p2p.k == 7
 
 
 def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:

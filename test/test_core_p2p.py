@@ -1,13 +1,16 @@
-"""The P2P module on synthetic features: recovery, ambiguity resolution, invariance, gradients."""
+"""The P2P module on synthetic features: recovery, ambiguity resolution, invariance, gradients; its settings."""
 
 from __future__ import annotations
+
+import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
 
+from liver_p2p_reg.config import Config, P2PSection
 from liver_p2p_reg.registration.p2p import (
-    P2PSettings,
     closest_point_residuals,
     consensus_pose,
     farthest_point_sampling,
@@ -15,6 +18,7 @@ from liver_p2p_reg.registration.p2p import (
     p2p_register,
     robust_refit,
 )
+from liver_p2p_reg.registration.pipeline import p2p_settings
 from liver_p2p_reg.registration.preprocess import voxel_downsample
 from liver_p2p_reg.registration.procrustes import weighted_procrustes
 
@@ -50,6 +54,12 @@ def _noisy(x: np.ndarray, rng: np.random.Generator, sigma: float) -> np.ndarray:
     return y / np.linalg.norm(y, axis=1, keepdims=True)
 
 
+def _settings(**changes: Any) -> P2PSection:
+    """Config's P2P section as these tests were written against: every patch row matched, no consensus
+    twins (the P2P module's own defaults until Config became their one source); `changes` on top."""
+    return P2PSection(**{"max_patch_rows": 0, "consensus_seeds": 0, **changes})
+
+
 def _t(a: np.ndarray) -> torch.Tensor:
     return torch.as_tensor(a, dtype=torch.float64)
 
@@ -76,6 +86,13 @@ def test_fps_spreads_points(rng: np.random.Generator) -> None:
     assert float(gaps.min()) > 0.5  # five nodes on a unit-size surface are far apart
 
 
+def test_the_pipeline_hands_p2p_the_config_section() -> None:
+    config = Config().replace(k=7, max_patch_rows=0)
+    assert p2p_settings(config, use_p2p=True) == config.p2p == P2PSection(k=7, max_patch_rows=0)
+    # the methods without P2P: no patches, the complete-to-partial candidate alone
+    assert p2p_settings(config, use_p2p=False) == dataclasses.replace(config.p2p, k=0)
+
+
 @pytest.mark.parametrize("max_patch_rows", [0, 100])  # all patch rows, or an even subsample
 def test_p2p_recovers_the_transform_on_a_partial_crop(rng: np.random.Generator, max_patch_rows: int) -> None:
     source = _surface(rng)
@@ -84,7 +101,7 @@ def test_p2p_recovers_the_transform_on_a_partial_crop(rng: np.random.Generator, 
     target = source[crop] @ R_true.T + t_true
     x_source = _features(rng, len(source))
     x_target = _noisy(x_source[crop], rng, 0.05)
-    settings = P2PSettings(k=5, max_patch_rows=max_patch_rows)
+    settings = _settings(k=5, max_patch_rows=max_patch_rows)
     out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), settings)
     assert len(out.names) == 6 and out.names[0] == "complete-to-partial"
     assert out.ok.all()
@@ -120,7 +137,7 @@ def _ambiguous_case(rng: np.random.Generator):
 
 def test_closest_point_rule_resolves_ambiguity(rng: np.random.Generator) -> None:
     source, target, x_source, x_target, R_true, t_true = _ambiguous_case(rng)
-    out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), P2PSettings(k=5))
+    out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), _settings(k=5))
     R0, _ = _candidate(out, 0)
     assert np.abs(R0 - R_true).max() > 0.1  # the complete-to-partial candidate is wrong
     assert out.chosen != 0
@@ -133,20 +150,20 @@ def test_closest_point_rule_resolves_ambiguity(rng: np.random.Generator) -> None
 def test_inlier_rule_and_no_candidate_proposal_are_selectable(rng: np.random.Generator) -> None:
     source, target, x_source, x_target, R_true, _ = _ambiguous_case(rng)
     args = (_t(source), _t(target), _t(x_source), _t(x_target))
-    by_inliers = p2p_register(*args, P2PSettings(k=5, selection="inlier-count"))
+    by_inliers = p2p_register(*args, _settings(k=5, selection="inlier-count"))
     assert by_inliers.chosen == int(torch.argmax(by_inliers.inliers))
-    no_proposal = p2p_register(*args, P2PSettings(k=8, candidate_proposal=False))
+    no_proposal = p2p_register(*args, _settings(k=8, candidate_proposal=False))
     nodes = source[no_proposal.patch_nodes.numpy()]
     # FPS over the whole source spreads the nodes over the whole shape, not only the visible part.
     assert np.ptp(nodes[:, 0]) > 1.0
-    only_c2p = p2p_register(*args, P2PSettings(use_p2p=False))
+    only_c2p = p2p_register(*args, _settings(k=0))
     assert only_c2p.names == ["complete-to-partial"] and only_c2p.chosen == 0
 
 
 def test_moving_the_target_moves_the_estimate(rng: np.random.Generator) -> None:
     # noisy enough features that the estimate is not exact
     source, target, x_source, x_target, _, _ = _moved_crop_with_features(rng, axis=1, feature_noise=0.6)
-    settings = P2PSettings(k=5)
+    settings = _settings(k=5)
     out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), settings)
     Q, b = _rigid(rng)
     moved = p2p_register(_t(source), _t(target @ Q.T + b), _t(x_source), _t(x_target), settings)
@@ -164,7 +181,7 @@ def test_gradients_reach_the_features(rng: np.random.Generator) -> None:
     target = source[crop] @ R_true.T + t_true
     x_source = _t(_features(rng, len(source))).requires_grad_(True)
     x_target = _t(_noisy(x_source.detach().numpy()[crop], rng, 0.5)).requires_grad_(True)
-    out = p2p_register(_t(source), _t(target), x_source, x_target, P2PSettings(k=5))
+    out = p2p_register(_t(source), _t(target), x_source, x_target, _settings(k=5))
     c = out.chosen
     loss = ((out.R[c] - _t(R_true)) ** 2).sum() + ((out.t[c] - _t(t_true)) ** 2).sum()
     loss.backward()
@@ -178,7 +195,7 @@ def test_candidate_count_follows_k(rng: np.random.Generator, k: int) -> None:
     source = _surface(rng)
     crop = _crop(source, source[0], 0.3)
     x_source = _features(rng, len(source))
-    out = p2p_register(_t(source), _t(source[crop]), _t(x_source), _t(x_source[crop]), P2PSettings(k=k))
+    out = p2p_register(_t(source), _t(source[crop]), _t(x_source), _t(x_source[crop]), _settings(k=k))
     assert len(out.names) == 1 + k and out.R.shape == (1 + k, 3, 3)
     assert out.n_matches.shape == (1 + k,) and int(out.n_matches[out.chosen]) >= 3
 
@@ -217,7 +234,7 @@ def test_consensus_pose_finds_the_pose_of_a_minority_of_matches(rng: np.random.G
     weights = torch.ones(1, len(source), dtype=torch.float64)
     R0, _, _ = weighted_procrustes(src, tgt, weights)
     assert float((R0[0] - _t(R_true)).abs().max()) > 0.1  # the plain fit is far off
-    R, t, ok = consensus_pose(src, tgt, weights, P2PSettings(consensus_seeds=64))
+    R, t, ok = consensus_pose(src, tgt, weights, _settings(consensus_seeds=64))
     assert bool(ok[0])
     # The winning hypothesis is fitted on correct matches only, so it is exact.
     np.testing.assert_allclose(R[0].numpy(), R_true, atol=1e-9)
@@ -227,14 +244,14 @@ def test_consensus_pose_finds_the_pose_of_a_minority_of_matches(rng: np.random.G
 def test_consensus_pose_reports_failure_without_matches(rng: np.random.Generator) -> None:
     source = _t(_surface(rng)[:50])[None]
     _, _, ok = consensus_pose(
-        source, source + 1.0, torch.zeros(1, 50, dtype=torch.float64), P2PSettings(consensus_seeds=16)
+        source, source + 1.0, torch.zeros(1, 50, dtype=torch.float64), _settings(consensus_seeds=16)
     )
     assert not bool(ok[0])
 
 
 def test_consensus_adds_one_candidate_per_plain_one(rng: np.random.Generator) -> None:
     source, target, x_source, x_target, R_true, t_true = _moved_crop_with_features(rng, axis=0, feature_noise=0.3)
-    settings = P2PSettings(k=3, consensus_seeds=32)
+    settings = _settings(k=3, consensus_seeds=32)
     out = p2p_register(_t(source), _t(target), _t(x_source), _t(x_target), settings)
     assert out.names[4:] == [f"{name}-consensus" for name in out.names[:4]] and out.R.shape == (8, 3, 3)
     assert torch.equal(out.n_matches[:4], out.n_matches[4:])  # a twin shares its plain candidate's matches

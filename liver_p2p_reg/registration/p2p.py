@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from liver_p2p_reg.config import P2PSection
 from liver_p2p_reg.registration.matching import (
     log_dual_softmax,
     log_dual_softmax_with_patches,
@@ -18,34 +19,15 @@ from liver_p2p_reg.registration.matching import (
 from liver_p2p_reg.registration.procrustes import weighted_procrustes
 
 MIN_REFIT_MATCHES = 6  # a re-fit on fewer matches than this keeps the previous pose
+# consensus_pose: matches per hypothesis (the seed and its most compatible partners), and the
+# distance (normalized) within which a hypothesis scores a match's confidence
+CONSENSUS_GROUP = 16
+CONSENSUS_INLIER = 0.1
 
 
 def geometric_radii(start: float, end: float, count: int) -> tuple[float, ...]:
     """`count` radii shrinking geometrically from `start` to `end` (the robust re-fit schedule)."""
     return tuple(float(r) for r in np.geomspace(start, end, count)) if count > 0 else ()
-
-
-@dataclass
-class P2PSettings:
-    """The module's knobs (taken from Config by the pipelines)."""
-
-    k: int = 5
-    temperature: float = 0.1
-    confidence_threshold: float = 0.0
-    selection: str = "closest-point"  # or "inlier-count"
-    inlier_radius: float = 0.05  # normalized units (the paper's tau)
-    candidate_proposal: bool = True  # False: patch nodes by FPS over the whole source
-    use_p2p: bool = True  # False: only the complete-to-partial candidate
-    max_patch_rows: int = 0  # > 0: match only an even subsample of about this many rows per patch (speed)
-    mutual_only: bool = False  # True: strict mutual nearest neighbours (the paper); False: every row's best match
-    # robust re-fit radii (normalized), largest first; () = off (the paper's single fit)
-    refit_radii: tuple[float, ...] = geometric_radii(0.3, 0.04, 6)
-    # > 0: every candidate gets a second fit, started from a spatial-compatibility consensus
-    # among its this many strongest matches (see consensus_pose); 0: off (the paper)
-    consensus_seeds: int = 0
-    consensus_sigma: float = 0.1  # pairwise-distance mismatch (normalized) at which compatibility reaches 0
-    consensus_group: int = 16  # matches per hypothesis: the seed and its most compatible partners
-    consensus_inlier: float = 0.1  # a hypothesis scores the confidence of the matches it brings within this
 
 
 @dataclass
@@ -160,7 +142,7 @@ def pair_distances_sq(R: torch.Tensor, t: torch.Tensor, source: torch.Tensor, ta
 
 
 def consensus_pose(
-    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSettings
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSection
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Best of the hypotheses grown from each strong match and its most compatible partners.
 
@@ -169,7 +151,7 @@ def consensus_pose(
     pairwise compatibility of the `consensus_seeds` most confident matches, sharpened by its
     second order (SC^2: compatible pairs that share many compatible partners), groups correct
     matches without a pose guess. Each seed's group gives one Procrustes hypothesis; the one
-    that brings the most match confidence within `consensus_inlier` wins. A weighted fit of all
+    that brings the most match confidence within `CONSENSUS_INLIER` wins. A weighted fit of all
     matches is pulled by the wrong ones; on a small smooth view they can be the majority, and
     the robust re-fit then starts (and stays) in the wrong basin. Returns R (B,3,3), t (B,3), ok (B,).
     """
@@ -182,16 +164,16 @@ def consensus_pose(
         valid = top_w > 0
         mismatch = torch.cdist(seeds_src, seeds_src) - torch.cdist(seeds_tgt, seeds_tgt)
         pair_valid = (valid[:, :, None] & valid[:, None, :]).to(weights.dtype)
-        compat = (1 - mismatch.square() / settings.consensus_sigma**2).clamp(min=0) * pair_valid
+        compat = (1 - mismatch.square() / settings.consensus_sigma_norm**2).clamp(min=0) * pair_valid
         compat2 = compat * (compat @ compat)
-        g = min(settings.consensus_group, q)
+        g = min(CONSENSUS_GROUP, q)
         group = torch.topk(compat2, g, dim=2).indices.reshape(b, q * g)  # each seed's row includes itself
         g_src = torch.gather(seeds_src, 1, group[..., None].expand(-1, -1, 3)).view(b * q, g, 3)
         g_tgt = torch.gather(seeds_tgt, 1, group[..., None].expand(-1, -1, 3)).view(b * q, g, 3)
         R, t, ok = weighted_procrustes(g_src, g_tgt)
         R, t, ok = R.view(b, q, 3, 3), t.view(b, q, 3), ok.view(b, q) & valid
         dist2 = pair_distances_sq(R, t, source, target)  # (B, Q, P)
-        score = torch.where(dist2 < settings.consensus_inlier**2, weights[:, None], 0.0).sum(dim=-1)
+        score = torch.where(dist2 < CONSENSUS_INLIER**2, weights[:, None], 0.0).sum(dim=-1)
         score = torch.where(ok, score, -1.0)
         best = score.argmax(dim=1)
         rows = torch.arange(b, device=weights.device)
@@ -199,7 +181,7 @@ def consensus_pose(
 
 
 def _fit_candidates(
-    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSettings
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, settings: P2PSection
 ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
     """Poses for a batch of matched pairs (B, P, 3): the weighted fit, then (if on) the consensus twins.
 
@@ -210,7 +192,8 @@ def _fit_candidates(
     if settings.consensus_seeds > 0:
         starts.append(consensus_pose(source, target, weights, settings))
     R, t, ok = (torch.cat(parts) for parts in zip(*starts, strict=True))
-    if settings.refit_radii:
+    radii = geometric_radii(settings.refit_radius_start_norm, settings.refit_radius_end_norm, settings.refit_iterations)
+    if radii:
         copies = len(starts)
         R, t = robust_refit(
             source.repeat(copies, 1, 1),
@@ -219,7 +202,7 @@ def _fit_candidates(
             R,
             t,
             ok,
-            settings.refit_radii,
+            radii,
         )
     b = source.shape[0]
     return [(R[i * b : (i + 1) * b], t[i * b : (i + 1) * b], ok[i * b : (i + 1) * b]) for i in range(len(starts))]
@@ -230,11 +213,12 @@ def p2p_register(
     target: torch.Tensor,
     x_source: torch.Tensor,
     x_target: torch.Tensor,
-    settings: P2PSettings,
+    settings: P2PSection,
 ) -> P2POutput:
-    """Run complete-to-partial matching and, if enabled, P2P on voxelized normalized clouds.
+    """Run complete-to-partial matching and, if k > 0, P2P on voxelized normalized clouds.
 
-    source (N, 3), target (M, 3), x_source (N, d), x_target (M, d) (L2-normalized).
+    source (N, 3), target (M, 3), x_source (N, d), x_target (M, d) (L2-normalized); settings:
+    Config's P2P section (`config.p2p`), with k = 0 for the complete-to-partial candidate alone.
     Differentiable with respect to the features (until the discrete selection).
     """
     t0 = time.perf_counter()
@@ -243,7 +227,7 @@ def p2p_register(
 
     nodes = torch.empty(0, dtype=torch.long, device=source.device)
     patch_idx = None
-    if settings.use_p2p and settings.k > 0:
+    if settings.k > 0:
         # 1. Visible source point estimation: score summed over targets, keep the top M.
         visibility_score = scores.sum(dim=1)  # (N,)
         n_visible = min(m, n)
@@ -299,7 +283,7 @@ def p2p_register(
         all_tgt = torch.cat([group[1].reshape(-1, 3) for group in groups])
         all_valid = torch.cat([group[2].reshape(-1) for group in groups]) > 0
         dist2 = pair_distances_sq(R.detach()[None], t.detach()[None], all_src[None], all_tgt[None])[0]  # (C, P)
-        close = (dist2 < settings.inlier_radius**2) & all_valid[None]
+        close = (dist2 < settings.inlier_radius_norm**2) & all_valid[None]
         inliers = torch.where(ok, close.sum(dim=1), torch.zeros_like(close.sum(dim=1)))
         if not bool(ok.any()):
             chosen = 0

@@ -6,13 +6,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from liver_p2p_reg.config import Config
+from liver_p2p_reg.config import Config, P2PSection
 from liver_p2p_reg.errors import InputError, RegistrationError
 from liver_p2p_reg.registration import baselines
 from liver_p2p_reg.registration.context import MethodContext
@@ -37,7 +38,6 @@ from liver_p2p_reg.result import Candidate, RegistrationResult
 
 if TYPE_CHECKING:  # torch and the P2P module are imported where used: the Open3D baselines need neither
     from liver_p2p_reg.registration.features.base import FeatureProvider
-    from liver_p2p_reg.registration.p2p import P2PSettings
 
 # The one-estimate methods' global step (normalized, voxelized clouds -> a normalized 4x4).
 ESTIMATORS: dict[str, Callable[[np.ndarray, np.ndarray, Config, dict[str, Any]], np.ndarray]] = {
@@ -67,26 +67,9 @@ def feature_provider(
     raise InputError(f"unknown features {features!r}; choose fpfh or learned")
 
 
-def p2p_settings(config: Config, use_p2p: bool) -> P2PSettings:
-    """Map the Config onto the P2P module's settings."""
-    from liver_p2p_reg.registration.p2p import P2PSettings, geometric_radii
-
-    return P2PSettings(
-        k=config.k,
-        temperature=config.temperature,
-        confidence_threshold=config.confidence_threshold,
-        selection=config.selection,
-        inlier_radius=config.inlier_radius_norm,
-        candidate_proposal=config.candidate_proposal,
-        use_p2p=use_p2p,
-        mutual_only=config.mutual_only,
-        max_patch_rows=config.max_patch_rows,
-        consensus_seeds=config.consensus_seeds,
-        consensus_sigma=config.consensus_sigma_norm,
-        refit_radii=geometric_radii(
-            config.refit_radius_start_norm, config.refit_radius_end_norm, config.refit_iterations
-        ),
-    )
+def p2p_settings(config: Config, use_p2p: bool) -> P2PSection:
+    """The P2P module's settings: Config's P2P section; k = 0 (no patches) for the methods without P2P."""
+    return config.p2p if use_p2p else dataclasses.replace(config.p2p, k=0)
 
 
 def run_feature_pipeline(
