@@ -1,6 +1,6 @@
 """Whole-process timing of `liver-p2p`: this tree vs an older commit vs Open3D's stock script, side by side.
 
-    .venv/bin/python scripts/bench_cli_startup.py [--baseline e37fd94] [--repeats 7] [--readme README.md]
+    .venv/bin/python scripts/bench_cli_startup.py [--baseline e37fd94] [--repeats 7] [--readme docs/results/cli_startup.md]
 
 Every command runs as a fresh process (start-up, imports, reading the files, registering, writing
 the JSON), on the same generated case: a procedural liver of the phantom generator as SOURCE (PLY
@@ -11,12 +11,12 @@ at visibility 0.2). Rows, interleaved run by run so a drift in machine load hits
   this venv), and Open3D's stock FPFH + RANSAC + point-to-plane ICP as a plain script (written
   below; voxel 0.04 x the source's radius, as the paper's normalization);
 - `register SOURCE T1 ... Tk` in one process: the time per extra target, against the runtime
-  median of the default method in the README's benchmark table;
+  median of the default method in the in silico benchmark's table (docs/results/insilico.md);
 - `liver-p2p --help` and two argument errors (`--seed abc`, a missing file), both trees.
 
 Wall times are only meaningful on an otherwise idle machine: the load average is printed before and
 after. The CPU seconds of each process (user + system, all its threads) are printed too: less
-disturbed by other work on the machine, though not immune to it. `--readme` replaces the README block between <!-- STARTUP:START --> and <!-- STARTUP:END -->.
+disturbed by other work on the machine, though not immune to it. `--readme FILE` replaces the block between <!-- STARTUP:START --> and <!-- STARTUP:END -->.
 """
 
 from __future__ import annotations
@@ -123,10 +123,11 @@ def timed(argv: list[str], cwd: Path, expect_rc: int = 0) -> tuple[float, float]
     return elapsed, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-def default_method_median_ms(readme: Path) -> tuple[str, float]:
-    """The default method and its median runtime from the README's benchmark runtime table."""
-    text = readme.read_text()
-    method = re.search(r"\*\*Default method: `([\w-]+)`\*\*", text).group(1)
+def default_method_median_ms(readme: Path, results: Path) -> tuple[str, float]:
+    """The default method (named in the README) and its median runtime from the in silico benchmark's
+    runtime table (`results`, the BENCHMARK block)."""
+    method = re.search(r"\*\*Default method: `([\w-]+)`\*\*", readme.read_text()).group(1)
+    text = results.read_text()
     block = text[text.index("Runtime per case:") :]
     row = re.search(rf"^\| {re.escape(method)} \| ([\d.]+) \|", block, re.MULTILINE)
     return method, float(row.group(1))
@@ -186,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         same_pose = np.array_equal(np.array(new_json["transform"]), np.array(old_json["transform"]))
 
     med = {name: statistics.median(values) for name, values in times.items()}
-    method, bench_median_ms = default_method_median_ms(ROOT / "README.md")
+    method, bench_median_ms = default_method_median_ms(ROOT / "README.md", ROOT / "docs" / "results" / "insilico.md")
     register_new = med["register, this tree"]
     register_old = med[f"register, {args.baseline}"]
     stock = med["Open3D stock FPFH + RANSAC + ICP script"]
