@@ -24,7 +24,9 @@ import numpy as np
 from liver_p2p_reg.bags.io import read_messages, rosbags_types
 from liver_p2p_reg.bags.replay import replay_bags
 from liver_p2p_reg.config import Config
+from liver_p2p_reg.ros.messages import feed_intraop_msg, feed_preop_msg
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_PREOP
 from liver_p2p_reg.stream.core import NodeCore
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,13 +58,13 @@ def latency(config: Config) -> dict:
 def memory(config: Config, seconds: float, n_points: int = 1_000_000, rate_hz: float = 30.0) -> dict:
     bag = sorted((ROOT / "bags").glob("insilico_*"))[0]
     msgs = {m.topic: m.msg for m in read_messages(bag)}
-    frame_m = cloud_to_points_m(msgs["/intraop/points"])
+    frame_m = cloud_to_points_m(msgs[TOPIC_INTRAOP])
     rng = np.random.default_rng(0)
     # a dense depth-camera-like cloud: the frame's surface resampled to 1M points with 0.5 mm jitter
     dense = frame_m[rng.integers(0, len(frame_m), n_points)] + rng.normal(0, 0.0005, (n_points, 3))
     template = points_to_cloud(dense, rosbags_types(), frame_id="camera", stamp_ns=1)
     core = NodeCore(config)
-    core.on_preop_msg(msgs["/preop/points"])
+    feed_preop_msg(core, msgs[TOPIC_PREOP])
     stop = threading.Event()
     samples: list[float] = []
     outputs = []
@@ -84,7 +86,7 @@ def memory(config: Config, seconds: float, n_points: int = 1_000_000, rate_hz: f
         msg = template
         # a new 16 MB buffer per message, like a deserialized subscription message
         msg = type(template)(**{**template.__dict__, "data": template.data.copy()})
-        core.on_intraop_msg(msg)
+        feed_intraop_msg(core, msg)
         sent += 1
         samples.append(rss_mb())
         time.sleep(max(0.0, start + sent / rate_hz - time.monotonic()))

@@ -36,13 +36,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS  # noqa: E402
 from liver_p2p_reg.bags.player import read_raw  # noqa: E402
 from liver_p2p_reg.livegraph.demo import model_files, run_bag  # noqa: E402
 from liver_p2p_reg.livegraph.graph import GraphProbe, NodeProcess, set_isolated_environment, values_of  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud  # noqa: E402
 from liver_p2p_reg.ros.register_node import RCLPY_TYPES  # noqa: E402
-from liver_p2p_reg.stream.core import DIAG_NAME  # noqa: E402
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS  # noqa: E402
+from liver_p2p_reg.stream.outputs import DIAG_NAME  # noqa: E402
 
 # The targets (2 threads, idle machine): name -> (limit, unit, lower is better)
 TARGETS = {

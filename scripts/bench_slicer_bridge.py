@@ -101,18 +101,18 @@ def graph(bag: Path, rate_hz: float, seconds: float, cloud_points: int, idle_s: 
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from geometry_msgs.msg import PoseStamped
     from rclpy.context import Context
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from sensor_msgs.msg import PointCloud2
 
     from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
     from liver_p2p_reg.ros.register_node import RCLPY_TYPES
-    from liver_p2p_reg.stream.core import DIAG_NAME
+    from liver_p2p_reg.ros.topics import TOPIC_DIAGNOSTICS, TOPIC_INTRAOP, TOPIC_POSE, TOPIC_PREOP, rclpy_qos
+    from liver_p2p_reg.stream.outputs import DIAG_NAME
 
     env = {"ROS_DOMAIN_ID": str(random.SystemRandom().randint(1, 100)), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     os.environ.update(env)
     preop_m = cloud_m = None
-    for item in read_messages(bag, ["/preop/points", "/intraop/points"]):
-        if item.topic == "/preop/points":
+    for item in read_messages(bag, [TOPIC_PREOP, TOPIC_INTRAOP]):
+        if item.topic == TOPIC_PREOP:
             preop_m = cloud_to_points_m(item.msg)
         elif cloud_m is None:
             cloud_m = cloud_to_points_m(item.msg)
@@ -142,14 +142,11 @@ def graph(bag: Path, rate_hz: float, seconds: float, cloud_points: int, idle_s: 
             )
             time.sleep(0.05)
         assert port, "".join(lines)
-        latched = QoSProfile(
-            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
-        )
         pubs = {
-            "preop": node.create_publisher(PointCloud2, "/preop/points", latched),
-            "cloud": node.create_publisher(PointCloud2, "/intraop/points", qos_profile_sensor_data),
-            "pose": node.create_publisher(PoseStamped, "/registration/pose", 10),
-            "diag": node.create_publisher(DiagnosticArray, "/diagnostics", 10),
+            "preop": node.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)),
+            "cloud": node.create_publisher(PointCloud2, TOPIC_INTRAOP, rclpy_qos(TOPIC_INTRAOP)),
+            "pose": node.create_publisher(PoseStamped, TOPIC_POSE, rclpy_qos(TOPIC_POSE)),
+            "diag": node.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, rclpy_qos(TOPIC_DIAGNOSTICS)),
         }
         end = time.monotonic() + 60
         while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() < end:

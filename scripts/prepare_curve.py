@@ -109,7 +109,7 @@ def main() -> int:
         fig.tight_layout()
         fig.savefig(args.png, dpi=120)
     if args.readme:
-        from liver_p2p_reg.bench.summary import replace_readme_block
+        from liver_p2p_reg.bench.readme import replace_readme_block
 
         replace_readme_block(Path(args.readme), "\n".join(block), "PREPARE")
     return 0

@@ -12,22 +12,11 @@ verdict. An empty path is the bundled weights. The first candidate is the refere
 from __future__ import annotations
 
 import argparse
-import csv
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
-SETS = {  # name -> extra benchmark arguments
-    "real-val-v1": ["--noise-levels", "2", "--noise-bins", "all"],
-    "insilico-val-v1": ["--noise-levels", "2,4"],
-    "insilico-val-camera-v1": [],
-    "real-val-camera-v1": ["--noise-levels", "2", "--noise-bins", "all"],
-}
-REAL, INSILICO = ("real-val-v1", "real-val-camera-v1"), ("insilico-val-v1", "insilico-val-camera-v1")
-METHODS = ("learned-p2p", "learned-p2p-icp")
-GROSS_MM = 20.0
+from liver_p2p_reg.bench.matcher_rule import METHODS, SETS, verdict
 
 
 def run_benchmarks(name: str, weights: str, args: argparse.Namespace) -> None:
@@ -42,59 +31,6 @@ def run_benchmarks(name: str, weights: str, args: argparse.Namespace) -> None:
             cmd += ["--data-root", args.data_root]
         print("+", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
-
-
-def rows(out_root: str, name: str, datasets: tuple[str, ...], method: str) -> list[dict]:
-    out = []
-    for dataset in datasets:
-        with open(Path(out_root) / name / dataset / "cases.csv", newline="") as fh:
-            out += [r for r in csv.DictReader(fh) if r["method"] == method]
-    return out
-
-
-def pooled(out_root: str, name: str, datasets: tuple[str, ...], method: str) -> tuple[float, int, int]:
-    """Mean RMS-TRE, poses off by >= 20 mm (failures included) and cases."""
-    rs = rows(out_root, name, datasets, method)
-    tre = np.array([float(r["rms_tre_mm"]) for r in rs])
-    gross = sum(float(r["rms_tre_mm"]) >= GROSS_MM or r["failed"] == "true" for r in rs)
-    return float(tre.mean()), int(gross), len(rs)
-
-
-def verdict(candidates: list[str], out_root: str) -> tuple[list[str], str]:
-    ref = candidates[0]
-    table = [
-        "| candidate | real-val default mean mm | real-val default >= 20 mm | insilico-val default mean mm "
-        "| insilico-val default >= 20 mm | real-val learned-p2p mean mm | rule 1 | rule 2 | rule 3 |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    stats = {
-        c: (
-            pooled(out_root, c, REAL, "learned-p2p-icp"),
-            pooled(out_root, c, INSILICO, "learned-p2p-icp"),
-            pooled(out_root, c, REAL, "learned-p2p"),
-        )
-        for c in candidates
-    }
-    (r_ref, i_ref, p_ref) = stats[ref]
-    passing = []
-    for c in candidates:
-        (r, i, p) = stats[c]
-        ok1 = r[1] <= r_ref[1] and r[0] < r_ref[0]
-        ok2 = i[1] <= i_ref[1] and i[0] <= i_ref[0] + 0.10
-        ok3 = p[0] < p_ref[0]
-        if c != ref and ok1 and ok2 and ok3:
-            passing.append(c)
-        marks = ["–" if c == ref else ("yes" if ok else "no") for ok in (ok1, ok2, ok3)]
-        table.append(
-            f"| {c}{' (shipped)' if c == ref else ''} | {r[0]:.2f} (n={r[2]}) | {r[1]} | {i[0]:.2f} (n={i[2]}) "
-            f"| {i[1]} | {p[0]:.2f} | {' | '.join(marks)} |"
-        )
-    if not passing:
-        return table, f"No candidate passes: {ref} stays."
-    best = min(passing, key=lambda c: stats[c][0][0])
-    close = [c for c in passing if stats[c][0][0] <= stats[best][0][0] + 0.05]
-    best = min(close, key=lambda c: stats[c][2][0])
-    return table, f"Passing: {', '.join(passing)}. Ships: **{best}**."
 
 
 def main() -> int:

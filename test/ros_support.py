@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 from liver_p2p_reg.bags.player import read_raw
 from liver_p2p_reg.livegraph.graph import GraphProbe, NodeProcess, level_of, set_isolated_environment, values_of
-from liver_p2p_reg.stream.core import DIAG_NAME, PREOP_DIAG_NAME
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
+from liver_p2p_reg.stream.outputs import DIAG_NAME, PREOP_DIAG_NAME
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 BAG_A = BAGS / "insilico_L9000001_D00_T007_random"  # visibility 0.9: quick and OK

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from liver_p2p_reg.bench.harness import read_rows
+from liver_p2p_reg.bench.cases_csv import read_rows
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import RegistrationError

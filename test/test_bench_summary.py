@@ -10,7 +10,8 @@ import pytest
 from scipy.stats import ranksums
 
 from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
-from liver_p2p_reg.bench.summary import Summary, readme_markers, replace_readme_block
+from liver_p2p_reg.bench.readme import readme_markers, replace_readme_block
+from liver_p2p_reg.bench.summary import Summary
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 

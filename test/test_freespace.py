@@ -165,15 +165,8 @@ def test_same_input_same_pose_bitwise() -> None:
 
 
 def test_camera_crops_store_the_eye_and_older_files_are_brought_up_to_date(tmp_path) -> None:
-    from liver_p2p_reg.phantom.dataset import (
-        SENSOR_ORIGIN_KEY,
-        DatasetSpec,
-        case_is_current,
-        generate_dataset,
-        read_case,
-        sensor_origin_mm,
-        write_case,
-    )
+    from liver_p2p_reg.phantom.casefile import SENSOR_ORIGIN_KEY, read_case, sensor_origin_mm, write_case
+    from liver_p2p_reg.phantom.dataset import DatasetSpec, case_is_current, generate_dataset
 
     spec = DatasetSpec(livers=1, deformations=1, targets=2, crop="camera", seed=7)
     generate_dataset(tmp_path, spec, progress=False)

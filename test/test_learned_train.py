@@ -14,7 +14,9 @@ from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom.loader import PairSampler, build_store
 from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
 from liver_p2p_reg.registration.features.learned.weights import load_weights
-from liver_p2p_reg.training.train import TrainConfig, pair_loss, prepare_pair, train
+from liver_p2p_reg.training.data import prepare_pair
+from liver_p2p_reg.training.train import pair_loss, train
+from liver_p2p_reg.training.train_config import TrainConfig
 
 SMALL = {"width": 32, "layers": 1, "out_dim": 16, "max_nodes": 64}
 

@@ -9,15 +9,10 @@ import pytest
 
 from liver_p2p_reg.cli import dataset_cmd
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.phantom.dataset import (
-    DatasetSpec,
-    generate_dataset,
-    make_case,
-    read_case,
-    read_manifest,
-    write_case,
-)
+from liver_p2p_reg.phantom.casefile import read_case, write_case
+from liver_p2p_reg.phantom.dataset import DatasetSpec, generate_dataset, make_case
 from liver_p2p_reg.phantom.loader import PairSampler, build_store
+from liver_p2p_reg.phantom.manifest import read_manifest
 from liver_p2p_reg.phantom.simulate import simulate_liver
 from liver_p2p_reg.registration.visibility import VisibilityMeter
 

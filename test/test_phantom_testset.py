@@ -12,7 +12,8 @@ import pytest
 from liver_p2p_reg.cli import dataset_cmd
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom import testset
-from liver_p2p_reg.phantom.dataset import read_case, read_manifest
+from liver_p2p_reg.phantom.casefile import read_case
+from liver_p2p_reg.phantom.manifest import read_manifest
 from liver_p2p_reg.phantom.testset import TESTSETS, ensure_testset
 
 

@@ -21,8 +21,9 @@ from liver_p2p_reg.registration.features.learned.patient import (
     source_signature,
 )
 from liver_p2p_reg.registration.features.learned.weights import load_weights
+from liver_p2p_reg.training.data import prepare_pair, training_sampler
 from liver_p2p_reg.training.patient import PrepareSize, prepare_liver, training_config
-from liver_p2p_reg.training.train import pair_loss, prepare_pair, training_sampler
+from liver_p2p_reg.training.train import pair_loss
 
 SMALL = PrepareSize(train_deformations=3, val_deformations=1, views=4, tets=1500)
 STEPS = 100
@@ -112,7 +113,8 @@ def test_the_same_liver_moved_still_matches_its_signature(liver) -> None:
 
 
 def test_node_core_reports_the_mismatch_as_warn(prepared) -> None:
-    from liver_p2p_reg.stream.core import WARN, NodeCore
+    from liver_p2p_reg.stream.core import NodeCore
+    from liver_p2p_reg.stream.outputs import WARN
 
     out, _ = prepared
     other = make_liver(22).vertices_mm

@@ -179,7 +179,8 @@ def test_full_view_registers_accurately() -> None:
 @needs_real
 def test_real_liver_loads_and_a_real_store_trains(tmp_path) -> None:
     from liver_p2p_reg.phantom.real import load_real_liver
-    from liver_p2p_reg.training.train import TrainConfig, train
+    from liver_p2p_reg.training.train import train
+    from liver_p2p_reg.training.train_config import TrainConfig
 
     liver = load_real_liver(real_split()["train"][0])
     assert is_watertight(liver.triangles) and len(liver.vertices_mm) > 5000

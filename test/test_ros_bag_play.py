@@ -16,14 +16,14 @@ from ros_support import BAG_B  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 
 from liver_p2p_reg.bags.io import read_messages  # noqa: E402
-from liver_p2p_reg.bags.make import (  # noqa: E402
+from liver_p2p_reg.livegraph.graph import GraphProbe, set_isolated_environment, stamp_ns  # noqa: E402
+from liver_p2p_reg.ros.topics import (  # noqa: E402
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    rclpy_qos,
 )
-from liver_p2p_reg.bags.player import QOS_BY_TOPIC  # noqa: E402
-from liver_p2p_reg.livegraph.graph import GraphProbe, set_isolated_environment, stamp_ns  # noqa: E402
 
 
 @pytest.fixture
@@ -36,7 +36,7 @@ def listener():
             PointCloud2,
             topic,
             lambda m, items=items: items.append((stamp_ns(m), time.monotonic())),
-            QOS_BY_TOPIC[topic],
+            rclpy_qos(topic),
         )
     yield probe, got
     probe.close()
@@ -76,7 +76,7 @@ def test_latched_preop_reaches_a_late_subscriber_and_loop_stops_on_sigint(listen
         assert probe.wait_for(lambda: len(got[TOPIC_INTRAOP]) >= 7, 60), "no second pass of --loop"
         late = []
         probe.node.create_subscription(
-            PointCloud2, TOPIC_PREOP, lambda m: late.append(stamp_ns(m)), QOS_BY_TOPIC[TOPIC_PREOP]
+            PointCloud2, TOPIC_PREOP, lambda m: late.append(stamp_ns(m)), rclpy_qos(TOPIC_PREOP)
         )
         assert probe.wait_for(lambda: late, 10), "the latched /preop/points did not reach a late subscriber"
         start = time.monotonic()

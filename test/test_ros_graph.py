@@ -10,11 +10,11 @@ rclpy = require_rclpy()
 
 from ros_support import BAG_A, BAG_B, bag_frames_m, bag_raw, clean_stderr, levels, start_graph  # noqa: E402
 
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP  # noqa: E402
 from liver_p2p_reg.livegraph.graph import level_of, stamp_ns, values_of  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import FLOAT32, points_to_cloud  # noqa: E402
 from liver_p2p_reg.ros.register_node import RCLPY_TYPES  # noqa: E402
-from liver_p2p_reg.stream.core import ERROR, OK, WARN  # noqa: E402
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP  # noqa: E402
+from liver_p2p_reg.stream.outputs import ERROR, OK, WARN  # noqa: E402
 
 TYPES = RCLPY_TYPES.cloud
 

@@ -10,12 +10,12 @@ from ros_support import BAGS  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from liver_p2p_reg.bags.io import BagWriter, bag_custom_data, read_messages  # noqa: E402
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS  # noqa: E402
 from liver_p2p_reg.bags.replay import replay_bag  # noqa: E402
 from liver_p2p_reg.config import Config  # noqa: E402
 from liver_p2p_reg.livegraph.demo import format_graph_table, run_graph  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m  # noqa: E402
-from liver_p2p_reg.stream.core import RATE_TOLERANCE  # noqa: E402
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS  # noqa: E402
+from liver_p2p_reg.stream.intake import RATE_TOLERANCE  # noqa: E402
 
 # Every frame a full registration: a pose then depends only on its model and cloud, so frames the
 # live node drops under load (latest-only) cannot change the others, and each compares one to one.

@@ -3,9 +3,9 @@
 import dataclasses
 from pathlib import Path
 
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 from liver_p2p_reg.bags.replay import OUTPUT_TOPICS
 from liver_p2p_reg.config import Config
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 
 DOCS = Path(__file__).resolve().parents[1] / "msg_docs"
 

@@ -7,8 +7,11 @@ from scipy.spatial.transform import Rotation
 from liver_p2p_reg.bags.io import rosbags_types
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.registrar import available_methods
+from liver_p2p_reg.ros.messages import feed_intraop_msg
 from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
-from liver_p2p_reg.stream.core import ERROR, OK, STALE, WARN, NodeCore
+from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.intake import FIDUCIAL_WAIT_S
+from liver_p2p_reg.stream.outputs import ERROR, OK, STALE, WARN
 
 TYPES = rosbags_types()
 
@@ -73,7 +76,7 @@ def test_status_is_stale_before_anything():
 )
 def test_bad_intraop_clouds(points, level, text):
     core = core_with_preop()
-    assert core.on_intraop_msg(cloud_msg(points)) == []
+    assert feed_intraop_msg(core, cloud_msg(points)) == []
     diag = only_diag(core.process_pending(0.0))
     assert diag.level == level and text in diag.message
     assert core.last_output.pose is None
@@ -83,7 +86,7 @@ def test_missing_z_field_is_error():
     msg = cloud_msg(liver_like(), extra_fields={"intensity": np.ones(2000, np.float32)})
     msg.fields = [f for f in msg.fields if f.name != "z"]
     core = core_with_preop()
-    core.on_intraop_msg(msg)
+    feed_intraop_msg(core, msg)
     diag = only_diag(core.process_pending(0.0))
     assert diag.level == ERROR and "lacks field" in diag.message
 
@@ -92,7 +95,7 @@ def test_million_point_cloud_is_voxelized_first():
     rng = np.random.default_rng(1)
     tiny = rng.uniform(0, 3.0, size=(1_000_000, 3)) + 100.0  # a 3 mm cube: few voxels survive
     core = core_with_preop()
-    core.on_intraop_msg(cloud_msg(tiny))
+    feed_intraop_msg(core, cloud_msg(tiny))
     diag = only_diag(core.process_pending(0.0))
     assert diag.level == ERROR and "too few" in diag.message
     assert diag.values["input_points"] == "1000000"
@@ -109,11 +112,11 @@ def test_bad_preop_is_rejected():
 def test_preop_in_wrong_units_never_gives_a_pose():
     core = NodeCore(Config(method="icp"))
     assert core.set_preop(liver_like() * 1000).level == WARN  # kept, flagged
-    core.on_intraop_msg(cloud_msg(liver_like()))
+    feed_intraop_msg(core, cloud_msg(liver_like()))
     diag = only_diag(core.process_pending(0.0))
     assert diag.level == ERROR and diag.message.startswith("preop model extent") and "wrong units" in diag.message
     assert core.set_preop(liver_like()).level == OK  # a model in mm (as metres) clears it
-    core.on_intraop_msg(cloud_msg(liver_like(), stamp_ns=2))
+    feed_intraop_msg(core, cloud_msg(liver_like(), stamp_ns=2))
     assert core.process_pending(10.0).pose is not None
 
 
@@ -121,7 +124,7 @@ def test_cloud_without_frame_id_gets_no_pose():
     core = core_with_preop()
     msg = cloud_msg(liver_like())
     msg.header.frame_id = ""
-    core.on_intraop_msg(msg)
+    feed_intraop_msg(core, msg)
     diag = only_diag(core.process_pending(0.0))
     assert diag.level == ERROR and "empty header.frame_id" in diag.message
 
@@ -315,8 +318,6 @@ def test_tre_needs_the_frames_own_fiducials_and_the_current_models():
 
 
 def test_a_cloud_waits_briefly_for_its_own_fiducials_while_ground_truth_streams():
-    from liver_p2p_reg.stream.core import FIDUCIAL_WAIT_S
-
     core = core_with_preop()
     core.set_preop_fiducials(liver_like(5))
     core.set_intraop_fiducials(liver_like(5), 1)
@@ -329,8 +330,6 @@ def test_a_cloud_waits_briefly_for_its_own_fiducials_while_ground_truth_streams(
 def test_a_stream_faster_than_the_fiducial_wait_is_still_registered():
     """A newer cloud replaces a waiting one without restarting the wait: at 10 Hz without fiducials
     (a model with markers, no cloud of it paired yet) every cloud used to push the wait 0.3 s on."""
-    from liver_p2p_reg.stream.core import FIDUCIAL_WAIT_S
-
     core = core_with_preop()
     core.set_preop_fiducials(liver_like(5))
     registered = []

@@ -11,10 +11,10 @@ rclpy = require_rclpy()
 
 from ros_support import BAG_B, bag_frames_m, clean_stderr, start_graph  # noqa: E402
 
-from liver_p2p_reg.bags.make import TOPIC_PREOP  # noqa: E402
 from liver_p2p_reg.livegraph.graph import NodeProcess, set_isolated_environment  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import points_to_cloud  # noqa: E402
 from liver_p2p_reg.ros.register_node import RCLPY_TYPES  # noqa: E402
+from liver_p2p_reg.ros.topics import TOPIC_PREOP  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ rclpy = require_rclpy()
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -19,7 +19,16 @@ from liver_p2p_reg.errors import InputError  # noqa: E402
 from liver_p2p_reg.registration.registrar import available_methods  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud  # noqa: E402
 from liver_p2p_reg.ros.preop_loader_node import PreopLoaderNode  # noqa: E402
-from liver_p2p_reg.ros.register_node import LATCHED_QOS, RCLPY_TYPES, RegisterNode  # noqa: E402
+from liver_p2p_reg.ros.register_node import RCLPY_TYPES, RegisterNode  # noqa: E402
+from liver_p2p_reg.ros.topics import (  # noqa: E402
+    TOPIC_INTRAOP,
+    TOPIC_INTRAOP_FIDUCIALS,
+    TOPIC_POSE,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+    TOPIC_REGISTERED,
+    rclpy_qos,
+)
 
 
 @pytest.fixture
@@ -34,6 +43,14 @@ def spin_until(executor, condition, timeout_s=30.0):
     while not condition() and time.monotonic() < end:
         executor.spin_once(timeout_sec=0.05)
     return condition()
+
+
+def test_topic_qos_is_what_msg_docs_say_in_rclpy_terms():
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    assert rclpy_qos(TOPIC_PREOP) == rclpy_qos(TOPIC_PREOP_FIDUCIALS) == latched
+    assert rclpy_qos(TOPIC_INTRAOP) == qos_profile_sensor_data  # rclpy's own preset
+    assert rclpy_qos(TOPIC_INTRAOP_FIDUCIALS) == rclpy_qos(TOPIC_POSE) == QoSProfile(depth=10)  # reliable, volatile
+    assert rclpy_qos(TOPIC_REGISTERED) == QoSProfile(depth=1)
 
 
 def test_rclpy_pointcloud2_round_trip():
@@ -53,23 +70,23 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
     node = RegisterNode(parameter_overrides=[Parameter("method", value="procrustes")])
     helper = rclpy.create_node("test_helper")
     poses = []
-    helper.create_subscription(PoseStamped, "/registration/pose", poses.append, 10)
+    helper.create_subscription(PoseStamped, TOPIC_POSE, poses.append, rclpy_qos(TOPIC_POSE))
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)
     executor.add_node(helper)
     try:
         types = RCLPY_TYPES.cloud
-        helper.create_publisher(PointCloud2, "/preop/points", LATCHED_QOS).publish(
+        helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
             points_to_cloud(preop_m, types, frame_id="ct")
         )
-        helper.create_publisher(PointCloud2, "/preop/fiducials", LATCHED_QOS).publish(
+        helper.create_publisher(PointCloud2, TOPIC_PREOP_FIDUCIALS, rclpy_qos(TOPIC_PREOP_FIDUCIALS)).publish(
             points_to_cloud(fid_m, types, frame_id="ct")
         )
-        helper.create_publisher(PointCloud2, "/intraop/fiducials", 10).publish(
+        helper.create_publisher(PointCloud2, TOPIC_INTRAOP_FIDUCIALS, rclpy_qos(TOPIC_INTRAOP_FIDUCIALS)).publish(
             points_to_cloud(fid_m + offset, types, frame_id="camera", stamp_ns=7)
         )
         assert spin_until(executor, lambda: node.core.preop_mm is not None)
-        intraop = helper.create_publisher(PointCloud2, "/intraop/points", qos_profile_sensor_data)
+        intraop = helper.create_publisher(PointCloud2, TOPIC_INTRAOP, rclpy_qos(TOPIC_INTRAOP))
         intraop.publish(points_to_cloud(preop_m[preop_m[:, 0] > 0] + offset, types, frame_id="camera", stamp_ns=7))
         assert spin_until(executor, lambda: len(poses) > 0)
         p = poses[0].pose.position

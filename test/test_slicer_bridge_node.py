@@ -30,7 +30,6 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import Point, PoseStamped  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
@@ -41,17 +40,10 @@ from liver_p2p_reg.config import Config, SlicerConfig  # noqa: E402
 from liver_p2p_reg.igtl.link import level_of, pose_to_T_mm  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns  # noqa: E402
 from liver_p2p_reg.ros.slicer_bridge_node import STATUS_NAME  # noqa: E402
-from liver_p2p_reg.stream.core import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME  # noqa: E402
+from liver_p2p_reg.ros.topics import rclpy_qos  # noqa: E402
+from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME  # noqa: E402
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "insilico_L9000001_D00_T007_random"
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-QOS = {
-    "/preop/points": LATCHED,
-    "/preop/mesh": LATCHED,
-    "/intraop/points": qos_profile_sensor_data,
-    "/registration/pose": 10,
-    "/diagnostics": 10,
-}
 TYPES = {
     "/preop/points": PointCloud2,
     "/preop/mesh": Marker,
@@ -118,7 +110,7 @@ class Player:
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("slicer_test_player", context=self.context)
-        self.publishers = {t: self.node.create_publisher(TYPES[t], t, QOS[t]) for t in TYPES}
+        self.publishers = {t: self.node.create_publisher(TYPES[t], t, rclpy_qos(t)) for t in TYPES}
         self.statuses: list = []  # the bridge's own
         self.registration: list = []  # register_node's registration statuses, periodic ones included
         self.models: list = []  # register_node's preop-model statuses

@@ -21,7 +21,7 @@ from liver_p2p_reg.igtl import scene
 from liver_p2p_reg.igtl.link import level_of, pose_to_T_mm
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
-from liver_p2p_reg.stream.core import DIAG_NAME, LEVEL_NAMES
+from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "insilico_L9000001_D00_T007_random"  # visibility 0.9, OK
 

@@ -10,7 +10,8 @@ from liver_p2p_reg.bags.io import read_messages
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
-from liver_p2p_reg.stream.core import OK, WARN, NodeCore
+from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.outputs import OK, WARN
 from liver_p2p_reg.stream.survey import FusedSurface
 
 SWEEP = Path(__file__).resolve().parents[1] / "bags" / "sweep_insilico_9000002"

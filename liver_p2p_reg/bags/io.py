@@ -7,12 +7,16 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.ros.pointcloud2 import MessageTypes
+from liver_p2p_reg.ros.topics import INPUT_TOPICS, qos_of
+
+if TYPE_CHECKING:
+    from liver_p2p_reg.ros.messages import OutputTypes
 
 # rosbag2 metadata version 9 is what Jazzy's rosbag2 (0.26) writes: QoS profiles as a YAML list.
 BAG_VERSION = 9
@@ -39,6 +43,28 @@ def rosbags_types() -> MessageTypes:
         Header=types["std_msgs/msg/Header"],
         Time=types["builtin_interfaces/msg/Time"],
         wrap_bytes=lambda raw: np.frombuffer(raw, dtype=np.uint8).copy(),
+    )
+
+
+def rosbags_output_types() -> OutputTypes:
+    """Output message classes (pose, transform, diagnostics) from the rosbags Jazzy typestore."""
+    # imported here: ros.messages brings the stream core (scipy), which reading a bag does not need
+    from liver_p2p_reg.ros.messages import OutputTypes
+
+    t = typestore().types
+    return OutputTypes(
+        cloud=rosbags_types(),
+        PoseStamped=t[POSE_STAMPED],
+        Pose=t["geometry_msgs/msg/Pose"],
+        Point=t["geometry_msgs/msg/Point"],
+        Quaternion=t["geometry_msgs/msg/Quaternion"],
+        TransformStamped=t[TRANSFORM_STAMPED],
+        Transform=t["geometry_msgs/msg/Transform"],
+        Vector3=t["geometry_msgs/msg/Vector3"],
+        DiagnosticArray=t[DIAGNOSTIC_ARRAY],
+        DiagnosticStatus=t["diagnostic_msgs/msg/DiagnosticStatus"],
+        KeyValue=t["diagnostic_msgs/msg/KeyValue"],
+        level=int,
     )
 
 
@@ -121,8 +147,9 @@ def _qos(*, latched: bool, best_effort: bool = False, depth: int = 1) -> Any:
     )
 
 
-# Offered QoS recorded per topic so `ros2 bag play` republishes latched topics as latched.
-LATCHED_TOPICS = ("/preop/points", "/preop/fiducials")
+# Offered QoS recorded per topic so `ros2 bag play` republishes latched topics as latched
+# (the inputs' documented profiles, ros.topics; every other recorded QoS: reliable, volatile, depth 1).
+LATCHED_TOPICS = tuple(topic for topic in INPUT_TOPICS if qos_of(topic).latched)
 
 
 class BagWriter:

@@ -15,11 +15,8 @@ from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, points_to_cloud
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 
-TOPIC_PREOP = "/preop/points"
-TOPIC_PREOP_FIDUCIALS = "/preop/fiducials"
-TOPIC_INTRAOP = "/intraop/points"
-TOPIC_INTRAOP_FIDUCIALS = "/intraop/fiducials"
 CASE_KEY = "liver_p2p_reg.case"  # metadata.yaml custom_data key holding the case description (JSON)
 START_NS = 1_700_000_000 * 1_000_000_000  # fixed start time: identical bags for identical inputs
 
@@ -225,7 +222,7 @@ def write_frames(
 
 def load_case_npz(path: str | Path) -> dict[str, Any]:
     """A case NPZ (ours or the public P2P layout: src_pcd, tgt_pcd, src_marker|src_vol, tgt_marker|tgt_vol), mm."""
-    from liver_p2p_reg.phantom.dataset import read_case  # the one reader of case files (both layouts)
+    from liver_p2p_reg.phantom.casefile import read_case  # the one reader of case files (both layouts)
 
     path = Path(path)
     if not path.is_file():

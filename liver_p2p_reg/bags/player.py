@@ -10,20 +10,14 @@ from pathlib import Path
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.ros.topics import INPUT_TOPICS, RELIABLE, Qos, qos_of
 
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-# The QoS of each input topic as msg_docs/ documents it; any other topic is played reliable, depth 10.
-QOS_BY_TOPIC = {
-    TOPIC_PREOP: LATCHED_QOS,
-    TOPIC_PREOP_FIDUCIALS: LATCHED_QOS,
-    TOPIC_INTRAOP: qos_profile_sensor_data,
-    TOPIC_INTRAOP_FIDUCIALS: RELIABLE_QOS,
-}
+
+def played_qos(topic: str) -> Qos:
+    """The QoS a topic is played with: an input topic's as msg_docs/ documents it, any other reliable, depth 10."""
+    return qos_of(topic) if topic in INPUT_TOPICS else RELIABLE
 
 
 @dataclass
@@ -85,7 +79,7 @@ class BagPlayer:
         self.publishers: dict[str, Any] = {}
         for topic, msgtype, _, _ in self.messages:
             if topic not in self.publishers:
-                qos = QOS_BY_TOPIC.get(topic, RELIABLE_QOS)
+                qos = played_qos(topic).rclpy_profile()
                 self.publishers[topic] = node.create_publisher(message_class(msgtype), topic, qos)
 
     def wait_for_subscribers(self, timeout_s: float, topics: Iterable[str] | None = None) -> bool:

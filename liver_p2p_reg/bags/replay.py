@@ -18,22 +18,38 @@ from liver_p2p_reg.bags.io import (
     BagWriter,
     bag_custom_data,
     read_messages,
+    rosbags_output_types,
 )
-from liver_p2p_reg.bags.make import CASE_KEY, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
+from liver_p2p_reg.bags.make import CASE_KEY
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.confidence import result_warnings
 from liver_p2p_reg.registration.methods import check_method_name
 from liver_p2p_reg.registration.registrar import Registrar
-from liver_p2p_reg.ros.messages import diagnostic_array, pose_stamped, rosbags_output_types, transform_stamped
-from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, cloud_to_points_mm, points_to_cloud
-from liver_p2p_reg.stream.core import ERROR, LEVEL_NAMES, OK, CoreOutput, NodeCore
+from liver_p2p_reg.ros.messages import (
+    diagnostic_array,
+    feed_intraop_fiducials_msg,
+    feed_intraop_msg,
+    feed_preop_fiducials_msg,
+    feed_preop_msg,
+    pose_stamped,
+    transform_stamped,
+)
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, cloud_to_points_mm, points_to_cloud, stamp_to_ns
+from liver_p2p_reg.ros.topics import (
+    TOPIC_DIAGNOSTICS,
+    TOPIC_INTRAOP,
+    TOPIC_INTRAOP_FIDUCIALS,
+    TOPIC_POSE,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+    TOPIC_REGISTERED,
+    TOPIC_TRANSFORM,
+)
+from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.outputs import ERROR, LEVEL_NAMES, OK, CoreOutput
 
 LOG = logging.getLogger("liver_p2p_reg.replay")
-TOPIC_POSE = "/registration/pose"
-TOPIC_TRANSFORM = "/registration/transform"
-TOPIC_REGISTERED = "/registration/registered_preop"
-TOPIC_DIAGNOSTICS = "/diagnostics"
 OUTPUT_TOPICS = {
     TOPIC_POSE: POSE_STAMPED,
     TOPIC_TRANSFORM: TRANSFORM_STAMPED,
@@ -132,7 +148,7 @@ def replay_bag(
             if item.msgtype != POINTCLOUD2:
                 continue
             if item.topic == TOPIC_PREOP:
-                diag = core.on_preop_msg(item.msg)
+                diag = feed_preop_msg(core, item.msg)
                 if writer is not None:
                     writer.write(
                         TOPIC_DIAGNOSTICS,
@@ -141,18 +157,22 @@ def replay_bag(
                         diagnostic_array([diag], item.timestamp_ns, types),
                     )
             elif item.topic == TOPIC_PREOP_FIDUCIALS:
-                core.on_preop_fiducials_msg(item.msg)
+                feed_preop_fiducials_msg(core, item.msg)
             elif item.topic == TOPIC_INTRAOP_FIDUCIALS:
-                core.on_intraop_fiducials_msg(item.msg)
+                feed_intraop_fiducials_msg(core, item.msg)
                 latest["fiducials"] = item.msg
             elif item.topic == TOPIC_INTRAOP:
                 frames += 1
                 latest["cloud"] = item.msg
                 if max_frames and len(outputs) >= max_frames:
                     continue
-                for diag in core.on_intraop_msg(item.msg):
+                for diag in feed_intraop_msg(core, item.msg):
                     emit(CoreOutput([diag]), item.timestamp_ns, item.timestamp_ns)
-                emit(core.process_pending(item.timestamp_ns * 1e-9), _stamp(item.msg), item.timestamp_ns)
+                emit(
+                    core.process_pending(item.timestamp_ns * 1e-9),
+                    stamp_to_ns(item.msg.header.stamp),
+                    item.timestamp_ns,
+                )
         if not (max_frames and len(outputs) >= max_frames):
             emit(core.flush(), last_ns, last_ns + 1)
     finally:
@@ -204,11 +224,6 @@ def _plot_frame(
         target_fiducials_mm=fid_t,
         title=title,
     )
-
-
-def _stamp(msg: object) -> int:
-    stamp = msg.header.stamp  # type: ignore[attr-defined]
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _summarize(

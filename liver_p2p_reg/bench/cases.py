@@ -51,7 +51,7 @@ def visibility_bin(visibility: float) -> int | None:
 def read_case(path: Path) -> dict[str, Any]:
     """Read one case NPZ into a dict of arrays and Python scalars; InputError if unusable."""
     try:
-        from liver_p2p_reg.phantom.dataset import read_case as phantom_read_case  # the generator's own reader
+        from liver_p2p_reg.phantom.casefile import read_case as phantom_read_case  # the generator's own reader
     except ImportError:
         phantom_read_case = None
     try:
@@ -95,7 +95,7 @@ def case_info(path: Path) -> CaseInfo:
 
 def sensor_origin_mm(data: dict[str, Any]) -> np.ndarray | None:
     """The camera position a case stores (mm, target frame); None when it has none (random crops, older files)."""
-    from liver_p2p_reg.phantom.dataset import sensor_origin_mm as stored_origin  # the generator owns the key
+    from liver_p2p_reg.phantom.casefile import sensor_origin_mm as stored_origin  # the generator owns the key
 
     return stored_origin(data)
 

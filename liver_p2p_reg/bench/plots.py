@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 
 from liver_p2p_reg.bench.cases import BIN_EDGES, BIN_LABELS
+from liver_p2p_reg.bench.jobs import ORACLE
 from liver_p2p_reg.bench.stats import METHOD_ORDER, Row, by_bin, main_rows, order_methods, select, success_curve, where
 from liver_p2p_reg.plotting import pyplot
 
 TAUS_MM = np.linspace(0.0, 40.0, 81)
-ORACLE = "procrustes"
 # One colour per method, the same in every figure: the oracle black and dashed, the default method
 # red and thicker, the others from this list (distinct from both and from each other) by their
 # place in METHOD_ORDER, then alphabetically.

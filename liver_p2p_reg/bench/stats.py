@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import ranksums
 
-from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
+from liver_p2p_reg.bench.cases import BIN_EDGES, BIN_LABELS, visibility_bin
 
 Row = dict[str, Any]
 ALPHA = 0.05  # significance level of the rank-sum tests (the paper's)
@@ -57,6 +57,13 @@ def by_bin(rows: list[Row], key: str = "rms_tre_mm") -> list[np.ndarray]:
         if b is not None:
             groups[b].append(float(r[key]))
     return [np.asarray(g, float) for g in groups]
+
+
+def in_bin(index: int) -> Callable[[Row], bool]:
+    """Whether a row's visibility lies in bin `index` of BIN_LABELS (the last bin is closed)."""
+    lo, hi = BIN_EDGES[index], BIN_EDGES[index + 1]
+    last = index == len(BIN_LABELS) - 1
+    return lambda r: lo <= r["visibility"] < hi or (last and r["visibility"] == hi)
 
 
 def select(rows: list[Row], **equal: Any) -> list[Row]:

@@ -129,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
         select_cases,
         with_noise,
     )
-    from liver_p2p_reg.bench.harness import BenchmarkSpec, check_settings, run_benchmark
+    from liver_p2p_reg.bench.harness import run_benchmark
+    from liver_p2p_reg.bench.jobs import BenchmarkSpec, check_settings
     from liver_p2p_reg.bench.sysinfo import machine_info
     from liver_p2p_reg.registration.methods import method_names  # the table: imports no torch or Open3D
 
@@ -212,8 +213,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dict, command: str) -> None:
-    from liver_p2p_reg.bench.harness import SETTINGS_JSON
-    from liver_p2p_reg.bench.summary import relative_link, replace_readme_block, write_summary
+    from liver_p2p_reg.bench.jobs import SETTINGS_JSON
+    from liver_p2p_reg.bench.readme import relative_link, replace_readme_block
+    from liver_p2p_reg.bench.summary import write_summary
 
     settings = json.loads((out / SETTINGS_JSON).read_text())
     summary = write_summary(out, rows, settings, machine, command)
@@ -228,7 +230,8 @@ def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dic
 
 def _summary_only(args: argparse.Namespace) -> int:
     """Rewrite the reports of an existing OUT; machine and command are those recorded by its last run."""
-    from liver_p2p_reg.bench.harness import CASES_CSV, SETTINGS_JSON, read_rows
+    from liver_p2p_reg.bench.cases_csv import CASES_CSV, read_rows
+    from liver_p2p_reg.bench.jobs import SETTINGS_JSON
 
     out = Path(args.out)
     if not (out / CASES_CSV).is_file() or not (out / SETTINGS_JSON).is_file():

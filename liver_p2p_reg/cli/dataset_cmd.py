@@ -87,7 +87,7 @@ def run_generate(args: argparse.Namespace) -> int:
 
 
 def run_stats(args: argparse.Namespace) -> int:
-    from liver_p2p_reg.phantom.dataset import read_manifest
+    from liver_p2p_reg.phantom.manifest import read_manifest
     from liver_p2p_reg.phantom.stats import STAT_COLUMNS, plot_histograms, summarize
 
     directory = Path(args.dir)

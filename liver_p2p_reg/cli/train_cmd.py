@@ -27,7 +27,9 @@ def run(args: argparse.Namespace) -> int:
     """Train; print where the best weights are."""
     import torch
 
-    from liver_p2p_reg.training.train import TrainConfig, export_weights, train
+    from liver_p2p_reg.training.export import export_weights
+    from liver_p2p_reg.training.train import train
+    from liver_p2p_reg.training.train_config import TrainConfig
 
     if args.export:
         import subprocess

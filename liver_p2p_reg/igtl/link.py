@@ -17,11 +17,12 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_PREOP
+from liver_p2p_reg.bags.io import POINTCLOUD2, typestore
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl.bridge import SlicerBridge
 from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_points_mm, stamp_to_ns
-from liver_p2p_reg.stream.core import DIAG_NAME, LEVEL_NAMES, CoreOutput
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_POSE, TOPIC_PREOP, TOPIC_PREOP_MESH
+from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, CoreOutput
 
 LOG = logging.getLogger("liver_p2p_reg.slicer")
 # NodeCore.status() adds these counters to the last registration's diagnostic for its periodic
@@ -29,7 +30,6 @@ LOG = logging.getLogger("liver_p2p_reg.slicer")
 PERIODIC_STATUS_KEY = "received_clouds"
 KEPT_CLOUDS = 64  # decimated intraop clouds kept to pair with the pose of the same stamp (2 s at 30 Hz)
 MARKER_TRIANGLE_LIST = 11  # visualization_msgs/Marker.TRIANGLE_LIST
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 
 
 def decimated_points_mm(msg: Any, max_points: int) -> np.ndarray:
@@ -107,7 +107,7 @@ class SlicerLink:
         stamp = stamp_to_ns(msg.header.stamp)
         if self._mesh_stamp == stamp:
             return
-        self._guard("/preop/points", lambda: self._send_model(cloud_to_points_mm(msg), None, stamp))
+        self._guard(TOPIC_PREOP, lambda: self._send_model(cloud_to_points_mm(msg), None, stamp))
 
     def on_mesh_msg(self, msg: Any) -> None:
         """/preop/mesh (visualization_msgs/Marker TRIANGLE_LIST, metres): the model as a mesh."""
@@ -123,7 +123,7 @@ class SlicerLink:
             self._send_model(vertices, corner_vertex.reshape(-1, 3), stamp)
             self._mesh_stamp = stamp
 
-        self._guard("/preop/mesh", send)
+        self._guard(TOPIC_PREOP_MESH, send)
 
     def on_intraop_msg(self, msg: Any) -> None:
         """/intraop/points: decimated now (bounded work and memory) and kept until its pose arrives."""
@@ -135,22 +135,20 @@ class SlicerLink:
                 while len(self._clouds) > KEPT_CLOUDS:
                     self._clouds.popitem(last=False)
 
-        self._guard("/intraop/points", keep)
+        self._guard(TOPIC_INTRAOP, keep)
 
     def on_intraop_cdr(self, raw: bytes) -> None:
         """/intraop/points as serialized CDR bytes (an rclpy raw subscription skips deserializing clouds)."""
-        from liver_p2p_reg.bags.io import typestore
-
         try:
             msg = typestore().deserialize_cdr(raw, POINTCLOUD2)
         except Exception as exc:  # rosbags raises its own error types for malformed CDR
-            self._bad("/intraop/points", f"not a PointCloud2 ({type(exc).__name__})")
+            self._bad(TOPIC_INTRAOP, f"not a PointCloud2 ({type(exc).__name__})")
             return
         self.on_intraop_msg(msg)
 
     def on_pose_msg(self, msg: Any) -> None:
         """/registration/pose: the CTToSensor TRANSFORM, then the cloud that was registered."""
-        self._guard("/registration/pose", lambda: self.send_pose(pose_to_T_mm(msg.pose), stamp_to_ns(msg.header.stamp)))
+        self._guard(TOPIC_POSE, lambda: self.send_pose(pose_to_T_mm(msg.pose), stamp_to_ns(msg.header.stamp)))
 
     def on_diagnostics_msg(self, msg: Any) -> None:
         """/diagnostics: a STRING for each registration attempt (not for the periodic summary)."""
@@ -162,7 +160,7 @@ class SlicerLink:
             self.bridge.send_status(level, status.message, stamp)
             self.counters["statuses_sent"] += 1
 
-    # ---------------------------------------------------------------- bag replay (ros/replay.py observer)
+    # ---------------------------------------------------------------- bag replay (bags/replay.py observer)
     def on_input(self, topic: str, msg: Any) -> None:
         if topic == TOPIC_PREOP:
             self.on_preop_msg(msg)

@@ -12,9 +12,8 @@ import numpy as np
 from rclpy.serialization import serialize_message
 
 from liver_p2p_reg.bags.io import BagWriter, read_messages
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 from liver_p2p_reg.bags.player import BagPlayer, Played
-from liver_p2p_reg.bags.replay import fmt, markdown_table
+from liver_p2p_reg.bags.replay import OUTPUT_TOPICS, fmt, markdown_table
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.livegraph.graph import (
@@ -26,14 +25,17 @@ from liver_p2p_reg.livegraph.graph import (
     values_of,
 )
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m
-from liver_p2p_reg.stream.core import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME
+from liver_p2p_reg.ros.topics import (
+    TOPIC_DIAGNOSTICS,
+    TOPIC_INTRAOP,
+    TOPIC_INTRAOP_FIDUCIALS,
+    TOPIC_POSE,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+)
+from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME
 
-RECORDED_TYPES = {
-    "/registration/pose": "geometry_msgs/msg/PoseStamped",
-    "/registration/transform": "geometry_msgs/msg/TransformStamped",
-    "/registration/registered_preop": "sensor_msgs/msg/PointCloud2",
-    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
-}
+RECORDED_TYPES = OUTPUT_TOPICS  # what the graph publishes, recorded like replay's output bags
 SETTLE_S = 15.0  # after the last cloud, how long the last registration may take to arrive
 
 
@@ -77,7 +79,7 @@ def model_files(bag: Path, folder: Path) -> tuple[Path, Path | None]:
 def run_bag(probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dict[str, str]) -> GraphRow:
     """Loader for the bag's model, then its /intraop/* played live, then one ~/reregister call."""
     model, fiducials = model_files(bag, out_dir)
-    diag_index = probe.count("/diagnostics")
+    diag_index = probe.count(TOPIC_DIAGNOSTICS)
     starts = {topic: probe.count(topic) for topic in RECORDED_TYPES}
     params = {"model_path": str(model), "units": "m"}
     if fiducials is not None:
@@ -124,7 +126,7 @@ def _row(name: str, probe: GraphProbe, diag_index: int, starts: dict, clouds: di
             levels.append((level_of(status), status.message))
     poses = {}
     latency = []
-    for item in probe.since("/registration/pose", starts["/registration/pose"]):
+    for item in probe.since(TOPIC_POSE, starts[TOPIC_POSE]):
         stamp = stamp_ns(item.msg)
         if stamp in clouds and stamp not in poses:
             p, q = item.msg.pose.position, item.msg.pose.orientation
@@ -179,7 +181,7 @@ def run_graph(
             log(f"  {bag.name}: {rows[-1].registered}/{rows[-1].frames} poses, {rows[-1].status}")
             if not node.alive():
                 raise InputError(f"register_node exited with status {node.proc.returncode} (see {log_dir})")
-        first_pose = probe.since("/registration/pose")
+        first_pose = probe.since(TOPIC_POSE)
         startup_s = first_pose[0].received_s - node.started_s if first_pose else float("nan")
     finally:
         code, took = node.stop(signal.SIGINT)

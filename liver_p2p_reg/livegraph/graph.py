@@ -28,8 +28,15 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from liver_p2p_reg.bags.make import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
-from liver_p2p_reg.bags.player import QOS_BY_TOPIC, RELIABLE_QOS
+from liver_p2p_reg.bags.player import played_qos
+from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
+from liver_p2p_reg.ros.topics import (
+    INPUT_TOPICS,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_POSE,
+    TOPIC_REGISTERED,
+    TOPIC_TRANSFORM,
+)
 
 NODE_MODULES = {
     "register_node": "liver_p2p_reg.ros.register_node",
@@ -163,10 +170,10 @@ class GraphProbe:
     """
 
     RECORDED = {
-        "/registration/pose": PoseStamped,
-        "/registration/transform": TransformStamped,
-        "/registration/registered_preop": PointCloud2,
-        "/diagnostics": DiagnosticArray,
+        TOPIC_POSE: PoseStamped,
+        TOPIC_TRANSFORM: TransformStamped,
+        TOPIC_REGISTERED: PointCloud2,
+        TOPIC_DIAGNOSTICS: DiagnosticArray,
         "/rosout": Log,
     }
 
@@ -181,9 +188,9 @@ class GraphProbe:
         for topic, kind in self.RECORDED.items():
             qos = rosout_qos if topic == "/rosout" else 50
             self.node.create_subscription(kind, topic, self._recorder(topic), qos)
-        self.publishers = {
-            topic: self.node.create_publisher(PointCloud2, topic, QOS_BY_TOPIC.get(topic, RELIABLE_QOS))
-            for topic in (TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS)
+        self.publishers = {  # with the QoS a bag's player gives them
+            topic: self.node.create_publisher(PointCloud2, topic, played_qos(topic).rclpy_profile())
+            for topic in INPUT_TOPICS
         }
         # Clients live as long as the probe: a client made just before its call may send the request
         # before the service's reply path has discovered it, and the reply is lost (rmw: timeout).
@@ -229,7 +236,7 @@ class GraphProbe:
     def diagnostics(self, index: int = 0, name: str | None = None) -> list[tuple[Any, float]]:
         """(DiagnosticStatus, received_s) of every status received since `index` (optionally by name)."""
         out = []
-        for item in self.since("/diagnostics", index):
+        for item in self.since(TOPIC_DIAGNOSTICS, index):
             for status in item.msg.status:
                 if name is None or status.name == name:
                     out.append((status, item.received_s))
@@ -320,7 +327,8 @@ def values_of(status: Any) -> dict[str, str]:
 
 
 def stamp_ns(msg: Any) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+    """A stamped message's header stamp, ns."""
+    return stamp_to_ns(msg.header.stamp)
 
 
 def set_isolated_environment(domain_id: int | None = None) -> dict[str, str]:

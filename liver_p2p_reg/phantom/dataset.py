@@ -1,4 +1,4 @@
-"""In silico registration cases on disk: one NPZ per case, a CSV manifest, deterministic generation.
+"""In silico datasets: cases made from simulated livers and generated deterministically into a folder.
 
 Every random stream is derived from indices only -- liver id, deformation index, target index
 -- never from worker order, so a dataset is identical for any number of workers and can be
@@ -9,10 +9,8 @@ other seed are disjoint from them by construction.
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import os
 import zipfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -22,7 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.phantom.casefile import SENSOR_ORIGIN_KEY, read_case, write_case
 from liver_p2p_reg.phantom.crop import CROP_MODES, make_target
+from liver_p2p_reg.phantom.manifest import manifest_row, read_manifest, write_manifest
 from liver_p2p_reg.phantom.simulate import SimulatedLiver, simulate_liver
 from liver_p2p_reg.registration.visibility import VisibilityMeter
 
@@ -42,44 +42,6 @@ RESERVED_SEEDS = range(900, 1000)
 REAL_LIVER_SEED = 500
 MAX_LIVERS_PER_SEED = 10_000
 COMPLETE_MARKER = "complete.json"
-CASE_KEYS = (
-    "src_pcd",
-    "tgt_pcd",
-    "src_marker",
-    "tgt_marker",
-    "R_gt",
-    "t_gt",
-    "visibility",
-    "visibility_requested",
-    "deformation_rms_mm",
-    "deformation_max_mm",
-    "noise_mm",
-    "crop_mode",
-    "liver_id",
-    "deformation_id",
-    "target_id",
-    "seed",
-    "generator_version",
-)
-# Optional keys: camera crops also store where the camera stood (the eye), in the target frame.
-# Case files made before it existed lack it: their sensor origin is unknown.
-SENSOR_ORIGIN_KEY = "sensor_origin_mm"
-MANIFEST_FIELDS = (
-    "file",
-    "split",
-    "liver_id",
-    "deformation_id",
-    "target_id",
-    "crop_mode",
-    "noise_mm",
-    "visibility",
-    "visibility_requested",
-    "deformation_rms_mm",
-    "deformation_max_mm",
-    "initial_rms_tre_mm",
-    "n_src",
-    "n_tgt",
-)
 
 
 def make_case(
@@ -137,72 +99,6 @@ def make_case(
     eye = target["crop_info"].get("eye_mm")
     if eye is not None:  # the eye moves with the target: the same R_gt, t_gt (noise is the sensor's own)
         case[SENSOR_ORIGIN_KEY] = R @ np.asarray(eye, dtype=np.float64) + t
-    return case
-
-
-def sensor_origin_mm(case: dict) -> np.ndarray | None:
-    """The camera position of a case (mm, target frame), or None when unknown (random crops, older files)."""
-    value = case.get(SENSOR_ORIGIN_KEY)
-    if value is None:
-        return None
-    origin = np.asarray(value, dtype=np.float64).reshape(-1)
-    return origin if origin.shape == (3,) and np.isfinite(origin).all() else None
-
-
-def write_case(path: str | Path, case: dict) -> Path:
-    """Write a case as a compressed NPZ without pickled objects (clouds stored as float32)."""
-    path = Path(path)
-    missing = [k for k in ("src_pcd", "tgt_pcd", "src_marker", "tgt_marker", "R_gt", "t_gt") if k not in case]
-    if missing:
-        raise InputError(f"case lacks {', '.join(missing)}")
-    arrays = {}
-    for key, value in case.items():
-        if key in ("src_pcd", "tgt_pcd"):
-            arrays[key] = np.asarray(value, dtype=np.float32)  # 1e-5 mm precision; halves the size
-        elif isinstance(value, str):
-            arrays[key] = np.str_(value)
-        elif isinstance(value, dict):
-            continue
-        else:
-            arrays[key] = np.asarray(value)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)  # atomic: a half-written file never looks finished
-    return path
-
-
-def read_case(path: str | Path) -> dict:
-    """Read a case NPZ (ours or the public P2P layout): float arrays as float64, scalars as Python values."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such case file")
-    if not zipfile.is_zipfile(path):  # np.load would read a .npy array or guess "pickled data"
-        raise InputError(f"{path}: not an NPZ archive (a case file holds src_pcd, tgt_pcd, ... arrays)")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            raw = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable case NPZ ({exc})") from exc
-    for key in ("src_pcd", "tgt_pcd"):
-        if key not in raw:
-            raise InputError(f"{path}: missing key {key!r}")
-    case: dict = {}
-    for key, value in raw.items():
-        if value.dtype.kind == "U":
-            case[key] = str(value)
-        elif value.ndim == 0:
-            case[key] = value.item()
-        elif value.dtype.kind == "f":
-            case[key] = value.astype(np.float64)
-        else:
-            case[key] = value
-    # The public P2P dataset names the fiducials src_vol / tgt_vol and stores t_gt as (3, 1).
-    for ours, theirs in (("src_marker", "src_vol"), ("tgt_marker", "tgt_vol")):
-        if ours not in case and theirs in case:
-            case[ours] = case[theirs]
-    if "t_gt" in case and np.size(case["t_gt"]) == 3:
-        case["t_gt"] = np.asarray(case["t_gt"], dtype=np.float64).reshape(3)
     return case
 
 
@@ -319,27 +215,6 @@ def case_is_current(path: Path, crop: str) -> bool:
         return False
 
 
-def manifest_row(path: Path, case: dict, split: str) -> dict:
-    """One manifest line describing a case."""
-    init = np.sqrt(np.mean(np.sum((case["tgt_marker"] - case["src_marker"]) ** 2, axis=1)))
-    return {
-        "file": path.name,
-        "split": split,
-        "liver_id": int(case["liver_id"]),
-        "deformation_id": int(case["deformation_id"]),
-        "target_id": int(case["target_id"]),
-        "crop_mode": str(case["crop_mode"]),
-        "noise_mm": float(case["noise_mm"]),
-        "visibility": round(float(case["visibility"]), 6),
-        "visibility_requested": round(float(case["visibility_requested"]), 6),
-        "deformation_rms_mm": round(float(case["deformation_rms_mm"]), 6),
-        "deformation_max_mm": round(float(case["deformation_max_mm"]), 6),
-        "initial_rms_tre_mm": round(float(init), 6),
-        "n_src": len(case["src_pcd"]),
-        "n_tgt": len(case["tgt_pcd"]),
-    }
-
-
 def generate_dataset(
     out: str | Path,
     spec: DatasetSpec,
@@ -404,35 +279,3 @@ def generate_dataset(
     # Written last: its presence means the run finished (skipped cases are deterministic).
     (out / COMPLETE_MARKER).write_text(json.dumps({"cases": len(rows), "skipped": skipped}, indent=2))
     return manifest
-
-
-def write_manifest(out: Path, rows: Sequence[dict]) -> Path:
-    path = out / "manifest.csv"
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=MANIFEST_FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    return path
-
-
-def read_manifest(directory: str | Path) -> list[dict]:
-    """Manifest rows of a generated dataset (numbers converted)."""
-    path = Path(directory) / "manifest.csv"
-    if not path.is_file():
-        raise InputError(f"{directory}: no manifest.csv (not a generated dataset?)")
-    rows = []
-    with open(path, newline="") as fh:
-        for row in csv.DictReader(fh):
-            for key in ("liver_id", "deformation_id", "target_id", "n_src", "n_tgt"):
-                row[key] = int(row[key])
-            for key in (
-                "noise_mm",
-                "visibility",
-                "visibility_requested",
-                "deformation_rms_mm",
-                "deformation_max_mm",
-                "initial_rms_tre_mm",
-            ):
-                row[key] = float(row[key])
-            rows.append(row)
-    return rows

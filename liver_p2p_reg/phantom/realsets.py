@@ -23,16 +23,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from liver_p2p_reg.errors import InputError, LiverP2PError
-from liver_p2p_reg.phantom.dataset import (
-    COMPLETE_MARKER,
-    GENERATOR_VERSION,
-    VISIBILITY_BINS,
-    make_case,
-    manifest_row,
-    read_case,
-    write_case,
-    write_manifest,
-)
+from liver_p2p_reg.phantom.casefile import read_case, write_case
+from liver_p2p_reg.phantom.dataset import COMPLETE_MARKER, GENERATOR_VERSION, VISIBILITY_BINS, make_case
+from liver_p2p_reg.phantom.manifest import manifest_row, read_manifest, write_manifest
 from liver_p2p_reg.phantom.real import load_real_liver, real_liver_id, real_split, require_real_livers
 from liver_p2p_reg.phantom.simulate import simulate_liver
 from liver_p2p_reg.registration.visibility import VisibilityMeter
@@ -146,8 +139,6 @@ def _generate_real_liver(spec: RealSetSpec, stem: str, out: Path) -> list[dict]:
 
 def is_complete(path: Path, spec: RealSetSpec) -> bool:
     """True when a finished run of this spec left its marker, manifest and every listed case."""
-    from liver_p2p_reg.phantom.dataset import read_manifest
-
     spec_path = path / "dataset.json"
     if not (spec_path.is_file() and (path / COMPLETE_MARKER).is_file() and (path / "manifest.csv").is_file()):
         return False

@@ -29,9 +29,9 @@ from liver_p2p_reg.phantom.dataset import (
     case_name,
     generate_dataset,
     liver_id_for,
-    read_manifest,
     requested_visibility,
 )
+from liver_p2p_reg.phantom.manifest import read_manifest
 
 TESTSETS: dict[str, DatasetSpec] = {
     "insilico-test-v1": DatasetSpec(livers=12, deformations=5, targets=8, crop="random", seed=900, split="test"),

@@ -1,4 +1,4 @@
-"""Build the output messages (pose, transform, diagnostics) from core outputs, for rclpy or rosbags classes."""
+"""ROS messages <-> the stream core, for rclpy or rosbags objects: input clouds into NodeCore, its outputs as messages."""
 
 from __future__ import annotations
 
@@ -6,8 +6,50 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from liver_p2p_reg.ros.pointcloud2 import MessageTypes, make_header
-from liver_p2p_reg.stream.core import Diagnostic, PoseOutput
+import numpy as np
+
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.ros.pointcloud2 import MessageTypes, cloud_to_points_mm, make_header, stamp_to_ns
+from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, PREOP_DIAG_NAME, WARN, Diagnostic, PoseOutput
+
+
+def feed_preop_msg(core: NodeCore, msg: Any, *, warm_up: bool = True) -> Diagnostic:
+    """A /preop/points PointCloud2 (metres) into the core; its diagnostic."""
+    try:
+        points = cloud_to_points_mm(msg)
+    except InputError as exc:
+        return Diagnostic(ERROR, PREOP_DIAG_NAME, f"bad /preop/points: {exc}")
+    return core.set_preop(points, msg.header.frame_id, stamp_to_ns(msg.header.stamp), warm_up=warm_up)
+
+
+def feed_preop_fiducials_msg(core: NodeCore, msg: Any) -> Diagnostic | None:
+    """A /preop/fiducials PointCloud2 into the core; a WARN diagnostic when it cannot be used."""
+    try:
+        core.set_preop_fiducials(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
+    except InputError as exc:
+        return Diagnostic(WARN, PREOP_DIAG_NAME, f"ignoring bad /preop/fiducials: {exc}")
+    return None
+
+
+def feed_intraop_fiducials_msg(core: NodeCore, msg: Any) -> Diagnostic | None:
+    """A /intraop/fiducials PointCloud2 into the core; a WARN diagnostic when it cannot be used."""
+    try:
+        core.set_intraop_fiducials(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
+    except InputError as exc:
+        return Diagnostic(WARN, DIAG_NAME, f"ignoring bad /intraop/fiducials: {exc}")
+    return None
+
+
+def feed_intraop_msg(core: NodeCore, msg: Any, now_s: float | None = None) -> list[Diagnostic]:
+    """A /intraop/points PointCloud2 into the core; O(1): it is decoded only when registered."""
+    return core.on_intraop_cloud(msg.header.frame_id, stamp_to_ns(msg.header.stamp), lambda: decode_cloud(msg), now_s)
+
+
+def decode_cloud(msg: Any) -> tuple[np.ndarray, int]:
+    """(finite points in mm, raw point count width x height) of a PointCloud2; InputError when unreadable."""
+    n_raw = int(msg.width) * int(msg.height)
+    return cloud_to_points_mm(msg), n_raw
 
 
 @dataclass(frozen=True)
@@ -26,27 +68,6 @@ class OutputTypes:
     DiagnosticStatus: type
     KeyValue: type
     level: Callable[[int], Any]
-
-
-def rosbags_output_types() -> OutputTypes:
-    """Output message classes from the rosbags Jazzy typestore."""
-    from liver_p2p_reg.bags.io import rosbags_types, typestore
-
-    t = typestore().types
-    return OutputTypes(
-        cloud=rosbags_types(),
-        PoseStamped=t["geometry_msgs/msg/PoseStamped"],
-        Pose=t["geometry_msgs/msg/Pose"],
-        Point=t["geometry_msgs/msg/Point"],
-        Quaternion=t["geometry_msgs/msg/Quaternion"],
-        TransformStamped=t["geometry_msgs/msg/TransformStamped"],
-        Transform=t["geometry_msgs/msg/Transform"],
-        Vector3=t["geometry_msgs/msg/Vector3"],
-        DiagnosticArray=t["diagnostic_msgs/msg/DiagnosticArray"],
-        DiagnosticStatus=t["diagnostic_msgs/msg/DiagnosticStatus"],
-        KeyValue=t["diagnostic_msgs/msg/KeyValue"],
-        level=int,
-    )
 
 
 def pose_stamped(pose: PoseOutput, types: OutputTypes) -> Any:

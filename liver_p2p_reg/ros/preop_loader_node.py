@@ -3,29 +3,24 @@
 from __future__ import annotations
 
 import array
-import os
-import sys
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.logging import get_logger
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker
 
 from liver_p2p_reg.cloud_io import MESH_FORMATS, load_mesh, load_points
-from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.ros.node_main import run_node
 from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
+from liver_p2p_reg.ros.topics import TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_PREOP_MESH, rclpy_qos
 
 TYPES = MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw))
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 UNITS_TO_M = {"mm": M_PER_MM, "m": 1.0}
 
 
@@ -75,43 +70,28 @@ class PreopLoaderNode(Node):
         # the mesh itself, for viewers (the Slicer bridge, RViz); same stamp as its points: they pair by it
         mesh = mesh_marker(model_path, units, frame_id, Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9))
         if mesh is not None:
-            self.mesh_pub = self.create_publisher(Marker, "/preop/mesh", LATCHED_QOS)
+            self.mesh_pub = self.create_publisher(Marker, TOPIC_PREOP_MESH, rclpy_qos(TOPIC_PREOP_MESH))
             self.mesh_pub.publish(mesh)
-            self.get_logger().info(f"published the mesh ({len(mesh.points) // 3} triangles) on /preop/mesh")
-        self.points_pub = self.create_publisher(PointCloud2, "/preop/points", LATCHED_QOS)
+            self.get_logger().info(f"published the mesh ({len(mesh.points) // 3} triangles) on {TOPIC_PREOP_MESH}")
+        self.points_pub = self.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP))
         self.points_pub.publish(points_to_cloud(model_m, TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
-        self.get_logger().info(f"published {len(model_m)} preop points from {model_path} on /preop/points ({frame_id})")
+        self.get_logger().info(f"published {len(model_m)} preop points from {model_path} on {TOPIC_PREOP} ({frame_id})")
         if fiducials_path:
             fiducials_m = load_model_m(fiducials_path, units)
-            self.fiducials_pub = self.create_publisher(PointCloud2, "/preop/fiducials", LATCHED_QOS)
+            self.fiducials_pub = self.create_publisher(
+                PointCloud2, TOPIC_PREOP_FIDUCIALS, rclpy_qos(TOPIC_PREOP_FIDUCIALS)
+            )
             self.fiducials_pub.publish(points_to_cloud(fiducials_m, TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
-            self.get_logger().info(f"published {len(fiducials_m)} fiducials on /preop/fiducials")
+            self.get_logger().info(f"published {len(fiducials_m)} fiducials on {TOPIC_PREOP_FIDUCIALS}")
 
 
-def main(args: list[str] | None = None) -> NoReturn:
-    """`ros2 run liver_p2p_reg preop_loader_node --ros-args -p model_path:=liver.stl`; exits the process."""
-    rclpy.init(args=args)
-    node = None
-    status = 0
-    try:
-        node = PreopLoaderNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()  # keep the latched messages available for late joiners
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except LiverP2PError as exc:  # missing/unreadable file: one fatal line and exit status 1
-        get_logger("preop_loader_node").fatal(str(exc))
-        status = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    # Without the interpreter's teardown (seconds for the point-cloud libraries): rclpy is shut
-    # down and the logs are flushed, so SIGINT/SIGTERM end the node at once, as launch expects.
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)
+def main(args: list[str] | None = None) -> int:
+    """`ros2 run liver_p2p_reg preop_loader_node --ros-args -p model_path:=liver.stl`; exits the process.
+
+    It spins to keep the latched messages available for late joiners; a missing or unreadable file
+    is one fatal line and exit status 1.
+    """
+    return run_node(PreopLoaderNode, "preop_loader_node", args, exit_process=True)
 
 
 if __name__ == "__main__":

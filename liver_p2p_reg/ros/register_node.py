@@ -5,22 +5,16 @@ from __future__ import annotations
 import array
 import dataclasses
 import logging
-import os
-import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, NoReturn
+from typing import Any
 
-import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.logging import get_logger
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
@@ -29,10 +23,31 @@ from std_srvs.srv import Trigger
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.registration.methods import check_method_name
-from liver_p2p_reg.ros.messages import OutputTypes, diagnostic_array, pose_stamped, transform_stamped
+from liver_p2p_reg.ros.messages import (
+    OutputTypes,
+    diagnostic_array,
+    feed_intraop_fiducials_msg,
+    feed_intraop_msg,
+    feed_preop_fiducials_msg,
+    feed_preop_msg,
+    pose_stamped,
+    transform_stamped,
+)
+from liver_p2p_reg.ros.node_main import RclpyLogHandler, log_at, parameters_from, run_node
 from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
-from liver_p2p_reg.ros.rcl_log import log_at
-from liver_p2p_reg.stream.core import ERROR, OK, WARN, CoreOutput, Diagnostic, NodeCore
+from liver_p2p_reg.ros.topics import (
+    TOPIC_DIAGNOSTICS,
+    TOPIC_INTRAOP,
+    TOPIC_INTRAOP_FIDUCIALS,
+    TOPIC_POSE,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+    TOPIC_REGISTERED,
+    TOPIC_TRANSFORM,
+    rclpy_qos,
+)
+from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.outputs import ERROR, OK, WARN, CoreOutput, Diagnostic
 
 RCLPY_TYPES = OutputTypes(
     cloud=MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw)),
@@ -48,34 +63,13 @@ RCLPY_TYPES = OutputTypes(
     KeyValue=KeyValue,
     level=lambda level: bytes([level]),  # DiagnosticStatus.level is a `byte` field: bytes in rclpy
 )
-# Late joiners (register_node started after the loader) still get the preop model.
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS_PERIOD_S = 1.0
 JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
 
 
 def config_from_parameters(node: Node) -> Config:
-    """Declare one ROS parameter per Config field (defaults from Config: one source of truth) and read them."""
-    defaults = Config()
-    values = {}
-    for f in dataclasses.fields(Config):
-        # A descriptor per parameter: rclpy writes the name and type into the object it is given.
-        # dynamic_typing: `-p max_rate_hz:=2` (an integer) is coerced by Config instead of rejected.
-        descriptor = ParameterDescriptor(description=f"{f.name} ({f.type}); see msg_docs/", dynamic_typing=True)
-        node.declare_parameter(f.name, getattr(defaults, f.name), descriptor)
-        values[f.name] = node.get_parameter(f.name).value
-    return Config.from_dict(values)
-
-
-class _RclpyLogHandler(logging.Handler):
-    """Sends the package's Python `logging` records to the node's rclpy logger (and so to /rosout)."""
-
-    def __init__(self, log: Callable[[int, str], None]) -> None:
-        super().__init__()
-        self._log = log
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self._log(record.levelno, self.format(record))
+    """Declare one ROS parameter per Config field (defaults from Config) and read them."""
+    return parameters_from(node, Config, lambda f: f"{f.name} ({f.type}); see msg_docs/")
 
 
 class RegisterNode(Node):
@@ -89,21 +83,25 @@ class RegisterNode(Node):
         super().__init__("register_node", **node_kwargs)  # node_kwargs: e.g. parameter_overrides (tests)
         self.core = NodeCore(config_from_parameters(self))
         self._accepted = self.core.config  # the configuration the parameter sets so far describe
-        self._log_handler = _RclpyLogHandler(self._log)
+        self._log_handler = RclpyLogHandler(self._log)  # the package's `logging` records, to /rosout
         logging.getLogger("liver_p2p_reg").addHandler(self._log_handler)
         self._wake = threading.Condition()
         self._jobs: list[Callable[[], None]] = [self._preload]
         self._stopping = False
         self.add_on_set_parameters_callback(self._on_parameters)
-        self.pose_pub = self.create_publisher(PoseStamped, "/registration/pose", 10)
-        self.transform_pub = self.create_publisher(TransformStamped, "/registration/transform", 10)
-        self.cloud_pub = self.create_publisher(PointCloud2, "/registration/registered_preop", 1)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(PointCloud2, "/preop/points", self._on_preop, LATCHED_QOS)
-        self.create_subscription(PointCloud2, "/preop/fiducials", self._on_preop_fiducials, LATCHED_QOS)
+        self.pose_pub = self.create_publisher(PoseStamped, TOPIC_POSE, rclpy_qos(TOPIC_POSE))
+        self.transform_pub = self.create_publisher(TransformStamped, TOPIC_TRANSFORM, rclpy_qos(TOPIC_TRANSFORM))
+        self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_REGISTERED, rclpy_qos(TOPIC_REGISTERED))
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, rclpy_qos(TOPIC_DIAGNOSTICS))
+        self.create_subscription(PointCloud2, TOPIC_PREOP, self._on_preop, rclpy_qos(TOPIC_PREOP))
+        self.create_subscription(
+            PointCloud2, TOPIC_PREOP_FIDUCIALS, self._on_preop_fiducials, rclpy_qos(TOPIC_PREOP_FIDUCIALS)
+        )
         # fiducials before points: when both are waiting, a cloud's own fiducials are taken first
-        self.create_subscription(PointCloud2, "/intraop/fiducials", self._on_intraop_fiducials, 10)
-        self.create_subscription(PointCloud2, "/intraop/points", self._on_intraop, qos_profile_sensor_data)
+        self.create_subscription(
+            PointCloud2, TOPIC_INTRAOP_FIDUCIALS, self._on_intraop_fiducials, rclpy_qos(TOPIC_INTRAOP_FIDUCIALS)
+        )
+        self.create_subscription(PointCloud2, TOPIC_INTRAOP, self._on_intraop, rclpy_qos(TOPIC_INTRAOP))
         self.create_service(Trigger, "~/reregister", self._on_reregister)
         self.create_service(Trigger, "~/reset_survey", self._on_reset_survey)  # survey mode: start over
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_status)
@@ -123,7 +121,7 @@ class RegisterNode(Node):
 
     # ---------------------------------------------------------------- callbacks (cheap, executor thread)
     def _on_preop(self, msg: PointCloud2) -> None:
-        diag = self.core.on_preop_msg(msg, warm_up=False)
+        diag = feed_preop_msg(self.core, msg, warm_up=False)
         if diag.level == OK:  # reported once warmed up, with warm_up_ms
             self.get_logger().info(f"preop model of {diag.values['points']} points: warming up")
             self._submit(self._warm_up)
@@ -131,18 +129,18 @@ class RegisterNode(Node):
             self._report([diag])
 
     def _on_preop_fiducials(self, msg: PointCloud2) -> None:
-        diag = self.core.on_preop_fiducials_msg(msg)
+        diag = feed_preop_fiducials_msg(self.core, msg)
         if diag is not None:
             self._report([diag])
 
     def _on_intraop_fiducials(self, msg: PointCloud2) -> None:
-        diag = self.core.on_intraop_fiducials_msg(msg)
+        diag = feed_intraop_fiducials_msg(self.core, msg)
         if diag is not None:
             self._report([diag])
         self._submit()  # a cloud may be waiting for exactly these
 
     def _on_intraop(self, msg: PointCloud2) -> None:
-        diags = self.core.on_intraop_msg(msg, time.monotonic())  # O(1): decoding happens in the worker
+        diags = feed_intraop_msg(self.core, msg, time.monotonic())  # O(1): decoding happens in the worker
         if diags:
             self._report(diags)
         self._submit()
@@ -237,6 +235,10 @@ class RegisterNode(Node):
         self._worker.join(JOIN_ON_EXIT_S)
         return not self._worker.is_alive()
 
+    def destroy_node(self) -> None:
+        self.stop()  # first: the worker must not publish through a destroyed node
+        super().destroy_node()
+
     # ---------------------------------------------------------------- outputs
     def _publish(self, output: CoreOutput) -> None:
         if self._stopping:
@@ -274,36 +276,13 @@ class RegisterNode(Node):
         return self.get_clock().now().nanoseconds
 
 
-def main(args: list[str] | None = None) -> NoReturn:
-    """`ros2 run liver_p2p_reg register_node` (Jazzy idiom: rclpy.init() returns None); exits the process.
+def main(args: list[str] | None = None) -> int:
+    """`ros2 run liver_p2p_reg register_node`; exits the process.
 
     SIGINT/SIGTERM end the node within JOIN_ON_EXIT_S even during a registration: the worker's
     unfinished result is dropped and the process leaves without waiting for it.
     """
-    rclpy.init(args=args)
-    node = None
-    status = 0
-    try:
-        node = RegisterNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except LiverP2PError as exc:  # bad parameters: one fatal line, no traceback
-        get_logger("register_node").fatal(str(exc))
-        status = 1
-    finally:
-        if node is not None:
-            node.stop()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    # Leave without the interpreter's teardown: unloading torch/Open3D took seconds (past launch's
-    # SIGINT window under load), and an abandoned registration holds nothing worth waiting for.
-    # rclpy is shut down and the logs are flushed; there is nothing else to clean up.
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)
+    return run_node(RegisterNode, "register_node", args, exit_process=True)
 
 
 if __name__ == "__main__":

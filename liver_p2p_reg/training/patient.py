@@ -59,7 +59,7 @@ def training_config(
     store: Path, base_weights: str, seed: int, steps: int, max_minutes: float, size: PrepareSize | None = None
 ) -> Any:
     """The fine-tuning run of a preparation (the views and augmentations of config/train_real.yaml)."""
-    from liver_p2p_reg.training.train import TrainConfig
+    from liver_p2p_reg.training.train_config import TrainConfig
 
     size = size or PrepareSize()
     return TrainConfig(

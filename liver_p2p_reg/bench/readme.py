@@ -1,0 +1,34 @@
+"""The generated blocks of a README: the marker lines around a block, replacing one, links relative to the README."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from liver_p2p_reg.errors import InputError
+
+
+def readme_markers(name: str = "BENCHMARK") -> tuple[str, str]:
+    """The comment lines around a generated README block."""
+    return f"<!-- {name}:START -->", f"<!-- {name}:END -->"
+
+
+def replace_readme_block(readme: Path, block: str, name: str = "BENCHMARK") -> None:
+    """Replace the text between the `name` markers of `readme` with `block`."""
+    start_marker, end_marker = readme_markers(name)
+    try:
+        text = readme.read_text()
+    except OSError as exc:
+        raise InputError(f"cannot read {readme}: {exc.strerror or exc}") from None
+    start, end = text.find(start_marker), text.find(end_marker)
+    if start < 0 or end < 0 or end < start:
+        raise InputError(f"{readme} lacks the {start_marker} ... {end_marker} markers")
+    new = text[: start + len(start_marker)] + "\n" + block.strip() + "\n" + text[end:]
+    tmp = readme.with_name(readme.name + ".tmp")
+    tmp.write_text(new)
+    os.replace(tmp, readme)
+
+
+def relative_link(target: Path, start_dir: Path) -> str:
+    """A POSIX relative link from `start_dir` to `target` (for the README)."""
+    return Path(os.path.relpath(target.resolve(), start_dir.resolve())).as_posix()

@@ -1,0 +1,91 @@
+"""What the package's rclpy nodes share: their main(), their parameters from a config dataclass, logging onto rclpy."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import sys
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.logging import get_logger
+from rclpy.node import Node
+
+from liver_p2p_reg.errors import LiverP2PError
+
+ConfigT = TypeVar("ConfigT")
+
+
+def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None, *, exit_process: bool) -> int:
+    """A node's `main()`, the Jazzy idiom (rclpy.init() returns None); the exit status.
+
+    Ctrl-C and an external shutdown (SIGTERM) end it quietly; a LiverP2PError while it starts
+    (bad parameters, a missing file, a port taken) is one fatal line and status 1, no traceback.
+    The node is destroyed (each node releases its own resources there) and rclpy shut down.
+    exit_process: then leave at once with os._exit: unloading torch/Open3D took seconds (past
+    launch's SIGINT window under load), and nothing else is left to clean up.
+    """
+    rclpy.init(args=args)
+    node = None
+    status = 0
+    try:
+        node = make_node()
+        executor = SingleThreadedExecutor()  # callbacks are short: heavy work runs on the node's own thread
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except LiverP2PError as exc:
+        get_logger(name).fatal(str(exc))
+        status = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    if exit_process:  # rclpy is shut down; flush the logs, skip the interpreter's teardown
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
+
+
+def parameters_from(node: Node, config_class: type[ConfigT], describe: Callable[[dataclasses.Field], str]) -> ConfigT:
+    """Declare one ROS parameter per field of a config dataclass (defaults from it: one source of truth),
+    described by `describe(field)`, and build the config from their values (`config_class.from_dict`)."""
+    defaults = config_class()
+    values = {}
+    for f in dataclasses.fields(config_class):
+        # A descriptor per parameter: rclpy writes the name and type into the object it is given.
+        # dynamic_typing: `-p max_rate_hz:=2` (an integer) is coerced by the config instead of rejected.
+        descriptor = ParameterDescriptor(description=describe(f), dynamic_typing=True)
+        node.declare_parameter(f.name, getattr(defaults, f.name), descriptor)
+        values[f.name] = node.get_parameter(f.name).value
+    return config_class.from_dict(values)
+
+
+def log_at(logger: Any, level: int, text: str) -> None:
+    """Log `text` at the rclpy severity matching the `logging` level (an rclpy RcutilsLogger)."""
+    # rclpy binds one severity to each call site: one call per severity, never a shared one
+    if level >= logging.ERROR:
+        logger.error(text)
+    elif level >= logging.WARNING:
+        logger.warning(text)
+    elif level >= logging.INFO:
+        logger.info(text)
+    else:
+        logger.debug(text)
+
+
+class RclpyLogHandler(logging.Handler):
+    """Sends Python `logging` records to an rclpy logger (and so to /rosout) through `log(level, text)`."""
+
+    def __init__(self, log: Callable[[int, str], None]) -> None:
+        super().__init__()
+        self._log = log
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._log(record.levelno, self.format(record))
