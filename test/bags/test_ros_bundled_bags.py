@@ -10,7 +10,7 @@ from liver_p2p_reg.bags.replay import replay_bags
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.registrar import available_methods
 
-BAGS = Path(__file__).resolve().parents[1] / "bags"
+BAGS = Path(__file__).resolve().parents[2] / "bags"
 README = BAGS / "README.md"
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from liver_p2p_reg.config import SlicerConfig
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_bridge_parameter_documented_with_its_default() -> None:

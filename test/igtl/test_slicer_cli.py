@@ -23,7 +23,7 @@ from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES
 
-BAG = Path(__file__).resolve().parents[1] / "bags" / "insilico_L9000001_D00_T007_random"  # visibility 0.9, OK
+BAG = Path(__file__).resolve().parents[2] / "bags" / "insilico_L9000001_D00_T007_random"  # visibility 0.9, OK
 
 
 @pytest.fixture(scope="module")

@@ -19,8 +19,8 @@ from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.result import Candidate
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
 
-ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = Path(__file__).parent / "data" / "unknown_origin_reference.npz"
+ROOT = Path(__file__).resolve().parents[2]
+REFERENCE = Path(__file__).parents[1] / "data" / "unknown_origin_reference.npz"
 EYE_MM = np.array([0.0, 0.0, 170.0])  # the camera, in the organ's own frame, looking down -z
 HALF_THICKNESS_MM = 20.0
 

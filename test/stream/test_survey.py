@@ -14,7 +14,7 @@ from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.outputs import OK, WARN
 from liver_p2p_reg.stream.survey import FusedSurface
 
-SWEEP = Path(__file__).resolve().parents[1] / "bags" / "sweep_insilico_9000002"
+SWEEP = Path(__file__).resolve().parents[2] / "bags" / "sweep_insilico_9000002"
 
 
 @pytest.fixture(scope="module")

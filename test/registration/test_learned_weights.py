@@ -21,7 +21,7 @@ from liver_p2p_reg.registration.features.learned.weights import (
     weights_metadata,
 )
 
-REFERENCE = Path(__file__).parent / "data" / "learned_reference.npz"
+REFERENCE = Path(__file__).parents[1] / "data" / "learned_reference.npz"
 
 
 def test_bundled_weights_are_small_safetensors_with_a_model_card() -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_core_methods import partial_case
+from synthetic_cases import partial_case
 
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.cloud_io import save_points
@@ -180,7 +180,7 @@ def test_readme_names_only_bags_that_exist_and_the_formats_the_reader_takes() ->
 
     from liver_p2p_reg.cloud_io import POINT_FORMATS
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     readme = (root / "README.md").read_text()
     named = set(re.findall(r"bags/([A-Za-z0-9_.]+[A-Za-z0-9])", readme)) - {"README.md"}
     assert named and all((root / "bags" / name).is_dir() for name in named), named
@@ -189,7 +189,7 @@ def test_readme_names_only_bags_that_exist_and_the_formats_the_reader_takes() ->
 
 
 def test_every_phony_make_target_has_a_rule() -> None:
-    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    makefile = (Path(__file__).resolve().parents[2] / "Makefile").read_text()
     phony = next(line for line in makefile.splitlines() if line.startswith(".PHONY:")).split(":")[1].split()
     for target in phony:
         assert f"\n{target}:" in makefile, target

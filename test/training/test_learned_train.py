@@ -96,7 +96,7 @@ def test_bad_training_config_is_an_input_error(tmp_path: Path, monkeypatch: pyte
         bad.write_text(text + "\n")
         with pytest.raises(InputError, match=message):
             TrainConfig.from_yaml(bad)
-    monkeypatch.chdir(Path(__file__).parents[1])  # init_weights is relative to the repository
+    monkeypatch.chdir(Path(__file__).parents[2])  # init_weights is relative to the repository
     for name in ("train.yaml", "train_finetune.yaml"):  # the shipped configs pass
         TrainConfig.from_yaml(Path("config") / name)
 

@@ -7,7 +7,7 @@ from liver_p2p_reg.bags.replay import OUTPUT_TOPICS
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 
-DOCS = Path(__file__).resolve().parents[1] / "msg_docs"
+DOCS = Path(__file__).resolve().parents[2] / "msg_docs"
 
 
 def test_every_parameter_documented_with_its_default():

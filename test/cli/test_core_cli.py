@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from test_core_methods import partial_case
+from synthetic_cases import partial_case
 
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.cloud_io import load_points, save_points

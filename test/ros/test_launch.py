@@ -13,7 +13,7 @@ import pytest
 
 from liver_p2p_reg.config import Config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 LAUNCH = ROOT / "launch" / "registration.launch.py"
 # launch_ros.actions.Node.__init__ on Jazzy (keyword-only), plus what it forwards to ExecuteProcess.
 JAZZY_NODE_KWARGS = {"executable", "package", "name", "namespace", "exec_name", "parameters", "remappings"}

@@ -43,7 +43,7 @@ from liver_p2p_reg.ros.slicer_bridge_node import STATUS_NAME  # noqa: E402
 from liver_p2p_reg.ros.topics import rclpy_qos  # noqa: E402
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME  # noqa: E402
 
-BAG = Path(__file__).resolve().parents[1] / "bags" / "insilico_L9000001_D00_T007_random"
+BAG = Path(__file__).resolve().parents[2] / "bags" / "insilico_L9000001_D00_T007_random"
 TYPES = {
     "/preop/points": PointCloud2,
     "/preop/mesh": Marker,
