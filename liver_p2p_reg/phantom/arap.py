@@ -21,7 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import splu
 
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.registration.mechanics.fem import RMS_MEAN_MM, RMS_RANGE_MM, RMS_SHAPE
+from liver_p2p_reg.registration.mechanics.fem import RMS_MEAN_MM, RMS_RANGE_MM, RMS_SHAPE, posterior_support
 from liver_p2p_reg.registration.mechanics.tetmesh import TetMesh
 from liver_p2p_reg.registration.procrustes import rigid_fit_np
 
@@ -98,16 +98,7 @@ class ArapSolver:
 def random_handle_case(mesh: TetMesh, rng: np.random.Generator) -> HandleCase:
     """A posterior fixed patch and one to three moved regions (gravity-like sag, pneumoperitoneum-like press)."""
     nodes = mesh.nodes_mm
-    bnd = np.flatnonzero(mesh.boundary)
-    if len(bnd) < 10:
-        raise InputError("tetrahedral mesh too small to place handles")
-    y = nodes[bnd, 1]
-    posterior = bnd[y <= y.min() + 0.35 * (y.max() - y.min())]
-    anchor = nodes[rng.choice(posterior)]
-    fix_radius = rng.uniform(25.0, 45.0)
-    fixed = bnd[np.linalg.norm(nodes[bnd] - anchor, axis=1) <= fix_radius]
-    if len(fixed) < 4:
-        fixed = bnd[np.argsort(np.linalg.norm(nodes[bnd] - anchor, axis=1))[:8]]
+    bnd, anchor, fix_radius, fixed = posterior_support(mesh, rng)  # as the FEM family's support
     far = bnd[np.linalg.norm(nodes[bnd] - anchor, axis=1) > fix_radius + 40.0]
     candidates = far if len(far) else bnd
     centroid = nodes.mean(axis=0)

@@ -252,21 +252,9 @@ def run_oracle(source_mm: np.ndarray, target_mm: np.ndarray, config: Config, ctx
     times = {"estimate": lap_ms(t)}
     prep = preprocess_pair(source_mm, target_mm, config, ctx.cache)
     T_norm = np.linalg.inv(norm_to_mm(prep.target_norm)) @ T @ norm_to_mm(prep.source_norm)
-    residual = residual_norm(T_norm, prep) * prep.source_norm.scale_mm
-    uncertainty = uncertainty_mm(T_norm, prep, config, times)
-    violation, free_space = final_free_space(free_space_scorer(prep, config, ctx), T_norm, times)
-    return RegistrationResult(
-        T_target_source=T,
-        method="procrustes",
-        residual_mm=residual,
-        runtime_ms=times,
-        candidates=[Candidate("fiducials", T, residual, len(ctx.source_fiducials_mm), free_space_violation=violation)],
-        chosen=0,
-        uncertainty_mm=uncertainty,
-        free_space_violation=violation,
-        free_space=free_space,
-        n_matches=len(ctx.source_fiducials_mm),
-        visibility=prep.visibility,
-        n_source=len(prep.source),
-        n_target=len(prep.target),
-    )
+    # The fiducials' fit itself, not its round trip through the normalization, is the oracle's pose.
+    result = single_result(T_norm, prep, times, "fiducials", config, ctx)
+    n_pairs = len(ctx.source_fiducials_mm)
+    result.T_target_source, result.method, result.n_matches = T, "procrustes", n_pairs
+    result.candidates = [dataclasses.replace(result.candidates[0], T_target_source=T, n_matches=n_pairs)]
+    return result

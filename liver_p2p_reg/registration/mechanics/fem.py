@@ -55,8 +55,9 @@ class LoadCase:
     target_rms_mm: float
 
 
-def random_load_case(mesh: TetMesh, rng: np.random.Generator) -> LoadCase:
-    """Zero displacement on a posterior (ligament / vena cava) patch; 1-3 pressing surface patches."""
+def posterior_support(mesh: TetMesh, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """A random support patch on the posterior surface (ligaments, vena cava): the boundary node ids,
+    the patch's centre (mm), its radius (mm) and the node ids it holds."""
     nodes = mesh.nodes_mm
     bnd = np.flatnonzero(mesh.boundary)
     if len(bnd) < 10:
@@ -68,6 +69,13 @@ def random_load_case(mesh: TetMesh, rng: np.random.Generator) -> LoadCase:
     fixed = bnd[np.linalg.norm(nodes[bnd] - anchor, axis=1) <= fix_radius]
     if len(fixed) < 4:  # a degenerate support would leave rigid modes; take the nearest nodes
         fixed = bnd[np.argsort(np.linalg.norm(nodes[bnd] - anchor, axis=1))[:8]]
+    return bnd, anchor, float(fix_radius), fixed
+
+
+def random_load_case(mesh: TetMesh, rng: np.random.Generator) -> LoadCase:
+    """Zero displacement on a posterior (ligament / vena cava) patch; 1-3 pressing surface patches."""
+    nodes = mesh.nodes_mm
+    bnd, anchor, fix_radius, fixed = posterior_support(mesh, rng)
     centroid = nodes.mean(axis=0)
     forces = np.zeros_like(nodes)
     far = bnd[np.linalg.norm(nodes[bnd] - anchor, axis=1) > fix_radius + 30.0]
