@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from liver_p2p_reg.bench import plots
-from liver_p2p_reg.bench.cases import BIN_LABELS
+from liver_p2p_reg.bench.cases import BIN_LABELS, PAPER_FIRST_BIN
 from liver_p2p_reg.bench.jobs import ABLATION_K
 from liver_p2p_reg.bench.markdown import DASH, fmt, md_table, pct, pm
 from liver_p2p_reg.bench.stats import Row, by_bin, in_bin, success_rate
@@ -39,7 +39,7 @@ def k_curves(tables: Tables) -> dict[str, dict[int, tuple[float, float]]]:
         for k in ABLATION_K:
             rows = _variant_rows(tables, m, "" if k == k_default else f"k={k}")
             if rows:
-                low = [r["rms_tre_mm"] for r in rows if in_bin(0)(r)]
+                low = [r["rms_tre_mm"] for r in rows if in_bin(PAPER_FIRST_BIN)(r)]
                 per_k[k] = (
                     float(np.mean(low)) if low else math.nan,
                     float(np.mean([r["rms_tre_mm"] for r in rows])),
@@ -91,14 +91,14 @@ def ablation_section(tables: Tables, out: Path) -> list[str]:
             continue
         header = ["method"]
         for v in values:
-            header += [f"{field}={v} {BIN_LABELS[0]}", f"{field}={v} all", f"success {field}={v}"]
+            header += [f"{field}={v} {BIN_LABELS[PAPER_FIRST_BIN]}", f"{field}={v} all", f"success {field}={v}"]
         rows = []
         for m in methods:
             cells = []
             for v in values:
                 variant = "" if str(cfg.get(field)) == str(v) else f"{field}={v}"
                 sub = _variant_rows(tables, m, variant)
-                low = np.array([r["rms_tre_mm"] for r in sub if in_bin(0)(r)], float)
+                low = np.array([r["rms_tre_mm"] for r in sub if in_bin(PAPER_FIRST_BIN)(r)], float)
                 cells += [pm(low), pm(np.array([r["rms_tre_mm"] for r in sub], float)), pct(success_rate(sub))]
             rows.append([m, *cells])
         lines += md_table(header, rows) + [""]

@@ -13,10 +13,14 @@ import numpy as np
 
 from liver_p2p_reg.errors import InputError
 
-# Visibility bins of the paper's Table I: [0.2,0.3) ... [0.8,0.9), and the closed [0.9,1.0].
-BIN_EDGES = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+# Visibility bins: where a laparoscope really looks, [0.05,0.10), [0.10,0.15), [0.15,0.20) (one
+# 80-150 mm from a real liver sees 13 % of it, median), then the paper's Table I bins [0.2,0.3) ...
+# [0.8,0.9) and the closed [0.9,1.0]. A table shows only the bins that hold cases, so the v1 sets
+# (every case >= 0.2) give the tables they always gave.
+BIN_EDGES = (0.05, 0.10, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+PAPER_FIRST_BIN = BIN_EDGES.index(0.2)  # [0.2,0.3): the paper's lowest bin (its Table II noise rows)
 BIN_LABELS = tuple(
-    f"[{lo:.1f},{hi:.1f}{']' if i == len(BIN_EDGES) - 2 else ')'}"
+    f"[{lo:.2f},{hi:.2f})" if lo < 0.2 else f"[{lo:.1f},{hi:.1f}{']' if i == len(BIN_EDGES) - 2 else ')'}"
     for i, (lo, hi) in enumerate(zip(BIN_EDGES, BIN_EDGES[1:], strict=False))
 )
 # Keys every case NPZ must carry (the phantom generator's format, close to the public P2P dataset).
@@ -42,7 +46,7 @@ class CaseInfo:
 
 
 def visibility_bin(visibility: float) -> int | None:
-    """Index of the visibility bin, or None outside [0.2, 1.0]."""
+    """Index of the visibility bin, or None outside [0.05, 1.0]."""
     if not np.isfinite(visibility) or visibility < BIN_EDGES[0] or visibility > BIN_EDGES[-1]:
         return None
     return min(int(np.searchsorted(BIN_EDGES, visibility, side="right")) - 1, len(BIN_LABELS) - 1)
@@ -104,13 +108,13 @@ NOISE_BINS = ("lowest", "all")
 
 
 def with_noise(infos: list[CaseInfo], levels_mm: list[float], bins: str = "lowest") -> list[CaseInfo]:
-    """Add noisy copies, one per level > 0, of the lowest-visibility-bin cases (the paper's
-    Table II) or, with bins="all", of every case."""
+    """Add noisy copies, one per level > 0, of the cases in the paper's lowest bin [0.2,0.3) (its
+    Table II; bins="lowest") or, with bins="all", of every case."""
     if bins not in NOISE_BINS:
         raise InputError(f"noise bins must be one of {NOISE_BINS}, got {bins!r}")
     extra = []
     for info in infos:
-        if bins == "lowest" and visibility_bin(info.visibility) != 0:
+        if bins == "lowest" and visibility_bin(info.visibility) != PAPER_FIRST_BIN:
             continue
         for level in levels_mm:
             if level > 0:

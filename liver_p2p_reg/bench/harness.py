@@ -15,11 +15,11 @@ from tqdm import tqdm
 
 from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_seed, read_case, sensor_origin_mm
 from liver_p2p_reg.bench.cases_csv import CASES_CSV, CsvLog, read_rows, write_rows
-from liver_p2p_reg.bench.jobs import BenchmarkSpec, Variant, build_jobs, check_settings
+from liver_p2p_reg.bench.jobs import BOUND, BenchmarkSpec, Variant, benchmark_methods, build_jobs, check_settings
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm, tre_mm
-from liver_p2p_reg.registration.registrar import Registrar, available_methods
+from liver_p2p_reg.registration.registrar import Registrar
 
 log = logging.getLogger(__name__)
 
@@ -59,13 +59,17 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
         origin = sensor_origin_mm(data) if variant.sensor_aware else None
         if variant.sensor_aware and origin is None:
             raise InputError(f"case {case.case_id} stores no sensor origin (only camera crops do)")
+        method, initial = variant.method, None
+        if method == BOUND:  # the configured refinement from the true pose
+            method, initial = "track", true_pose_mm(data, case)
         result = registrar.register(
             data["src_pcd"],
             add_target_noise(np.asarray(data["tgt_pcd"], float), case),
-            method=variant.method,
+            method=method,
             source_fiducials_mm=src_marker,
             target_fiducials_mm=tgt_marker,
             sensor_origin_mm=origin,
+            initial_T_mm=initial,
         )
     except LiverP2PError as exc:
         return {**row, **_failed(initial_rms, initial_max, f"{type(exc).__name__}: {exc}", start)}
@@ -99,6 +103,15 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
     return row
 
 
+def true_pose_mm(data: dict[str, Any], case: CaseInfo) -> np.ndarray:
+    """The case's ground-truth T_target_source (4x4, mm) from its R_gt, t_gt; InputError without them."""
+    if "R_gt" not in data or "t_gt" not in data:
+        raise InputError(f"case {case.case_id} stores no true pose (R_gt, t_gt): no bound row for it")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = np.asarray(data["R_gt"], float), np.asarray(data["t_gt"], float).reshape(3)
+    return T
+
+
 def _failed(initial_rms: float, initial_max: float, reason: str, start: float) -> dict[str, Any]:
     # Failure rule: a method that raises leaves the case where it started, so its error is the
     # initial (identity) TRE; it also counts as a failure in every success rate.
@@ -130,7 +143,7 @@ def _init_worker(num_threads: int) -> None:
 
 def run_benchmark(spec: BenchmarkSpec, progress: bool = True) -> list[dict[str, Any]]:
     """Run every (case, variant) not yet in OUT/cases.csv; return all rows of OUT (old and new)."""
-    known = set(available_methods())
+    known = set(benchmark_methods())
     unknown = [m for m in spec.methods if m not in known]
     if unknown:
         raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(sorted(known))}")

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from liver_p2p_reg.bench.cases import BIN_EDGES, BIN_LABELS
-from liver_p2p_reg.bench.jobs import ORACLE
+from liver_p2p_reg.bench.cases import BIN_EDGES, BIN_LABELS, PAPER_FIRST_BIN
+from liver_p2p_reg.bench.jobs import BOUND, ORACLE
 from liver_p2p_reg.bench.stats import METHOD_ORDER, Row, by_bin, main_rows, order_methods, select, success_curve, where
 from liver_p2p_reg.plotting import pyplot
 
@@ -31,12 +31,14 @@ def method_style(method: str, default_method: str | None = None) -> dict:
         return {**method_style(method.split("[")[0], default_method), "linestyle": ":"}
     if method == ORACLE:
         return {"color": "black", "linestyle": "--", "linewidth": 1.5}
+    if method == BOUND:
+        return {"color": "dimgray", "linestyle": "-.", "linewidth": 1.5}
     if method == default_method:
         return {"color": "tab:red", "linestyle": "-", "linewidth": 2.5}
     from liver_p2p_reg.registration.methods import method_names
 
     known = set(METHOD_ORDER) | set(method_names()) | {method}
-    others = [m for m in order_methods(known) if m not in (ORACLE, default_method)]
+    others = [m for m in order_methods(known) if m not in (ORACLE, BOUND, default_method)]
     return {"color": OTHER_COLOURS[others.index(method) % len(OTHER_COLOURS)], "linestyle": "-", "linewidth": 1.5}
 
 
@@ -45,16 +47,17 @@ def _label(method: str, default_method: str | None = None) -> str:
         from liver_p2p_reg.config import Config
 
         default_method = Config().method
-    return {ORACLE: f"{ORACLE} (oracle)", default_method: f"{default_method} (default)"}.get(method, method)
+    labels = {ORACLE: f"{ORACLE} (oracle)", BOUND: f"{BOUND} (ICP from the true pose)"}
+    return {**labels, default_method: f"{default_method} (default)"}.get(method, method)
 
 
 def success_vs_tau(rows: list[Row], path: Path) -> Path:
     """Success rate vs threshold tau (0-40 mm): the lowest visibility bin and all cases."""
     plt = pyplot()
     rows = main_rows(rows)
-    lo, hi = BIN_EDGES[0], BIN_EDGES[1]
+    lo, hi = BIN_EDGES[PAPER_FIRST_BIN], BIN_EDGES[PAPER_FIRST_BIN + 1]
     panels = [
-        (f"visibility {BIN_LABELS[0]}", where(rows, lambda r: lo <= r["visibility"] < hi)),
+        (f"visibility {BIN_LABELS[PAPER_FIRST_BIN]}", where(rows, lambda r: lo <= r["visibility"] < hi)),
         ("all visibilities", rows),
     ]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
@@ -108,7 +111,7 @@ def k_ablation(curves: dict[str, dict[int, tuple[float, float]]], path: Path) ->
         ks = sorted(per_k)
         axes[0].plot(ks, [per_k[k][0] for k in ks], marker="o", label=_label(m), **method_style(m))
         axes[1].plot(ks, [per_k[k][1] for k in ks], marker="o", label=_label(m), **method_style(m))
-    for ax, title in zip(axes, (f"visibility {BIN_LABELS[0]}", "all ablation cases"), strict=False):
+    for ax, title in zip(axes, (f"visibility {BIN_LABELS[PAPER_FIRST_BIN]}", "all ablation cases"), strict=False):
         ax.set_title(title)
         ax.set_xlabel("K (patch candidates)")
         ax.set_ylabel("mean RMS-TRE (mm)")

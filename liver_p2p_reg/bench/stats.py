@@ -15,9 +15,10 @@ Row = dict[str, Any]
 ALPHA = 0.05  # significance level of the rank-sum tests (the paper's)
 SUCCESS_TAU_MM = 20.0  # success = RMS-TRE below this and no failure (the paper's tau)
 SAFETY_TAU_MM = 10.0  # the laparoscopic safety margin: success at this tau is reported beside it
-# Preferred display order; the Procrustes oracle is always first, unknown methods go last.
+# Preferred display order; the Procrustes oracle first, the rigid bound next, unknown methods last.
 METHOD_ORDER = (
     "procrustes",
+    "bound",
     "icp",
     "fgr",
     "fpfh",

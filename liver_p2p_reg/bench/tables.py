@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
-from liver_p2p_reg.bench.jobs import ORACLE
+from liver_p2p_reg.bench.cases import BIN_LABELS, PAPER_FIRST_BIN, visibility_bin
+from liver_p2p_reg.bench.jobs import BOUND, ORACLE
 from liver_p2p_reg.bench.markdown import DASH, fmt, md_table, pct, pm
 from liver_p2p_reg.bench.stats import (
     ALPHA,
@@ -75,7 +75,7 @@ class Tables:
         }
 
     def name(self, method: str) -> str:
-        label = f"{method} (oracle)" if method == ORACLE else method
+        label = {ORACLE: f"{method} (oracle)", BOUND: f"{method} (ICP from the true pose)"}.get(method, method)
         return f"{label} (slow)" if method in self.slow else label
 
     def n_cases(self) -> int:
@@ -94,23 +94,32 @@ class Tables:
         return md_table(header, table)
 
     def table_ratio(self) -> list[str]:
+        """Mean RMS-TRE over the oracle's, and over the rigid bound's where the bound was run, in the
+        lowest and highest bins that hold cases."""
         if ORACLE not in self.methods or not self.bins:
             return [f"*No `{ORACLE}` rows: ratios to the oracle need the oracle.*"]
         lo, hi = self.bins[0], self.bins[-1]
         ends = (lo, hi) if hi != lo else (lo,)  # one bin (camera crops): one column
-        oracle = by_bin(select(self.main, method=ORACLE))
-        header = ["method", *(f"mean / oracle {BIN_LABELS[i]}" for i in ends)]
+        references = [
+            (title, by_bin(select(self.main, method=name)))
+            for name, title in ((ORACLE, "oracle"), (BOUND, "bound"))
+            if name in self.methods
+        ]
+        header = ["method", *(f"mean / {name} {BIN_LABELS[i]}" for name, _ in references for i in ends)]
         rows = []
         for m in self.methods:
             if m == ORACLE:
                 continue
             groups = by_bin(select(self.main, method=m))
             cells = []
-            for i in ends:
-                ratio = (
-                    mean_std(groups[i])[0] / mean_std(oracle[i])[0] if groups[i].size and oracle[i].size else math.nan
-                )
-                cells.append(fmt(ratio))
+            for _, reference in references:
+                for i in ends:
+                    ratio = (
+                        mean_std(groups[i])[0] / mean_std(reference[i])[0]
+                        if groups[i].size and reference[i].size
+                        else math.nan
+                    )
+                    cells.append(fmt(ratio))
             rows.append([self.name(m), *cells])
         return md_table(header, rows)
 
@@ -127,7 +136,7 @@ class Tables:
     def noise_sections(self) -> list[str]:
         """Per-bin tables of the rows with benchmark-added noise, when it was added to more than the lowest bin."""
         noisy = [r for r in main_rows(self.rows, with_added_noise=True) if r.get("added_noise_mm", 0.0) > 0]
-        if not any(visibility_bin(r["visibility"]) not in (0, None) for r in noisy):
+        if not any(visibility_bin(r["visibility"]) not in (PAPER_FIRST_BIN, None) for r in noisy):
             return []
         lines = []
         for level in sorted({r["added_noise_mm"] for r in noisy}):
@@ -236,7 +245,7 @@ class Tables:
         levels = sorted({r["noise_mm"] for r in noisy if math.isfinite(r["noise_mm"])})
         if len(levels) < 2:
             return None
-        low = where(noisy, in_bin(0))
+        low = where(noisy, in_bin(PAPER_FIRST_BIN))
         header = ["method", *(f"noise {lv:g} mm" for lv in levels)]
         rows = []
         for m in self.methods:
@@ -255,14 +264,14 @@ class Tables:
         mild, large = in_range(LOW_DEFORMATION_MM), in_range(HIGH_DEFORMATION_MM)
         if not where(self.main, mild) or not where(self.main, large):
             return None
-        lowbin = in_bin(0)
+        lowbin = in_bin(PAPER_FIRST_BIN)
         header = [
             "method",
-            f"0–6 mm {BIN_LABELS[0]}",
-            f"6–12 mm {BIN_LABELS[0]}",
+            f"0–6 mm {BIN_LABELS[PAPER_FIRST_BIN]}",
+            f"6–12 mm {BIN_LABELS[PAPER_FIRST_BIN]}",
             "0–6 mm all",
             "6–12 mm all",
-            f"success 0–6 / 6–12 mm {BIN_LABELS[0]}",
+            f"success 0–6 / 6–12 mm {BIN_LABELS[PAPER_FIRST_BIN]}",
         ]
         rows = []
         for m in self.methods:

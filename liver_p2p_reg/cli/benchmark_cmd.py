@@ -130,9 +130,12 @@ def run(args: argparse.Namespace) -> int:
         with_noise,
     )
     from liver_p2p_reg.bench.harness import run_benchmark
-    from liver_p2p_reg.bench.jobs import BenchmarkSpec, check_settings
+    from liver_p2p_reg.bench.jobs import (
+        BenchmarkSpec,
+        benchmark_methods,  # the table and `bound`: no torch or Open3D
+        check_settings,
+    )
     from liver_p2p_reg.bench.sysinfo import machine_info
-    from liver_p2p_reg.registration.methods import method_names  # the table: imports no torch or Open3D
 
     if args.summary_only:
         return _summary_only(args)
@@ -141,12 +144,12 @@ def run(args: argparse.Namespace) -> int:
         k: v for k, v in (("device", args.device), ("seed", args.seed), ("num_threads", args.threads)) if v is not None
     }
     config = config.replace(**overrides) if overrides else config
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else method_names()
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else benchmark_methods()
     if not methods:
         raise InputError("no methods to run (--methods is empty)")
-    unknown = [m for m in methods if m not in method_names()]
+    unknown = [m for m in methods if m not in benchmark_methods()]
     if unknown:  # before a named test set is generated, which can take minutes
-        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(method_names())}")
+        raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(benchmark_methods())}")
     if config.device == "cuda" and not _cuda_available():
         raise InputError("--device cuda: no CUDA device is available to torch here")
     if args.readme and not Path(args.readme).is_file():

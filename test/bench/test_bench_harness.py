@@ -18,7 +18,7 @@ from liver_p2p_reg.errors import RegistrationError
 from liver_p2p_reg.metrics import mean_closest_point_mm
 from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.methods import Method, add_method, remove_method
-from liver_p2p_reg.registration.registrar import available_methods
+from liver_p2p_reg.registration.registrar import Registrar, available_methods
 from liver_p2p_reg.result import RegistrationResult
 
 
@@ -306,6 +306,30 @@ def test_oracle_error_equals_best_rigid_fit_of_the_fiducials(dataset: Path, tmp_
         assert r["rms_tre_mm"] == pytest.approx(expected, rel=1e-6, abs=1e-6)
         assert expected > 0.5  # the deformation leaves a residual a rigid fit cannot remove
     assert not math.isnan(rows[0]["max_tre_mm"])
+
+
+def test_bound_row_is_track_from_the_true_pose(dataset: Path, tmp_path: Path) -> None:
+    """The rigid surface bound: the configured ICP (`track`) started from each case's R_gt, t_gt."""
+    out = tmp_path / "out"
+    assert _bench(dataset, out, "procrustes,bound", "--preset", "smoke") == 0
+    rows = read_rows(out / "cases.csv")
+    bound = {r["case_id"]: r for r in rows if r["method"] == "bound"}
+    assert len(bound) == 16 and not any(r["failed"] for r in bound.values())
+    for case_id, r in list(bound.items())[:4]:
+        with np.load(dataset / f"{case_id}.npz") as case:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = case["R_gt"], case["t_gt"]
+            direct = Registrar(Config(seed=r["seed"])).register(
+                case["src_pcd"],
+                case["tgt_pcd"],
+                method="track",
+                initial_T_mm=T,
+                source_fiducials_mm=case["src_marker"],
+                target_fiducials_mm=case["tgt_marker"],
+            )
+        assert r["rms_tre_mm"] == direct.rms_tre_mm and r["max_tre_mm"] == direct.max_tre_mm
+    summary = (out / "summary.md").read_text()
+    assert "bound (ICP from the true pose)" in summary and "mean / bound" in summary
 
 
 def test_readme_option_regenerates_the_benchmark_block(dataset: Path, tmp_path: Path) -> None:

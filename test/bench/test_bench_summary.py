@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.stats import ranksums
 
-from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
+from liver_p2p_reg.bench.cases import BIN_LABELS, PAPER_FIRST_BIN, visibility_bin
 from liver_p2p_reg.bench.readme import readme_markers, replace_readme_block
 from liver_p2p_reg.bench.summary import Summary
 from liver_p2p_reg.config import Config
@@ -54,11 +54,14 @@ def _summary(rows: list[dict]) -> Summary:
     return Summary(rows, _settings(), {"cpu": "test cpu", "usable_cores": 2, "torch": "x", "device": "cpu"})
 
 
-def test_visibility_bins_follow_the_paper() -> None:
-    assert BIN_LABELS[0] == "[0.2,0.3)" and BIN_LABELS[-1] == "[0.9,1.0]" and len(BIN_LABELS) == 8
-    assert visibility_bin(0.2) == 0 and visibility_bin(0.2999) == 0 and visibility_bin(0.3) == 1
-    assert visibility_bin(0.95) == 7 and visibility_bin(1.0) == 7
-    assert visibility_bin(0.19) is None and visibility_bin(1.01) is None and visibility_bin(float("nan")) is None
+def test_visibility_bins_follow_the_paper_and_reach_down_to_the_laparoscope() -> None:
+    # the laparoscope's range below the paper's bins, then the paper's Table I bins unchanged
+    assert BIN_LABELS[:3] == ("[0.05,0.10)", "[0.10,0.15)", "[0.15,0.20)")
+    assert BIN_LABELS[PAPER_FIRST_BIN] == "[0.2,0.3)" and BIN_LABELS[-1] == "[0.9,1.0]" and len(BIN_LABELS) == 11
+    assert BIN_LABELS[visibility_bin(0.12)] == "[0.10,0.15)" and visibility_bin(0.05) == 0
+    assert visibility_bin(0.19) == 2 and visibility_bin(0.2) == PAPER_FIRST_BIN and visibility_bin(0.2999) == 3
+    assert visibility_bin(0.3) == 4 and visibility_bin(0.95) == 10 and visibility_bin(1.0) == 10
+    assert visibility_bin(0.049) is None and visibility_bin(1.01) is None and visibility_bin(float("nan")) is None
 
 
 def test_tables_ratios_success_and_significance() -> None:
@@ -76,7 +79,7 @@ def test_tables_ratios_success_and_significance() -> None:
         rows += [_row(j, "procrustes", 0.95, 3.0), _row(j, "x-p2p", 0.95, high_p2p[i])]
         rows += [_row(j, "x", 0.95, high_base[i], runtime_ms=9000.0, failed=i < 5)]
     s = _summary(rows)
-    assert s.bins == [0, 7] and s.methods == ["procrustes", "x", "x-p2p"]
+    assert s.bins == [PAPER_FIRST_BIN, 10] and s.methods == ["procrustes", "x", "x-p2p"]
     assert s.slow == {"x"}  # median 9 s per case
     table = "\n".join(s.table_tre())
     assert "| procrustes (oracle) | 2.00 ± 0.00 | 3.00 ± 0.00 | 2.50 ± 0.50 |" in table
