@@ -26,7 +26,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "real-val-density-v1 and real-test-* (real CT livers, built from ../shared/data/livers)",
     )
     g.add_argument("--livers", type=int, default=10)
-    g.add_argument("--deformations", type=int, default=5, help="FEM deformations per liver")
+    g.add_argument("--deformations", type=int, default=5, help="deformations per liver")
+    g.add_argument(
+        "--family",
+        default="fem",
+        help="deformation family: fem (linear elasticity) or arap (as-rigid-as-possible with handles)",
+    )
     g.add_argument(
         "--targets",
         type=int,
@@ -80,6 +85,7 @@ def run_generate(args: argparse.Namespace) -> int:
         seed=args.seed,
         split=args.split,
         target_tets=args.tets,
+        family=args.family,
     )
     manifest = generate_dataset(args.out, spec, workers=args.workers, progress=progress)
     print(f"manifest: {manifest}")

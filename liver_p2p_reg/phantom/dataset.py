@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,7 +24,7 @@ from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.phantom.casefile import SENSOR_ORIGIN_KEY, read_case, write_case
 from liver_p2p_reg.phantom.crop import CROP_MODES, make_target
 from liver_p2p_reg.phantom.manifest import manifest_row, read_manifest, write_manifest
-from liver_p2p_reg.phantom.simulate import SimulatedLiver, simulate_liver
+from liver_p2p_reg.phantom.simulate import DEFORMATION_FAMILIES, SimulatedLiver, simulate_liver
 from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 log = logging.getLogger(__name__)
@@ -36,6 +37,8 @@ MAX_RANDOM_VISIBILITY = 0.97
 # A 70-degree laparoscope 80-150 mm from the anterior surface sees 14-38 % of the liver (5-95 %
 # of random poses, median 26 %); camera targets use these two bins.
 CAMERA_VISIBILITY_BINS = VISIBILITY_BINS[:2]
+# Below the paper's bins, where a laparoscope looks (the v2 sets): [0.05,0.10), [0.10,0.15), [0.15,0.20).
+LOW_VISIBILITY_BINS = ((0.05, 0.1), (0.1, 0.15), (0.15, 0.2))
 MAX_CAMERA_VISIBILITY = 0.36  # requests above this often need more than a camera can see
 RESERVED_SEEDS = range(900, 1000)
 # Liver ids of the real livers (phantom/real.py) are REAL_LIVER_SEED * 10_000 + their number.
@@ -116,6 +119,7 @@ class DatasetSpec:
     target_tets: int = 10_000
     generator_version: int = GENERATOR_VERSION
     visibility_bins: list = field(default_factory=list)
+    family: str = "fem"  # the deformation family (simulate.DEFORMATION_FAMILIES)
 
     def validate(self, allow_reserved: bool = False) -> DatasetSpec:
         if self.livers < 1 or self.livers > MAX_LIVERS_PER_SEED:
@@ -138,10 +142,21 @@ class DatasetSpec:
             )
         if self.target_tets < 500:
             raise InputError(f"target_tets must be >= 500, got {self.target_tets}")
+        if self.family not in DEFORMATION_FAMILIES:
+            raise InputError(f"--family must be one of {', '.join(DEFORMATION_FAMILIES)}, got {self.family!r}")
         if not self.visibility_bins:
             bins = CAMERA_VISIBILITY_BINS if self.crop == "camera" else VISIBILITY_BINS
             self.visibility_bins = [list(b) for b in bins]
         return self
+
+
+def spec_record(spec: Any) -> dict:
+    """A set's spec as stored in its dataset.json: every field, but `family` only when it is not the
+    default "fem", so the sets made before families existed still match their stored spec."""
+    record = asdict(spec)
+    if record.get("family") == "fem":
+        del record["family"]
+    return record
 
 
 def liver_id_for(seed: int, index: int) -> int:
@@ -169,7 +184,7 @@ def _generate_liver(args: tuple[DatasetSpec, int, str]) -> list[dict]:
     paths = [out_dir / case_name(liver_id, d, t) for d in range(spec.deformations) for t in range(spec.targets)]
     if all(case_is_current(p, spec.crop) for p in paths):  # resumed run: nothing to simulate for this liver
         return [manifest_row(p, read_case(p), spec.split) for p in paths]
-    sim = simulate_liver(liver_id, spec.deformations, target_tets=spec.target_tets)
+    sim = simulate_liver(liver_id, spec.deformations, target_tets=spec.target_tets, family=spec.family)
     meter = VisibilityMeter(sim.vertices_mm)
     rows = []
     for d in range(spec.deformations):
@@ -239,9 +254,9 @@ def generate_dataset(
     spec_path = out / "dataset.json"
     if spec_path.exists():
         old = json.loads(spec_path.read_text())
-        if old != asdict(spec):
+        if old != spec_record(spec):
             raise InputError(f"{out} holds a dataset with different parameters; use another --out")
-    spec_path.write_text(json.dumps(asdict(spec), indent=2))
+    spec_path.write_text(json.dumps(spec_record(spec), indent=2))
     (out / COMPLETE_MARKER).unlink(missing_ok=True)
     rows_by_liver: dict[int, list[dict]] = {}
     indices = sorted(set(livers)) if livers is not None else list(range(spec.livers))

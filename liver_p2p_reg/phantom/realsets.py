@@ -24,7 +24,14 @@ from pathlib import Path
 
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.phantom.casefile import read_case, write_case
-from liver_p2p_reg.phantom.dataset import COMPLETE_MARKER, GENERATOR_VERSION, VISIBILITY_BINS, make_case
+from liver_p2p_reg.phantom.dataset import (
+    COMPLETE_MARKER,
+    GENERATOR_VERSION,
+    LOW_VISIBILITY_BINS,
+    VISIBILITY_BINS,
+    make_case,
+    spec_record,
+)
 from liver_p2p_reg.phantom.manifest import manifest_row, read_manifest, write_manifest
 from liver_p2p_reg.phantom.real import load_real_liver, real_liver_id, real_split, require_real_livers
 from liver_p2p_reg.phantom.simulate import simulate_liver
@@ -45,6 +52,7 @@ class RealSetSpec:
     target_tets: int = 10_000
     generator_version: int = GENERATOR_VERSION
     livers: list = field(default_factory=list)  # filled from the split file when generated
+    family: str = "fem"  # the deformation family (simulate.DEFORMATION_FAMILIES)
 
 
 def _bins(bins: tuple) -> list:
@@ -64,6 +72,19 @@ for _split in ("val", "test"):
         camera_bins=_bins(REAL_CAMERA_BINS),
         densities=DENSITY_TWINS,
     )
+
+
+# v2: >= 128 poses in each bin from 0.05 to 0.3 (8 livers x 4 deformations x 4 crops per bin), fewer
+# above; random crops and laparoscope crops as two sets, each in both deformation families ("-arap").
+V2_LOW_BINS = (*LOW_VISIBILITY_BINS, VISIBILITY_BINS[0])
+for _split in ("val", "test"):
+    for _family, _suffix in (("fem", ""), ("arap", "-arap")):
+        REAL_SETS[f"real-{_split}-v2{_suffix}"] = RealSetSpec(
+            _split, random_bins=_bins(V2_LOW_BINS * 4 + VISIBILITY_BINS[1:]), family=_family
+        )
+        REAL_SETS[f"real-{_split}-camera-v2{_suffix}"] = RealSetSpec(
+            _split, camera_bins=_bins(V2_LOW_BINS * 4), family=_family
+        )
 
 
 def real_set_spec(name: str) -> RealSetSpec:
@@ -100,7 +121,7 @@ def _generate_real_liver(spec: RealSetSpec, stem: str, out: Path) -> list[dict]:
     if all((out / n).exists() for n in names):
         return [manifest_row(out / n, read_case(out / n), spec.split) for n in names]
     liver = load_real_liver(stem)
-    sim = simulate_liver(liver.seed, spec.deformations, target_tets=spec.target_tets, liver=liver)
+    sim = simulate_liver(liver.seed, spec.deformations, target_tets=spec.target_tets, liver=liver, family=spec.family)
     meter = VisibilityMeter(sim.vertices_mm)
     rows = []
     for d in range(spec.deformations):
@@ -142,7 +163,7 @@ def is_complete(path: Path, spec: RealSetSpec) -> bool:
     spec_path = path / "dataset.json"
     if not (spec_path.is_file() and (path / COMPLETE_MARKER).is_file() and (path / "manifest.csv").is_file()):
         return False
-    if json.loads(spec_path.read_text()) != asdict(spec):
+    if json.loads(spec_path.read_text()) != spec_record(spec):
         return False
     return all((path / r["file"]).is_file() for r in read_manifest(path))
 
@@ -156,10 +177,10 @@ def ensure_real_set(name: str, root: Path, progress: bool = True) -> Path:
         return path
     path.mkdir(parents=True, exist_ok=True)
     spec_path = path / "dataset.json"
-    if spec_path.is_file() and json.loads(spec_path.read_text()) != asdict(spec):
+    if spec_path.is_file() and json.loads(spec_path.read_text()) != spec_record(spec):
         for file in path.glob("case_*.npz"):  # another spec or generator: start over
             file.unlink()
-    spec_path.write_text(json.dumps(asdict(spec), indent=2))
+    spec_path.write_text(json.dumps(spec_record(spec), indent=2))
     (path / COMPLETE_MARKER).unlink(missing_ok=True)
     from tqdm import tqdm
 

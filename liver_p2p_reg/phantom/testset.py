@@ -23,13 +23,17 @@ from pathlib import Path
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom.dataset import (
+    CAMERA_VISIBILITY_BINS,
     COMPLETE_MARKER,
+    LOW_VISIBILITY_BINS,
+    VISIBILITY_BINS,
     DatasetSpec,
     case_is_current,
     case_name,
     generate_dataset,
     liver_id_for,
     requested_visibility,
+    spec_record,
 )
 from liver_p2p_reg.phantom.manifest import read_manifest
 
@@ -42,6 +46,32 @@ TESTSETS: dict[str, DatasetSpec] = {
     "insilico-val-v1": DatasetSpec(livers=6, deformations=5, targets=8, crop="random", seed=990, split="val"),
     "insilico-val-camera-v1": DatasetSpec(livers=6, deformations=5, targets=4, crop="camera", seed=990, split="val"),
 }
+
+
+def _v2_bins(crop: str) -> list:
+    """The v2 sets' bins, one target each per deformation: the low bins and [0.2,0.3) twice (the
+    operating point gets the samples), then the paper's higher bins (random crops; a camera on a
+    procedural liver sees at most ~0.4)."""
+    high = CAMERA_VISIBILITY_BINS[1:] if crop == "camera" else VISIBILITY_BINS[1:]
+    return [list(b) for b in (*LOW_VISIBILITY_BINS * 2, VISIBILITY_BINS[0], VISIBILITY_BINS[0], *high)]
+
+
+# v2: the bins below 0.2 (`LOW_VISIBILITY_BINS`), random and camera crops, each in both deformation
+# families ("-arap": as-rigid-as-possible with handles, which no method here models). Same livers
+# and seeds as v1; the v1 sets stay as they were.
+for _name, _livers, _seed, _split in (("test", 12, 900, "test"), ("val", 6, 990, "val")):
+    for _crop, _tag in (("random", ""), ("camera", "-camera")):
+        for _family, _suffix in (("fem", ""), ("arap", "-arap")):
+            TESTSETS[f"insilico-{_name}{_tag}-v2{_suffix}"] = DatasetSpec(
+                livers=_livers,
+                deformations=5,
+                targets=len(_v2_bins(_crop)),
+                crop=_crop,
+                seed=_seed,
+                split=_split,
+                visibility_bins=_v2_bins(_crop),
+                family=_family,
+            )
 ENV_DATA_ROOT = "LIVER_P2P_DATA"
 APPROX_MB_PER_CASE = 0.32  # insilico-test-v1: 154 MB for 480 cases (announced before a build)
 log = logging.getLogger(__name__)
@@ -71,7 +101,7 @@ def is_complete(path: Path, spec: DatasetSpec) -> bool:
     spec_path = path / "dataset.json"
     if not spec_path.is_file() or not (path / COMPLETE_MARKER).is_file() or not (path / "manifest.csv").is_file():
         return False
-    if json.loads(spec_path.read_text()) != asdict(spec):
+    if json.loads(spec_path.read_text()) != spec_record(spec):
         return False
     return all(case_is_current(path / r["file"], spec.crop) for r in read_manifest(path))
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.sparse.linalg import spsolve
@@ -92,3 +94,37 @@ def test_simulate_liver_makes_either_family_and_refuses_others() -> None:
     assert not np.allclose(arap.deformations[0].fiducials_mm, fem.deformations[0].fiducials_mm, atol=0.1)
     with pytest.raises(InputError, match="unknown deformation family"):
         simulate_liver(11, 1, target_tets=1500, family="kelvinlet")
+
+
+def test_a_dataset_of_the_second_family_reaches_the_low_bins(tmp_path) -> None:
+    from liver_p2p_reg.bench.cases import BIN_LABELS, visibility_bin
+    from liver_p2p_reg.phantom.casefile import read_case
+    from liver_p2p_reg.phantom.dataset import DatasetSpec, generate_dataset, spec_record
+    from liver_p2p_reg.phantom.manifest import read_manifest
+
+    bins = [[0.05, 0.1], [0.1, 0.15], [0.15, 0.2]]
+    spec = DatasetSpec(
+        livers=1, deformations=1, targets=3, seed=7, target_tets=1500, visibility_bins=bins, family="arap"
+    )
+    rows = read_manifest(generate_dataset(tmp_path, spec, progress=False).parent)
+    labels = sorted(BIN_LABELS[visibility_bin(read_case(tmp_path / r["file"])["visibility"])] for r in rows)
+    assert labels == ["[0.05,0.10)", "[0.10,0.15)", "[0.15,0.20)"]
+    assert json.loads((tmp_path / "dataset.json").read_text())["family"] == "arap"
+    # a set made before families existed stores no `family`: its stored spec still matches
+    assert "family" not in spec_record(DatasetSpec(livers=1, deformations=1, targets=3))
+    with pytest.raises(InputError, match="--family"):
+        DatasetSpec(livers=1, deformations=1, targets=3, family="linear").validate()
+
+
+def test_v2_sets_exist_in_both_families_with_enough_low_visibility_poses() -> None:
+    from liver_p2p_reg.phantom.realsets import REAL_SETS
+    from liver_p2p_reg.phantom.testset import TESTSETS
+
+    for split in ("val", "test"):
+        for crop in ("", "-camera"):
+            fem, arap = REAL_SETS[f"real-{split}{crop}-v2"], REAL_SETS[f"real-{split}{crop}-v2-arap"]
+            assert (fem.family, arap.family) == ("fem", "arap") and fem.random_bins == arap.random_bins
+            for lo in (0.05, 0.1, 0.15, 0.2):  # 8 livers x 4 deformations x crops per bin >= 128
+                per_deformation = sum(b[0] == lo for b in fem.random_bins + fem.camera_bins)
+                assert 8 * fem.deformations * per_deformation >= 128, (split, crop, lo)
+            assert TESTSETS[f"insilico-{split}{crop}-v2-arap"].family == "arap"

@@ -85,7 +85,9 @@ def test_validation_sets_use_livers_no_test_set_or_training_store_can_have() -> 
     """Defaults are chosen on the val sets: their livers must be unseen by training and by the tests."""
     val = {name: spec for name, spec in TESTSETS.items() if spec.split == "val"}
     test_seeds = {spec.seed for spec in TESTSETS.values() if spec.split == "test"}
-    assert set(val) == {"insilico-val-v1", "insilico-val-camera-v1"}
+    assert set(val) == {
+        f"insilico-val{crop}-{version}" for crop in ("", "-camera") for version in ("v1", "v2", "v2-arap")
+    }
     for name, spec in val.items():
         assert spec.seed not in test_seeds, name
         # a reserved seed: `dataset generate --store/--seed` refuses it, so no training store holds these livers
@@ -95,13 +97,21 @@ def test_validation_sets_use_livers_no_test_set_or_training_store_can_have() -> 
 
 
 def test_smoke_preset_picks_its_cases_from_the_design_and_needs_few_livers() -> None:
-    from liver_p2p_reg.bench.cases import BIN_LABELS, CaseInfo, first_per_bin, planned_cases, visibility_bin
+    from liver_p2p_reg.bench.cases import (
+        BIN_LABELS,
+        PAPER_FIRST_BIN,
+        CaseInfo,
+        first_per_bin,
+        planned_cases,
+        visibility_bin,
+    )
 
+    v1_bins = range(PAPER_FIRST_BIN, len(BIN_LABELS))  # the paper's bins: v1 holds no case below 0.2
     livers, names = planned_cases("insilico-test-v1", "smoke", None)
-    assert livers == [0, 6, 11] and len(names) == 3 * len(BIN_LABELS)
+    assert livers == [0, 6, 11] and len(names) == 3 * len(v1_bins)
     design = testset.expected_cases("insilico-test-v1")
     bins = {name: visibility_bin(v) for _, name, v in design}
-    assert sorted(bins[n] for n in names) == sorted(list(range(len(BIN_LABELS))) * 3)
+    assert sorted(bins[n] for n in names) == sorted(list(v1_bins) * 3)
     # The same cases `first_per_bin` picks from the whole set when none is skipped (test-v1 skips none).
     infos = [CaseInfo(Path(n).stem, Path(n), v, 0.0, "", 0.0, 0) for _, n, v in design]
     assert sorted(c.case_id + ".npz" for c in first_per_bin(infos, 3)) == sorted(names)
