@@ -23,7 +23,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--testset",
         help="generate a named set: insilico-test-v1, insilico-camera-v1, insilico-smoke (test); "
         "insilico-val-v1, insilico-val-camera-v1 (validation, for tuning); real-val-v1, real-val-camera-v1, "
-        "real-val-density-v1 and real-test-* (real CT livers, built from ../shared/data/livers)",
+        "real-val-density-v1 and real-test-* (real CT livers, built from ../shared/data/livers); the v2 sets "
+        "reach down to visibility 0.05: insilico-{val,test}[-camera]-v2, real-{val,test}[-camera]-v2, each "
+        "also with -arap (the second deformation family)",
     )
     g.add_argument("--livers", type=int, default=10)
     g.add_argument("--deformations", type=int, default=5, help="deformations per liver")
