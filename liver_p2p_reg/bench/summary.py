@@ -9,6 +9,7 @@ from typing import Any
 from liver_p2p_reg.bench import plots
 from liver_p2p_reg.bench.ablation_report import ablation_section
 from liver_p2p_reg.bench.cases import BIN_LABELS, PAPER_FIRST_BIN
+from liver_p2p_reg.bench.headline import headline_sections
 from liver_p2p_reg.bench.jobs import ORACLE
 from liver_p2p_reg.bench.stats import ALPHA, SAFETY_TAU_MM, SUCCESS_TAU_MM, Row, main_rows
 from liver_p2p_reg.bench.tables import GOOD_POSE_MM, SLOW_MEDIAN_MS, Tables
@@ -51,6 +52,7 @@ class Summary(Tables):
             *self.table_success(SAFETY_TAU_MM),
             "",
         ]
+        lines += headline_sections(self)
         lines += [
             "![success rate vs tau](success_vs_tau.png)",
             "",
@@ -142,6 +144,7 @@ class Summary(Tables):
             *self.table_success(SAFETY_TAU_MM),
             "",
         ]
+        lines += headline_sections(self, heading="")
         lines += [
             f"Would the node have warned (failed, ambiguous, residual or uncertainty above its threshold)? "
             f"Poses off by {SUCCESS_TAU_MM:g} mm or more should all be warned, few within {GOOD_POSE_MM:g} mm:",

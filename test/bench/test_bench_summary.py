@@ -165,3 +165,22 @@ def test_rows_from_before_the_density_column_count_as_uniform() -> None:
     ]
     header = _summary(rows).table_density()[0]
     assert "| mesh-vertices | uniform |" in header and "|  |" not in header
+
+
+def test_bootstrap_intervals_resample_livers_not_cases() -> None:
+    from liver_p2p_reg.bench.headline import bootstrap_mean, liver_of
+
+    assert liver_of("case_L0900003_D01_T004+noise2mm") == "0900003" and liver_of("odd") == "odd"
+    # 100 cases of one liver at 0 mm and one case of another at 10 mm: the cases alone would give a
+    # narrow interval about 0.1 mm; as two livers, a resample can be either liver alone
+    values = np.array([0.0] * 100 + [10.0])
+    livers = ["a"] * 100 + ["b"]
+    mean, lo, hi = bootstrap_mean(values, livers)
+    assert mean == pytest.approx(10 / 101) and lo == 0.0 and hi == 10.0
+    assert bootstrap_mean(values, livers) == (mean, lo, hi)  # a fixed seed: the same interval every time
+    single = bootstrap_mean(np.array([1.0, 2.0]), ["a", "a"])
+    assert single[0] == 1.5 and np.isnan(single[1]) and np.isnan(single[2])
+    rng = np.random.default_rng(0)
+    many = rng.normal(5.0, 1.0, 400)
+    mean, lo, hi = bootstrap_mean(many, [str(i // 10) for i in range(400)])
+    assert lo < mean < hi and hi - lo < 1.0
