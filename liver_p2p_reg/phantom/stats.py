@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.phantom.dataset import VISIBILITY_BINS
+from liver_p2p_reg.phantom.dataset import LOW_VISIBILITY_BINS, VISIBILITY_BINS
 from liver_p2p_reg.plotting import pyplot
 
 STAT_COLUMNS = (
@@ -36,9 +36,12 @@ def summarize(rows: Sequence[dict]) -> dict:
         }
     vis = np.array([r["visibility"] for r in rows])
     bins = {}
-    for lo, hi in VISIBILITY_BINS:
+    for lo, hi in (*LOW_VISIBILITY_BINS, *VISIBILITY_BINS):
         upper = vis <= hi if hi >= 1.0 else vis < hi
-        bins[f"[{lo:.1f},{hi:.1f}{']' if hi >= 1.0 else ')'}"] = int(np.sum((vis >= lo) & upper))
+        count = int(np.sum((vis >= lo) & upper))
+        if count or lo >= 0.2:  # the bins below 0.2 only where a set has them (the v2 sets)
+            digits = 2 if lo < 0.2 else 1
+            bins[f"[{lo:.{digits}f},{hi:.{digits}f}{']' if hi >= 1.0 else ')'}"] = count
     out["visibility_bins"] = bins
     err = np.abs(np.array([r["visibility"] - r["visibility_requested"] for r in rows]))
     out["visibility_abs_error_max"] = float(err.max())
