@@ -11,17 +11,20 @@ import yaml
 from liver_p2p_reg.errors import InputError
 
 
-def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
-    """The mapping in a YAML file: a plain one or a ROS 2 parameter file (`<node>: ros__parameters: ...`)."""
+def read_yaml_mapping(path: str | Path, what: str = "config") -> dict[str, Any]:
+    """The mapping in a YAML file: a plain one or a ROS 2 parameter file (`<node>: ros__parameters: ...`).
+
+    `what` names the file in the one-line errors ("config", "training config").
+    """
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except OSError as exc:
-        raise InputError(f"cannot read config {path}: {exc.strerror or exc}") from None
+        raise InputError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:
-        raise InputError(f"config {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        raise InputError(f"{what} {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
     if not isinstance(data, dict):
-        raise InputError(f"config {path} must be a mapping")
+        raise InputError(f"{what} {path} must be a mapping of key: value lines")
     return _flatten_ros_params(data)
 
 

@@ -6,8 +6,6 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom.artifacts import DENSITY_MODES
 from liver_p2p_reg.phantom.crop import CROP_MODES
@@ -64,14 +62,9 @@ class TrainConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrainConfig:
-        try:
-            data = yaml.safe_load(Path(path).read_text()) or {}
-        except OSError as exc:
-            raise InputError(f"cannot read training config {path}: {exc.strerror or exc}") from None
-        except yaml.YAMLError as exc:
-            raise InputError(f"training config {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
-        if not isinstance(data, dict):
-            raise InputError(f"training config {path} must be a mapping of key: value lines")
+        from liver_p2p_reg.config_io import read_yaml_mapping
+
+        data = read_yaml_mapping(path, "training config")
         known = {f.name for f in fields(cls)}
         bad = sorted(set(data) - known)
         if bad:
