@@ -72,7 +72,7 @@ class Registrar:
             )
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
         name = method or self.config.method
-        check_method_name(name)
+        check_method_name(name)  # before the other checks: an unknown name is the first thing to say
         ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm), _check_origin(sensor_origin_mm))
         result = run_method(name, source, target, self.config, ctx)
         result.method = name

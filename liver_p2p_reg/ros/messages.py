@@ -23,22 +23,25 @@ def feed_preop_msg(core: NodeCore, msg: Any, *, warm_up: bool = True) -> Diagnos
     return core.set_preop(points, msg.header.frame_id, stamp_to_ns(msg.header.stamp), warm_up=warm_up)
 
 
+def _feed_fiducials(
+    store: Callable[[np.ndarray, int], None], msg: Any, diag_name: str, topic: str
+) -> Diagnostic | None:
+    """Fiducials of a PointCloud2 into `store(points_mm, stamp_ns)`; a WARN diagnostic when they cannot be used."""
+    try:
+        store(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
+    except InputError as exc:
+        return Diagnostic(WARN, diag_name, f"ignoring bad {topic}: {exc}")
+    return None
+
+
 def feed_preop_fiducials_msg(core: NodeCore, msg: Any) -> Diagnostic | None:
     """A /preop/fiducials PointCloud2 into the core; a WARN diagnostic when it cannot be used."""
-    try:
-        core.set_preop_fiducials(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
-    except InputError as exc:
-        return Diagnostic(WARN, PREOP_DIAG_NAME, f"ignoring bad /preop/fiducials: {exc}")
-    return None
+    return _feed_fiducials(core.set_preop_fiducials, msg, PREOP_DIAG_NAME, "/preop/fiducials")
 
 
 def feed_intraop_fiducials_msg(core: NodeCore, msg: Any) -> Diagnostic | None:
     """A /intraop/fiducials PointCloud2 into the core; a WARN diagnostic when it cannot be used."""
-    try:
-        core.set_intraop_fiducials(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
-    except InputError as exc:
-        return Diagnostic(WARN, DIAG_NAME, f"ignoring bad /intraop/fiducials: {exc}")
-    return None
+    return _feed_fiducials(core.set_intraop_fiducials, msg, DIAG_NAME, "/intraop/fiducials")
 
 
 def feed_intraop_msg(core: NodeCore, msg: Any, now_s: float | None = None) -> list[Diagnostic]:
