@@ -19,6 +19,7 @@ from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm, tre_mm
 from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.methods import check_method_name, method_names, run_method
+from liver_p2p_reg.registration.threads import pin_threads
 from liver_p2p_reg.result import RegistrationResult
 
 
@@ -74,6 +75,7 @@ class Registrar:
         name = method or self.config.method
         check_method_name(name)  # before the other checks: an unknown name is the first thing to say
         ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm), _check_origin(sensor_origin_mm))
+        pin_threads(self.config.num_threads)  # the same arithmetic whatever ran before, on any thread
         result = run_method(name, source, target, self.config, ctx)
         result.method = name
         # After an ICP screening its refined hypotheses are the better evidence of a rival pose.

@@ -7,6 +7,7 @@ from conftest import require_rclpy
 rclpy = require_rclpy()
 
 from ros_support import BAGS  # noqa: E402
+from same_pose import surface_shift_mm  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from liver_p2p_reg.bags.io import BagWriter, bag_custom_data, read_messages  # noqa: E402
@@ -20,7 +21,6 @@ from liver_p2p_reg.stream.intake import RATE_TOLERANCE  # noqa: E402
 # Every frame a full registration: a pose then depends only on its model and cloud, so frames the
 # live node drops under load (latest-only) cannot change the others, and each compares one to one.
 PARAMS = {"track_previous_pose": False}
-SAME_POSE_MM = 0.5  # live and replayed poses move no preop point further apart than this
 
 
 def pose_matrix(position, orientation):
@@ -36,6 +36,14 @@ def stamp_of(msg):
 
 def by_stamp(messages, topic):
     return {stamp_of(m.msg): m.msg for m in messages if m.topic == topic}
+
+
+def same_arithmetic(values):
+    """A registration diagnostic's values without the timings and the cache state (which differ by design) and
+    the free-space keys: the live node takes the sensor at its frame's origin (the default), replay not for
+    random-crop bags, whose clouds are in no sensor's frame (their violation is 0, so the pose is the same)."""
+    skip = ("model_cache_computed", "free_space", "free_space_violation")
+    return {k: v for k, v in values.items() if not k.startswith("runtime_ms.") and k not in skip}
 
 
 def registration_values(messages):
@@ -119,12 +127,10 @@ def test_every_bundled_bag_through_the_live_graph_equals_replay(live, tmp_path, 
             live_pose, live_transform = live_poses[stamp], live_tf[stamp]
             T = pose_matrix(live_pose.pose.position, live_pose.pose.orientation)
             T_replay = pose_matrix(replay_poses[stamp].pose.position, replay_poses[stamp].pose.orientation)
-            # Same arithmetic on the same float32 inputs, and bitwise equal in every isolated run; once, in a
-            # whole clean-clone suite, one sweep-bag frame differed by 1e-3 in rotation (0.1 mm on the
-            # surface; not reproduced since). So the poses are compared by what they do to the preop surface.
-            moved, moved_replay = preop_m @ T[:3, :3].T + T[:3, 3], preop_m @ T_replay[:3, :3].T + T_replay[:3, 3]
-            shift_mm = 1e3 * float(np.max(np.linalg.norm(moved - moved_replay, axis=1)))
-            assert shift_mm < SAME_POSE_MM, (bag.name, stamp, shift_mm)
+            # Same arithmetic on the same float32 inputs, the same torch thread count (pinned per
+            # registration): bitwise the same pose, whatever else ran in either process before.
+            assert np.array_equal(T, T_replay), (bag.name, stamp, surface_shift_mm(T, T_replay, preop_m * 1e3))
+            moved = preop_m @ T[:3, :3].T + T[:3, 3]
             t = live_transform.transform
             np.testing.assert_allclose(pose_matrix(t.translation, t.rotation), T, atol=1e-12)
             assert live_transform.child_frame_id == "ct" and live_transform.header.frame_id == "camera"
@@ -134,7 +140,7 @@ def test_every_bundled_bag_through_the_live_graph_equals_replay(live, tmp_path, 
             T_mm[:3, 3] *= 1e3
             tre = np.sqrt(np.mean(np.sum((fid_ct @ T_mm[:3, :3].T + T_mm[:3, 3] - fid_cam[stamp]) ** 2, axis=1)))
             assert abs(float(live_values[stamp]["rms_tre_mm"]) - tre) < 0.01, (bag.name, stamp)
-            replay_tre = float(replay_values[stamp]["rms_tre_mm"])
-            assert abs(float(live_values[stamp]["rms_tre_mm"]) - replay_tre) < SAME_POSE_MM, (bag.name, stamp)
+            # and the same diagnostics, but for what depends on the clock or on what came before
+            assert same_arithmetic(live_values[stamp]) == same_arithmetic(replay_values[stamp]), (bag.name, stamp)
             compared += 1
     assert compared >= len(bags)
