@@ -9,7 +9,13 @@ from setuptools.command.install_scripts import install_scripts
 
 PACKAGE = "liver_p2p_reg"
 VERSION = "0.1.0"  # keep equal to package.xml (a test checks)
-NODE_EXECUTABLES = ("register_node", "preop_loader_node", "slicer_bridge_node")
+NODE_EXECUTABLES = (
+    "register_node",
+    "preop_loader_node",
+    "slicer_bridge_node",
+    "register_lifecycle_node",
+    "preop_loader_lifecycle_node",
+)
 
 
 class ros_aware_install_scripts(install_scripts):
@@ -102,7 +108,13 @@ setup(
         # setuptools: the colcon-layout test; colcon: the colcon build test
         "dev": ["pytest>=7", "ruff>=0.5", "setuptools>=61", "colcon-common-extensions>=0.3"],
         # ROS 2 Jazzy's rclpy and messages as PyPI wheels (no tf2_ros, launch or rosbag2 wheels exist)
-        "ros": ["ros-jazzy-rclpy[fastrtps]>=7.1", "ros-jazzy-common-interfaces>=5.3", "ros-jazzy-std-srvs>=5.3"],
+        "ros": [
+            "ros-jazzy-rclpy[fastrtps]>=7.1",
+            "ros-jazzy-common-interfaces>=5.3",
+            "ros-jazzy-std-srvs>=5.3",
+            "ros-jazzy-rcl-lifecycle",  # the managed nodes (rclpy.lifecycle)
+            "ros-jazzy-lifecycle-msgs",
+        ],
     },
     zip_safe=False,
     cmdclass={"install_scripts": ros_aware_install_scripts, "develop": ros_aware_develop},
@@ -111,6 +123,8 @@ setup(
             "liver-p2p = liver_p2p_reg.cli:main",
             "register_node = liver_p2p_reg.ros.register_node:main",
             "preop_loader_node = liver_p2p_reg.ros.preop_loader_node:main",
+            "register_lifecycle_node = liver_p2p_reg.ros.register_lifecycle_node:main",
+            "preop_loader_lifecycle_node = liver_p2p_reg.ros.preop_loader_lifecycle_node:main",
             "slicer_bridge_node = liver_p2p_reg.ros.slicer_bridge_node:main",
         ],
     },

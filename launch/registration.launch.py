@@ -5,9 +5,9 @@ import os
 import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument, ExecuteProcess
-from launch.conditions import IfCondition
+from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration, PythonExpression
-from launch_ros.actions import Node
+from launch_ros.actions import LifecycleNode, Node
 
 from launch import LaunchDescription
 
@@ -21,7 +21,19 @@ def generate_launch_description():
     model_path = LaunchConfiguration("model_path")
     fiducials_path = LaunchConfiguration("fiducials_path")
     bag = LaunchConfiguration("bag")
-    use_loader = PythonExpression(["'", model_path, "' != ''"])  # bags carry /preop/* themselves
+    managed = LaunchConfiguration("managed")
+    # managed: the lifecycle executables, left unconfigured for the robot's supervisor to bring up in order
+    plain_loader = PythonExpression(["'", model_path, "' != '' and '", managed, "'.lower() != 'true'"])
+    managed_loader = PythonExpression(["'", model_path, "' != '' and '", managed, "'.lower() == 'true'"])
+    loader_parameters = [
+        {
+            "model_path": model_path,
+            "fiducials_path": fiducials_path,
+            "frame_id": "ct",
+            "units": LaunchConfiguration("units"),
+        }
+    ]
+    register_parameters = [params, {"method": LaunchConfiguration("method")}]
     play_bag = PythonExpression(["'", bag, "' != ''"])
     return LaunchDescription(
         [
@@ -40,26 +52,43 @@ def generate_launch_description():
             DeclareLaunchArgument(
                 "ct_convention", default_value="LPS", description="anatomical convention of the ct frame: LPS or RAS"
             ),
+            DeclareLaunchArgument(
+                "managed",
+                default_value="false",
+                description="start register_node and the loader as managed (lifecycle) nodes, unconfigured",
+            ),
             Node(
                 package="liver_p2p_reg",
                 executable="preop_loader_node",
                 name="preop_loader_node",
-                parameters=[
-                    {
-                        "model_path": model_path,
-                        "fiducials_path": fiducials_path,
-                        "frame_id": "ct",
-                        "units": LaunchConfiguration("units"),
-                    }
-                ],
-                condition=IfCondition(use_loader),
+                parameters=loader_parameters,
+                condition=IfCondition(plain_loader),
                 output="screen",
             ),
             Node(
                 package="liver_p2p_reg",
                 executable="register_node",
                 name="register_node",
-                parameters=[params, {"method": LaunchConfiguration("method")}],
+                parameters=register_parameters,
+                condition=UnlessCondition(managed),
+                output="screen",
+            ),
+            LifecycleNode(
+                package="liver_p2p_reg",
+                executable="preop_loader_lifecycle_node",
+                name="preop_loader_node",
+                namespace="",
+                parameters=loader_parameters,
+                condition=IfCondition(managed_loader),
+                output="screen",
+            ),
+            LifecycleNode(
+                package="liver_p2p_reg",
+                executable="register_lifecycle_node",
+                name="register_node",
+                namespace="",
+                parameters=register_parameters,
+                condition=IfCondition(managed),
                 output="screen",
             ),
             Node(

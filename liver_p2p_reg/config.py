@@ -3,13 +3,12 @@
 Defaults live here and only here. `config/registration.yaml` (the ROS parameter file) is
 generated from these defaults with `liver-p2p config --ros` and a test checks that it matches.
 
-Flat outside, sectioned inside. Users write flat names (`Config(k=5)`, `config.k`, `replace(k=5)`,
-YAML keys, ROS parameters), so those stay. Each field is declared once, with its default, in the
-section of the stage that reads it (`P2PSection`, `IcpSection`, ...); Config inherits all sections,
-and a stage takes its section's view (`config.p2p`, a copy), so no stage keeps defaults of its own
-(the P2P module's settings class did, two of them not Config's). Inheritance, because nested
-section objects would nest the flat names (`config.p2p.k`, nested YAML), and a list of each
-section's names beside flat fields would be a second list to keep in step with them.
+Flat outside, sectioned inside. Users write flat names (`Config(k=5)`, `config.k`, `replace(k=5)`, YAML keys,
+ROS parameters), so those stay. Each field is declared once, with its default, in the section of the stage that
+reads it (`P2PSection`, `IcpSection`, ...); Config inherits all sections, and a stage takes its section's view
+(`config.p2p`, a copy), so no stage keeps defaults of its own (the P2P module's settings class did, two of them
+not Config's). Inheritance, because nested section objects would nest the flat names (`config.p2p.k`, nested
+YAML), and a list of each section's names beside flat fields would be a second list to keep in step with them.
 """
 
 from __future__ import annotations
@@ -28,7 +27,6 @@ from liver_p2p_reg.errors import InputError
 SELECTION_RULES = ("closest-point", "inlier-count")
 NODE_MODES = ("continuous", "once", "on_demand", "survey")
 DEVICES = ("cpu", "cuda")
-
 
 # Lower bounds of the numeric fields that have nothing but a lower bound.
 MINIMUMS: dict[str, float] = {
@@ -50,6 +48,8 @@ MINIMUMS: dict[str, float] = {
     "free_space_band_mm": 0,
     "free_space_weight": 0,
     "free_space_warn": 0,
+    "record_max_mb": 0,
+    "stale_after_s": 0.1,
     "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
 }
 
@@ -61,7 +61,7 @@ class RuntimeSection:
     # Default: the method the latest benchmarks favour (README "Default method" gives the numbers).
     method: str = "learned-p2p-icp"
     device: str = "cpu"
-    num_threads: int = 0  # torch CPU threads; 0 keeps torch's default
+    num_threads: int = 0  # torch CPU threads per registration; 0: OMP_NUM_THREADS, else the usable CPUs
     # Linux/glibc: keep freed large buffers in the process heap (alloc.py); faster frames on large
     # views, identical results, the process keeps its peak memory
     reuse_freed_memory: bool = True
@@ -168,8 +168,7 @@ class VerdictSection:
     # (scripts/calibrate_confidence.py; README "Confidence" has the test-set effect)
     uncertainty_warn_mm: float = 15.0
     free_space_warn: float = 0.1  # a pose contradicting more than this share of the view's footprint -> WARN
-    # a rival hypothesis (after ICP screening if the method screens) with a residual within this
-    # factor of the best ...
+    # a rival hypothesis (after ICP screening if the method screens), residual within this factor of the best ...
     ambiguity_residual_ratio: float = 1.2
     ambiguity_pose_mm: float = 15.0  # ... and a pose differing by this much -> ambiguous
 
@@ -180,6 +179,7 @@ class StreamSection:
 
     mode: str = "continuous"
     max_rate_hz: float = 2.0  # continuous mode: at most this many registrations per s
+    stale_after_s: float = 5.0  # register_node: status STALE ("no intraop data") after this long without a cloud
     # continuous mode: refine the last good pose by ICP on the next cloud (method `track`) and
     # keep it if it fits as well as the last full registration; else run the full method
     track_previous_pose: bool = True
@@ -190,6 +190,8 @@ class StreamSection:
     survey_step: float = 0.05
     survey_voxel_mm: float = 2.0  # fused surface: one mean point per voxel of this edge ...
     survey_max_points: int = 20000  # ... doubled whenever it would hold more points than this
+    record_path: str = ""  # flight recorder (bags/recorder.py): an MCAP file of every input, change and pose; "": off
+    record_max_mb: float = 0.0  # the recorder starts a new numbered file beyond this size; 0: one file
 
 
 S = TypeVar("S")

@@ -73,7 +73,8 @@ def test_colcon_install_layout(tmp_path: Path) -> None:
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lib = prefix / "lib" / PACKAGE
-    for exe in ("register_node", "preop_loader_node", "slicer_bridge_node", "liver-p2p"):
+    managed = ("register_lifecycle_node", "preop_loader_lifecycle_node")
+    for exe in ("register_node", "preop_loader_node", "slicer_bridge_node", *managed, "liver-p2p"):
         assert (lib / exe).is_file() and os.access(lib / exe, os.X_OK), f"{exe} missing from lib/{PACKAGE}"
     # The CLI is on PATH (bin/), the node executables are not (ros2 run finds them in lib/<pkg>).
     assert (prefix / "bin" / "liver-p2p").is_file()
@@ -115,11 +116,13 @@ def test_console_script_help() -> None:
     assert out.returncode == 0 and "usage: liver-p2p" in out.stdout
 
 
-# The rclpy adapter modules: the three nodes, the bag player and the live-graph harness + demo.
+# The rclpy adapter modules: the three nodes and the two managed ones, the bag player and the live-graph harness + demo.
 # The modules that may import rclpy or ROS message packages (at module level or inside a function).
 RCLPY_ADAPTERS = {
     "ros/register_node.py",
     "ros/preop_loader_node.py",
+    "ros/register_lifecycle_node.py",
+    "ros/preop_loader_lifecycle_node.py",
     "ros/slicer_bridge_node.py",
     "ros/node_main.py",
     "ros/topics.py",  # only inside functions: the rclpy profile of a topic's QoS description
@@ -128,7 +131,7 @@ RCLPY_ADAPTERS = {
     "livegraph/demo.py",
 }
 ROS_PYTHON = (
-    r"(rclpy|sensor_msgs|geometry_msgs|diagnostic_msgs|std_msgs|std_srvs|rcl_interfaces|builtin_interfaces|tf2_ros)"
+    r"(rclpy|lifecycle_msgs|rosgraph_msgs|sensor_msgs|geometry_msgs|diagnostic_msgs|std_msgs|std_srvs|rcl_interfaces|builtin_interfaces|tf2_ros)"
 )
 
 

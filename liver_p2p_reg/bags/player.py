@@ -9,10 +9,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from builtin_interfaces.msg import Time
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.ros.topics import INPUT_TOPICS, RELIABLE, Qos, qos_of
+
+CLOCK_QOS = 10  # /clock as ros2 bag play offers it: reliable, volatile
 
 
 def played_qos(topic: str) -> Qos:
@@ -71,7 +75,9 @@ def _header_stamp_ns(msgtype: str, raw: bytes) -> int:
 class BagPlayer:
     """Publishes a bag's raw messages through rclpy publishers of `node` (what `ros2 bag play` does)."""
 
-    def __init__(self, node: Node, path: str | Path, topics: Iterable[str] | None = None) -> None:
+    def __init__(
+        self, node: Node, path: str | Path, topics: Iterable[str] | None = None, *, clock: bool = False
+    ) -> None:
         self.node = node
         self.messages = read_raw(path, topics)
         if not self.messages:
@@ -81,6 +87,9 @@ class BagPlayer:
             if topic not in self.publishers:
                 qos = played_qos(topic).rclpy_profile()
                 self.publishers[topic] = node.create_publisher(message_class(msgtype), topic, qos)
+        # clock: /clock from the bag's log times (what `ros2 bag play --clock` does), for use_sim_time nodes;
+        # each loop starts the clock again at the bag's first time: a jump back the nodes must survive
+        self.clock_pub = node.create_publisher(Clock, "/clock", CLOCK_QOS) if clock else None
 
     def wait_for_subscribers(self, timeout_s: float, topics: Iterable[str] | None = None) -> bool:
         """Wait until each publisher (or the given topics') has a matched subscriber."""
@@ -114,6 +123,8 @@ class BagPlayer:
                     time.sleep(delay)
                 if should_stop():
                     return played
+                if self.clock_pub is not None:
+                    self.clock_pub.publish(Clock(clock=Time(sec=log_ns // 10**9, nanosec=log_ns % 10**9)))
                 self.publishers[topic].publish(raw)
                 item = Played(topic, _header_stamp_ns(msgtype, raw), time.monotonic())
                 played.append(item)
@@ -123,7 +134,7 @@ class BagPlayer:
                 return played
 
 
-def main_play(path: str, rate: float, loop: bool, delay_s: float) -> int:
+def main_play(path: str, rate: float, loop: bool, delay_s: float, clock: bool = False) -> int:
     """`liver-p2p bag play BAG`: its own rclpy context and node; Ctrl-C stops it (exit 0)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
@@ -131,9 +142,10 @@ def main_play(path: str, rate: float, loop: bool, delay_s: float) -> int:
     rclpy.init()
     node = rclpy.create_node("liver_p2p_bag_player")
     try:
-        player = BagPlayer(node, path)
+        player = BagPlayer(node, path, clock=clock)
         topics = ", ".join(sorted(player.publishers))
-        print(f"playing {path}: {len(player.messages)} messages on {topics} at rate {rate}", flush=True)
+        extra = " and /clock" if clock else ""
+        print(f"playing {path}: {len(player.messages)} messages on {topics}{extra} at rate {rate}", flush=True)
         player.wait_for_subscribers(delay_s)
         played = player.play(rate, loop=loop, should_stop=lambda: not rclpy.ok())
         print(f"published {len(played)} messages", flush=True)

@@ -93,6 +93,7 @@ def replay_bag(
     max_frames: int | None = None,
     plot_path: str | Path | None = None,
     observer: object | None = None,
+    record_path: str | Path | None = None,
 ) -> ReplayRow:
     """Drive a NodeCore with a bag's messages in log-time order; optionally write inputs + outputs.
 
@@ -101,13 +102,18 @@ def replay_bag(
     plot_path: also draw the last registered frame (overlay.plot_registration) to this PNG.
     observer: gets on_input(topic, msg) for every message read and on_output(CoreOutput) for
     every output (the Slicer link of `replay --slicer`).
+    record_path: flight-record the replay there (bags/recorder.py; else config.record_path, if set).
     """
+    from liver_p2p_reg.bags.recorder import recorder_factory
+
     path = Path(path)
     info = _bag_info(path)
     if info.get("sensor_frame") is False and config.sensor_at_frame_origin:
         # clouds in another frame than their sensor's (simulated random crops): (0, 0, 0) is no sensor origin
         config = config.replace(sensor_at_frame_origin=False)
-    core = NodeCore(config, registrar)
+    if record_path:
+        config = config.replace(record_path=str(record_path))
+    core = NodeCore(config, registrar, recorder_factory("overwrite" if overwrite else "refuse"))
     types = rosbags_output_types()
     writer = BagWriter(out_path, overwrite=overwrite) if out_path else None
     outputs: list[CoreOutput] = []
@@ -176,6 +182,7 @@ def replay_bag(
         if not (max_frames and len(outputs) >= max_frames):
             emit(core.flush(), last_ns, last_ns + 1)
     finally:
+        core.close_recording()
         if writer is not None:
             writer.close()
     if plot_path is not None and last_posed is not None:
@@ -281,9 +288,11 @@ def replay_bags(
     max_frames: int | None = None,
     plot_dir: str | Path | None = None,
     observer: object | None = None,
+    record: str | Path | None = None,
 ) -> list[ReplayRow]:
     """Replay several bags with one Registrar (method caches shared); output bags go to out_dir/<name>,
-    overlay PNGs of each bag's last registered frame to plot_dir/<name>.png."""
+    overlay PNGs of each bag's last registered frame to plot_dir/<name>.png, flight recordings to
+    `record` (one bag) or record/<name>.mcap (several)."""
     if not paths:
         raise InputError("no bags given")
     check_method_name(config.method)  # an unknown method is one InputError up front, not an ERROR per frame
@@ -303,6 +312,7 @@ def replay_bags(
     for path in iterator:
         path = Path(path)
         out = None if out_dir is None else Path(out_dir) / _bag_name(path)
+        recording = record if not record or len(paths) == 1 else Path(record) / f"{_bag_name(path)}.mcap"
         rows.append(
             replay_bag(
                 path,
@@ -313,6 +323,7 @@ def replay_bags(
                 max_frames=max_frames,
                 plot_path=plots[path],
                 observer=observer,
+                record_path=recording,
             )
         )
     return rows

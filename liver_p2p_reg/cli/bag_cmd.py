@@ -36,6 +36,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     play.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1: recorded timing)")
     play.add_argument("--loop", action="store_true", help="play again and again until Ctrl-C")
     play.add_argument(
+        "--clock",
+        action="store_true",
+        help="also publish /clock from the bag's times (for nodes run with use_sim_time:=true)",
+    )
+    play.add_argument(
         "--wait-s", type=float, default=2.0, help="wait this long for subscribers before publishing (default 2)"
     )
     play.set_defaults(func=run_play)
@@ -119,7 +124,7 @@ def run_play(args: argparse.Namespace) -> int:
         raise InputError(f"--rate must be > 0, got {args.rate}")
     if not Path(args.bag).exists():
         raise InputError(f"bag not found: {args.bag}")
-    return main_play(args.bag, args.rate, args.loop, args.wait_s)
+    return main_play(args.bag, args.rate, args.loop, args.wait_s, clock=args.clock)
 
 
 def run_info(args: argparse.Namespace) -> int:

@@ -84,7 +84,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="also write SOURCE moved into TARGET's frame (PLY/PCD/XYZ/NPY, mm; with several targets: a folder, "
         "one <target name>.ply each)",
     )
-    p.add_argument("--force", action="store_true", help="overwrite --output / --plot / --moved files that exist")
+    p.add_argument(
+        "--record",
+        metavar="PATH",
+        help="also flight-record SOURCE, every TARGET, the parameters and each pose to PATH (.mcap; "
+        "`liver-p2p replay PATH` re-runs them and checks every pose bit for bit)",
+    )
+    p.add_argument(
+        "--force", "--overwrite", action="store_true", help="overwrite --output / --plot / --moved / --record files"
+    )
     # Also accepted after the subcommand; SUPPRESS keeps a `liver-p2p -q register ...` in effect.
     p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="only print errors")
     p.add_argument(
@@ -189,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
     outputs = _output_paths(args.output, targets, args.force, "--output", (), ".json")
     plots = _output_paths(args.plot, targets, args.force, "--plot", PLOT_SUFFIXES, ".png")
     moved = _output_paths(args.moved, targets, args.force, "--moved", MOVED_SUFFIXES, ".ply")
+    args.record_path = _output_path(getattr(args, "record", None), args.force, "--record", (".mcap",))
     if (args.source_fiducials is None) != (args.target_fiducials is None):
         raise InputError("give both --source-fiducials and --target-fiducials, or neither")
     if several and args.target_fiducials is not None:
@@ -260,15 +269,30 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
     """Register SOURCE to every view in one Registrar; write and print each result as it comes."""
     from liver_p2p_reg.registration.registrar import Registrar
 
-    quiet = bool(getattr(args, "quiet", False))
     several = len(views) > 1
-    fid_s, fid_t = fiducials
     outputs, plots, moved = paths
-
     for per_target in (outputs, plots, moved):  # several targets: the folders, now that every check passed
         if several and per_target[0] is not None:
             per_target[0].parent.mkdir(exist_ok=True)
     registrar = Registrar(config)
+    recorder = None
+    if args.record_path is not None:
+        from liver_p2p_reg.bags.recorder import open_command_recording
+
+        recorder = open_command_recording(args.record_path, config, source, overwrite=args.force)
+    try:
+        return _register_each(args, config, registrar, source_path, source, views, fiducials, initial_T, paths, slicer, recorder)  # fmt: skip
+    finally:
+        if recorder is not None:
+            recorder.close()
+
+
+def _register_each(args, config, registrar, source_path, source, views, fiducials, initial_T, paths, slicer, recorder):
+    """The registrations of _register_all, each recorded when --record is given."""
+    quiet = bool(getattr(args, "quiet", False))
+    several = len(views) > 1
+    fid_s, fid_t = fiducials
+    outputs, plots, moved = paths
     json_to_stdout = args.output is None or args.json
     summary_stream = sys.stderr if json_to_stdout else sys.stdout
     failed = 0
@@ -284,11 +308,13 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
                 sensor_origin_mm=args.sensor_origin_mm,
             )
         except LiverP2PError as exc:
+            _record(recorder, i, target_path, target, fiducials, initial_T, args, exc, config, source)
             if not several:
                 raise
             print(f"liver-p2p: error: {target_path}: {exc}", file=sys.stderr, flush=True)
             failed += 1
             continue
+        _record(recorder, i, target_path, target, fiducials, initial_T, args, result, config, source)
         warnings = _warnings(result, config)
         payload = {"source": str(source_path), "target": str(target_path), **result.to_json_dict()}
         payload.update(status="WARN" if warnings else "OK", warnings=warnings)
@@ -306,6 +332,18 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
         if not quiet:
             print(_summary(target_path, payload, outputs[i], written), file=summary_stream, flush=True)
     return 2 if failed else 0
+
+
+def _record(recorder, i, target_path, target, fiducials, initial_T, args, result, config, source) -> None:
+    """One registration into the --record recording (its inputs exactly as registered; bags/recorder.py)."""
+    if recorder is None:
+        return
+    from liver_p2p_reg.bags.recorder import record_command_registration
+
+    extras = {"sensor_origin_mm": args.sensor_origin_mm, "initial_T_mm": None}
+    if initial_T is not None:
+        extras["initial_T_mm"] = [[float(v) for v in row] for row in initial_T]
+    record_command_registration(recorder, i, str(target_path), target, fiducials, extras, result, config, source)
 
 
 def _warnings(result, config) -> list[str]:

@@ -1,9 +1,10 @@
-"""`liver-p2p replay BAG... [--out OUT] [--method ...]`: drive the node core with recorded bags."""
+"""`liver-p2p replay BAG... [--out OUT] [--method ...]`: drive the node core with recorded bags, or re-run a flight recording."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from liver_p2p_reg.config import NODE_MODES, Config
@@ -11,11 +12,24 @@ from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("replay", help="replay rosbag2/MCAP bags through the registration node core")
-    p.add_argument("bags", nargs="+", help="rosbag2 directories (with metadata.yaml) or .mcap files")
+    p = subparsers.add_parser(
+        "replay",
+        help="replay rosbag2/MCAP bags through the registration node core, or re-run a flight recording",
+        description="Replay bags through the node core; given one flight recording (record_path, --record), "
+        "re-run each of its registrations under its recorded parameters and model and check that every pose "
+        "is bitwise identical (exit 1 with one line if any differs).",
+    )
+    p.add_argument("bags", nargs="+", help="rosbag2 directories (with metadata.yaml) or .mcap files, or one recording")
     p.add_argument("--out", help="folder for output bags with /registration/* and /diagnostics added")
     p.add_argument("--plots", metavar="DIR", help="draw each bag's last registered frame to DIR/<bag>.png")
-    p.add_argument("--force", action="store_true", help="overwrite existing output bags and plots")
+    p.add_argument(
+        "--record",
+        metavar="PATH",
+        help="flight-record the replay to PATH (.mcap; with several bags a folder, one <bag>.mcap each)",
+    )
+    p.add_argument(
+        "--force", "--overwrite", action="store_true", help="overwrite existing output bags, plots and recordings"
+    )
     p.add_argument("--method", help="registration method (default: the configured one)")
     p.add_argument("--mode", choices=NODE_MODES, help="node mode (default: the configured one)")
     p.add_argument("--config", help="YAML configuration file (plain or ROS parameter file)")
@@ -39,7 +53,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from liver_p2p_reg.bags.flight_replay import is_recording
     from liver_p2p_reg.registration.methods import check_method_name
+
+    if any(is_recording(b) for b in args.bags):
+        return _rerun(args)
 
     config = Config.from_yaml(args.config) if args.config else Config()
     changes = {k: v for k, v in (("method", args.method), ("mode", args.mode)) if v}
@@ -60,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         from liver_p2p_reg.cli.slicer import finish_replay, serve_replay
 
         slicer = serve_replay(args.slicer, args.slicer_wait)
+    if args.record:
+        _check_record(args.record, args.force, several=len(paths) > 1)
     rows = replay_bags(
         paths,
         config,
@@ -69,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         plot_dir=args.plots,
         observer=slicer,
+        record=args.record,
     )
     if slicer is not None:
         finish_replay(slicer, args.slicer_wait)
@@ -78,3 +99,47 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps([row.__dict__ for row in rows], indent=2, default=str))
     return 1 if any(row.status == "ERROR" for row in rows) else 0
+
+
+def _check_record(record: str, force: bool, several: bool) -> None:
+    """--record checked before any work: a file that exists is refused unless --force; several bags want a folder."""
+    path = Path(record)
+    if several:
+        if path.suffix == ".mcap" or (path.exists() and not path.is_dir()):
+            raise InputError(f"--record {path}: with several bags, give a folder (one <bag>.mcap each)")
+        path.mkdir(parents=True, exist_ok=True)
+        return
+    if path.exists() and not force:
+        raise InputError(f"{path} exists; pass --force to overwrite it")
+    if path.suffix != ".mcap":
+        raise InputError(f"--record {path}: a flight recording is an .mcap file")
+
+
+def _rerun(args: argparse.Namespace) -> int:
+    """`liver-p2p replay RECORDING`: re-run every registration; exit 1 with one line if a pose differs."""
+    from liver_p2p_reg.bags.flight_replay import rerun_recording
+
+    if len(args.bags) != 1:
+        raise InputError("a flight recording is re-run on its own: give one recording and no bags")
+    given = [o for o, v in (("--out", args.out), ("--plots", args.plots), ("--method", args.method),
+             ("--mode", args.mode), ("--config", args.config), ("--max-frames", args.max_frames),
+             ("--slicer", args.slicer)) if v]  # fmt: skip
+    if given:
+        raise InputError(f"{', '.join(given)}: a flight recording is re-run under its recorded parameters only")
+    if args.record:
+        _check_record(args.record, args.force, several=False)
+    report = rerun_recording(args.bags[0], record_path=args.record, overwrite=args.force)
+    for note in report.notes:
+        print(f"note: {note}")
+    print(f"{args.bags[0]}: {report.summary()}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({**report.__dict__, "ok": report.ok}, indent=2))
+    if not report.ok:
+        first = report.differences[0]
+        print(
+            f"liver-p2p: error: {len(report.differences)} of {report.registrations} registrations differ from the "
+            f"recording (first: {first})",
+            file=sys.stderr,
+        )
+        return 1
+    return 0

@@ -41,6 +41,8 @@ from liver_p2p_reg.ros.topics import (
 NODE_MODULES = {
     "register_node": "liver_p2p_reg.ros.register_node",
     "preop_loader_node": "liver_p2p_reg.ros.preop_loader_node",
+    "register_lifecycle_node": "liver_p2p_reg.ros.register_lifecycle_node",
+    "preop_loader_lifecycle_node": "liver_p2p_reg.ros.preop_loader_lifecycle_node",
 }
 LEVEL_OF = {b"\x00": 0, b"\x01": 1, b"\x02": 2, b"\x03": 3}
 

@@ -53,18 +53,27 @@ def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None, *
     return status
 
 
-def parameters_from(node: Node, config_class: type[ConfigT], describe: Callable[[dataclasses.Field], str]) -> ConfigT:
+def declare_from(node: Node, config_class: type, describe: Callable[[dataclasses.Field], str]) -> list[str]:
     """Declare one ROS parameter per field of a config dataclass (defaults from it: one source of truth),
-    described by `describe(field)`, and build the config from their values (`config_class.from_dict`)."""
+    described by `describe(field)`; returns their names. A managed node declares in its constructor
+    and reads in each configure (a parameter can be declared once only)."""
     defaults = config_class()
-    values = {}
     for f in dataclasses.fields(config_class):
         # A descriptor per parameter: rclpy writes the name and type into the object it is given.
         # dynamic_typing: `-p max_rate_hz:=2` (an integer) is coerced by the config instead of rejected.
         descriptor = ParameterDescriptor(description=describe(f), dynamic_typing=True)
         node.declare_parameter(f.name, getattr(defaults, f.name), descriptor)
-        values[f.name] = node.get_parameter(f.name).value
-    return config_class.from_dict(values)
+    return [f.name for f in dataclasses.fields(config_class)]
+
+
+def read_from(node: Node, config_class: type[ConfigT], names: list[str]) -> ConfigT:
+    """The config built from the declared parameters' current values (`config_class.from_dict`)."""
+    return config_class.from_dict({name: node.get_parameter(name).value for name in names})
+
+
+def parameters_from(node: Node, config_class: type[ConfigT], describe: Callable[[dataclasses.Field], str]) -> ConfigT:
+    """declare_from, then read_from: a plain node's parameters."""
+    return read_from(node, config_class, declare_from(node, config_class, describe))
 
 
 def log_at(logger: Any, level: int, text: str) -> None:

@@ -56,33 +56,66 @@ def mesh_marker(path: str, units: str, frame_id: str, stamp: Time) -> Marker | N
     return marker
 
 
-class PreopLoaderNode(Node):
+class PreopLoaderWiring:
+    """The loader's two steps, mixed into an rclpy Node or LifecycleNode: `_load` reads the files (the
+    managed node's configure), `_publish_model` publishes them latched (activate); `_unpublish` removes the
+    publishers again (deactivate), so a late joiner no longer gets a model this node does not stand behind."""
+
+    def _declare(self: Any) -> None:
+        for name, default in (("model_path", ""), ("fiducials_path", ""), ("frame_id", "ct"), ("units", "mm")):
+            self.declare_parameter(name, default)
+        self._publishers: list[Any] = []
+        self.loaded: dict[str, Any] | None = None
+
+    def _load(self: Any) -> None:
+        """Read the model (and fiducials) files now; InputError for a missing or unreadable one."""
+        param = {n: self.get_parameter(n).value for n in ("model_path", "fiducials_path", "frame_id", "units")}
+        model_m = load_model_m(param["model_path"], param["units"])
+        fiducials_m = load_model_m(param["fiducials_path"], param["units"]) if param["fiducials_path"] else None
+        stamp_ns = self.get_clock().now().nanoseconds
+        # the mesh itself, for viewers (the Slicer bridge, RViz); same stamp as its points: they pair by it
+        stamp = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+        mesh = mesh_marker(param["model_path"], param["units"], param["frame_id"], stamp)
+        self.loaded = {**param, "model_m": model_m, "fiducials_m": fiducials_m, "mesh": mesh, "stamp_ns": stamp_ns}
+
+    def _publish_model(self: Any) -> None:
+        loaded, log = self.loaded, self.get_logger()
+        frame_id, stamp_ns = loaded["frame_id"], loaded["stamp_ns"]
+        if loaded["mesh"] is not None:
+            self.mesh_pub = self._latched(Marker, TOPIC_PREOP_MESH)
+            self.mesh_pub.publish(loaded["mesh"])
+            log.info(f"published the mesh ({len(loaded['mesh'].points) // 3} triangles) on {TOPIC_PREOP_MESH}")
+        self.points_pub = self._latched(PointCloud2, TOPIC_PREOP)
+        self.points_pub.publish(points_to_cloud(loaded["model_m"], TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
+        log.info(
+            f"published {len(loaded['model_m'])} preop points from {loaded['model_path']} on {TOPIC_PREOP} ({frame_id})"
+        )
+        if loaded["fiducials_m"] is not None:
+            self.fiducials_pub = self._latched(PointCloud2, TOPIC_PREOP_FIDUCIALS)
+            self.fiducials_pub.publish(
+                points_to_cloud(loaded["fiducials_m"], TYPES, frame_id=frame_id, stamp_ns=stamp_ns)
+            )
+            log.info(f"published {len(loaded['fiducials_m'])} fiducials on {TOPIC_PREOP_FIDUCIALS}")
+
+    def _latched(self: Any, msg_type: type, topic: str) -> Any:
+        publisher = self.create_publisher(msg_type, topic, rclpy_qos(topic))
+        self._publishers.append(publisher)
+        return publisher
+
+    def _unpublish(self: Any) -> None:
+        for publisher in self._publishers:
+            self.destroy_publisher(publisher)
+        self._publishers = []
+
+
+class PreopLoaderNode(PreopLoaderWiring, Node):
     """Loads the preop model once and publishes it latched (reliable + transient local)."""
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("preop_loader_node", **node_kwargs)  # node_kwargs: e.g. parameter_overrides (tests)
-        model_path = self.declare_parameter("model_path", "").value
-        fiducials_path = self.declare_parameter("fiducials_path", "").value
-        frame_id = self.declare_parameter("frame_id", "ct").value
-        units = self.declare_parameter("units", "mm").value
-        model_m = load_model_m(model_path, units)
-        stamp_ns = self.get_clock().now().nanoseconds
-        # the mesh itself, for viewers (the Slicer bridge, RViz); same stamp as its points: they pair by it
-        mesh = mesh_marker(model_path, units, frame_id, Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9))
-        if mesh is not None:
-            self.mesh_pub = self.create_publisher(Marker, TOPIC_PREOP_MESH, rclpy_qos(TOPIC_PREOP_MESH))
-            self.mesh_pub.publish(mesh)
-            self.get_logger().info(f"published the mesh ({len(mesh.points) // 3} triangles) on {TOPIC_PREOP_MESH}")
-        self.points_pub = self.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP))
-        self.points_pub.publish(points_to_cloud(model_m, TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
-        self.get_logger().info(f"published {len(model_m)} preop points from {model_path} on {TOPIC_PREOP} ({frame_id})")
-        if fiducials_path:
-            fiducials_m = load_model_m(fiducials_path, units)
-            self.fiducials_pub = self.create_publisher(
-                PointCloud2, TOPIC_PREOP_FIDUCIALS, rclpy_qos(TOPIC_PREOP_FIDUCIALS)
-            )
-            self.fiducials_pub.publish(points_to_cloud(fiducials_m, TYPES, frame_id=frame_id, stamp_ns=stamp_ns))
-            self.get_logger().info(f"published {len(fiducials_m)} fiducials on {TOPIC_PREOP_FIDUCIALS}")
+        self._declare()
+        self._load()
+        self._publish_model()
 
 
 def main(args: list[str] | None = None) -> int:

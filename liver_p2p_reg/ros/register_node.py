@@ -14,8 +14,14 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.service import Service
+from rclpy.subscription import Subscription
 from rclpy.task import Future
+from rclpy.timer import Timer
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
@@ -33,8 +39,8 @@ from liver_p2p_reg.ros.messages import (
     pose_stamped,
     transform_stamped,
 )
-from liver_p2p_reg.ros.node_main import RclpyLogHandler, log_at, parameters_from, run_node
-from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
+from liver_p2p_reg.ros.node_main import RclpyLogHandler, declare_from, log_at, read_from, run_node
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud, stamp_to_ns
 from liver_p2p_reg.ros.topics import (
     TOPIC_DIAGNOSTICS,
     TOPIC_INTRAOP,
@@ -47,7 +53,8 @@ from liver_p2p_reg.ros.topics import (
     rclpy_qos,
 )
 from liver_p2p_reg.stream.core import NodeCore
-from liver_p2p_reg.stream.outputs import ERROR, OK, WARN, CoreOutput, Diagnostic
+from liver_p2p_reg.stream.health import StreamHealth, stale_when_silent
+from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, WARN, CoreOutput, Diagnostic
 
 RCLPY_TYPES = OutputTypes(
     cloud=MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw)),
@@ -67,44 +74,48 @@ DIAGNOSTICS_PERIOD_S = 1.0
 JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
 
 
-def config_from_parameters(node: Node) -> Config:
-    """Declare one ROS parameter per Config field (defaults from Config) and read them."""
-    return parameters_from(node, Config, lambda f: f"{f.name} ({f.type}); see msg_docs/")
-
-
-class RegisterNode(Node):
-    """Registers the preop model to each intraop cloud (per the mode) and publishes pose, tf, diagnostics.
+class RegisterWiring:
+    """register_node's wiring in the phases of a managed node (mixed into an rclpy Node or LifecycleNode).
 
     Callbacks only hand work over; one worker thread does every heavy step (start-up preload,
     a new model's warm-up, registrations, service requests), woken by events, never polling.
+    `_bring_up` (configure): parameters, the method's weights, the `/preop/*` subscriptions, the
+    publishers and the worker; `_go_live` (activate): the `/intraop/*` subscriptions, the services
+    and the status timer; `_go_quiet` (deactivate): those removed, no output, state kept;
+    `_tear_down` (cleanup, shutdown): everything released. The plain node does the first two at once.
     """
 
-    def __init__(self, **node_kwargs: Any) -> None:
-        super().__init__("register_node", **node_kwargs)  # node_kwargs: e.g. parameter_overrides (tests)
-        self.core = NodeCore(config_from_parameters(self))
+    def _declare(self: Any) -> None:
+        self.declared = declare_from(self, Config, lambda f: f"{f.name} ({f.type}); see msg_docs/")
+        self.core: NodeCore | None = None
+        self._live: list[Any] = []  # what _go_live made and _go_quiet destroys
+        self._kept: list[Any] = []  # what _bring_up made and _tear_down destroys
+        self.active = False
+
+    def _bring_up(self: Any, preload_now: bool = False) -> None:
+        from liver_p2p_reg.bags.recorder import recorder_factory  # the flight recorder (record_path)
+
+        self.core = NodeCore(read_from(self, Config, self.declared), recorder_factory=recorder_factory())
         self._accepted = self.core.config  # the configuration the parameter sets so far describe
+        self.health = StreamHealth()
+        self._status_level: int | None = None  # the last status level published (a change is published at once)
         self._log_handler = RclpyLogHandler(self._log)  # the package's `logging` records, to /rosout
         logging.getLogger("liver_p2p_reg").addHandler(self._log_handler)
         self._wake = threading.Condition()
-        self._jobs: list[Callable[[], None]] = [self._preload]
+        self._jobs: list[Callable[[], None]] = []
         self._stopping = False
+        if preload_now:  # configure: the weights are loaded when the transition returns
+            self._preload()
+        else:
+            self._jobs.append(self._preload)
         self.add_on_set_parameters_callback(self._on_parameters)
         self.pose_pub = self.create_publisher(PoseStamped, TOPIC_POSE, rclpy_qos(TOPIC_POSE))
         self.transform_pub = self.create_publisher(TransformStamped, TOPIC_TRANSFORM, rclpy_qos(TOPIC_TRANSFORM))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_REGISTERED, rclpy_qos(TOPIC_REGISTERED))
         self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, rclpy_qos(TOPIC_DIAGNOSTICS))
-        self.create_subscription(PointCloud2, TOPIC_PREOP, self._on_preop, rclpy_qos(TOPIC_PREOP))
-        self.create_subscription(
-            PointCloud2, TOPIC_PREOP_FIDUCIALS, self._on_preop_fiducials, rclpy_qos(TOPIC_PREOP_FIDUCIALS)
-        )
-        # fiducials before points: when both are waiting, a cloud's own fiducials are taken first
-        self.create_subscription(
-            PointCloud2, TOPIC_INTRAOP_FIDUCIALS, self._on_intraop_fiducials, rclpy_qos(TOPIC_INTRAOP_FIDUCIALS)
-        )
-        self.create_subscription(PointCloud2, TOPIC_INTRAOP, self._on_intraop, rclpy_qos(TOPIC_INTRAOP))
-        self.create_service(Trigger, "~/reregister", self._on_reregister)
-        self.create_service(Trigger, "~/reset_survey", self._on_reset_survey)  # survey mode: start over
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_status)
+        self._kept = [self.pose_pub, self.transform_pub, self.cloud_pub, self.diag_pub]
+        self._kept.append(self._subscribe(TOPIC_PREOP, self._on_preop))
+        self._kept.append(self._subscribe(TOPIC_PREOP_FIDUCIALS, self._on_preop_fiducials))
         self.tf_broadcaster = None
         try:  # /tf is optional: tf2_ros has no PyPI wheel, so pip-only installs lack it
             from tf2_ros import TransformBroadcaster
@@ -112,17 +123,72 @@ class RegisterNode(Node):
             self.tf_broadcaster = TransformBroadcaster(self)
         except ImportError:
             self.get_logger().info("tf2_ros not importable: publishing /registration/transform only, no /tf")
+        self._worker = threading.Thread(target=self._work, name="registration", daemon=True)
+        self._worker.start()
+
+    def _go_live(self: Any) -> None:
+        # fiducials before points: when both are waiting, a cloud's own fiducials are taken first
+        self._live = [
+            self._subscribe(TOPIC_INTRAOP_FIDUCIALS, self._on_intraop_fiducials),
+            self._subscribe(TOPIC_INTRAOP, self._on_intraop),
+            self.create_service(Trigger, "~/reregister", self._on_reregister),
+            self.create_service(Trigger, "~/reset_survey", self._on_reset_survey),  # survey mode: start over
+            # on the steady clock: with use_sim_time a ROS-time timer stops while a looped bag's /clock runs
+            # back over time it has already passed
+            self.create_timer(
+                DIAGNOSTICS_PERIOD_S, self._publish_status, clock=Clock(clock_type=ClockType.STEADY_TIME)
+            ),
+        ]
+        self.active = True
         cfg = self.core.config
         self.get_logger().info(
             f"register_node ready: method={cfg.method} mode={cfg.mode} max_rate_hz={cfg.max_rate_hz}"
         )
-        self._worker = threading.Thread(target=self._work, name="registration", daemon=True)
-        self._worker.start()
+
+    def _go_quiet(self: Any) -> None:
+        self.active = False
+        for entity in self._live:
+            self._destroy(entity)
+        self._live = []
+
+    def _tear_down(self: Any) -> None:
+        self._go_quiet()
+        if self.core is None:
+            return
+        self.stop()
+        self.remove_on_set_parameters_callback(self._on_parameters)  # bound methods compare equal
+        for entity in self._kept:
+            self._destroy(entity)
+        self._kept, self.core, self.tf_broadcaster = [], None, None
+
+    def _subscribe(self: Any, topic: str, callback: Callable[[Any], None]) -> Any:
+        """A subscription that reports a publisher with incompatible QoS once, as a WARN diagnostic."""
+        events = SubscriptionEventCallbacks(incompatible_qos=lambda info: self._incompatible(topic, info))
+        return self.create_subscription(PointCloud2, topic, callback, rclpy_qos(topic), event_callbacks=events)
+
+    def _incompatible(self: Any, topic: str, info: Any) -> None:
+        if info.total_count_change <= 0:
+            return
+        policy = getattr(info.last_policy_kind, "name", str(info.last_policy_kind)).lower()
+        text = f"a publisher of {topic} offers an incompatible QoS ({policy}): its messages never arrive; see msg_docs/"
+        self._report([Diagnostic(WARN, DIAG_NAME, text, {"topic": topic, "policy": policy})])
+
+    def _destroy(self: Any, entity: Any) -> None:
+        kinds = (
+            (Subscription, self.destroy_subscription),
+            (Service, self.destroy_service),
+            (Timer, self.destroy_timer),
+            (Publisher, self.destroy_publisher),
+        )
+        for kind, destroy in kinds:
+            if isinstance(entity, kind):
+                destroy(entity)
+                return
 
     # ---------------------------------------------------------------- callbacks (cheap, executor thread)
     def _on_preop(self, msg: PointCloud2) -> None:
         diag = feed_preop_msg(self.core, msg, warm_up=False)
-        if diag.level == OK:  # reported once warmed up, with warm_up_ms
+        if diag.level == OK and diag.values.get("unchanged") != "true":  # reported once warmed up, with warm_up_ms
             self.get_logger().info(f"preop model of {diag.values['points']} points: warming up")
             self._submit(self._warm_up)
         else:
@@ -140,7 +206,9 @@ class RegisterNode(Node):
         self._submit()  # a cloud may be waiting for exactly these
 
     def _on_intraop(self, msg: PointCloud2) -> None:
-        diags = feed_intraop_msg(self.core, msg, time.monotonic())  # O(1): decoding happens in the worker
+        now_s = time.monotonic()
+        self.health.on_cloud(now_s, stamp_to_ns(msg.header.stamp), self._now_ns())
+        diags = feed_intraop_msg(self.core, msg, now_s)  # O(1): decoding happens in the worker
         if diags:
             self._report(diags)
         self._submit()
@@ -172,7 +240,21 @@ class RegisterNode(Node):
         return response
 
     def _publish_status(self) -> None:
-        self.diag_pub.publish(diagnostic_array([self.core.status()], self._now_ns(), RCLPY_TYPES))
+        """The periodic status (registration, then the intraop stream), as diagnostic_updater publishes it."""
+        now_s, core = time.monotonic(), self.core
+        if core is None or not self.active:
+            return
+        stale_after_s = core.config.stale_after_s
+        status = stale_when_silent(core.status(), self.health.silent_for_s(now_s), stale_after_s)
+        self._status_level = status.level
+        stream = self.health.status(now_s, stale_after_s)
+        self.diag_pub.publish(diagnostic_array([status, stream], self._now_ns(), RCLPY_TYPES))
+
+    def _publish_status_on_change(self) -> None:
+        """A level change is published at once, not at the next period (diagnostic_updater's force_update)."""
+        core = self.core
+        if core is not None and core.status().level != self._status_level:
+            self._publish_status()
 
     def _on_parameters(self, params: list[Any]) -> SetParametersResult:
         known = {f.name for f in dataclasses.fields(Config)}
@@ -228,11 +310,14 @@ class RegisterNode(Node):
 
     def stop(self) -> bool:
         """Stop the worker; False when a registration is still running (it is abandoned)."""
+        if self.core is None:
+            return True
         with self._wake:
             self._stopping = True
             self._wake.notify()
         logging.getLogger("liver_p2p_reg").removeHandler(self._log_handler)
         self._worker.join(JOIN_ON_EXIT_S)
+        self.core.close_recording()  # its file complete; a registration still running is not recorded
         return not self._worker.is_alive()
 
     def destroy_node(self) -> None:
@@ -241,7 +326,7 @@ class RegisterNode(Node):
 
     # ---------------------------------------------------------------- outputs
     def _publish(self, output: CoreOutput) -> None:
-        if self._stopping:
+        if self._stopping or not self.active:  # inactive (managed node): no output, the state is kept
             return
         stamp_ns = output.pose.stamp_ns if output.pose is not None else self._now_ns()
         if output.pose is not None:
@@ -258,13 +343,14 @@ class RegisterNode(Node):
             )
             self.cloud_pub.publish(cloud)
         self._report(output.diagnostics, stamp_ns)
+        self._publish_status_on_change()
 
     def _report(self, diags: list[Diagnostic], stamp_ns: int | None = None) -> None:
         """Log each diagnostic at its own severity and publish them on /diagnostics."""
         severity = {OK: logging.INFO, WARN: logging.WARNING, ERROR: logging.ERROR}
         for diag in diags:
             self._log(severity.get(diag.level, logging.WARNING), f"{diag.level_name}: {diag.message}")
-        if not self._stopping:
+        if not self._stopping and self.active:
             self.diag_pub.publish(
                 diagnostic_array(diags, self._now_ns() if stamp_ns is None else stamp_ns, RCLPY_TYPES)
             )
@@ -274,6 +360,16 @@ class RegisterNode(Node):
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
+
+
+class RegisterNode(RegisterWiring, Node):
+    """Registers the preop model to each intraop cloud (per the mode) and publishes pose, tf, diagnostics."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("register_node", **node_kwargs)  # node_kwargs: e.g. parameter_overrides (tests)
+        self._declare()
+        self._bring_up()
+        self._go_live()
 
 
 def main(args: list[str] | None = None) -> int:

@@ -18,12 +18,12 @@ import numpy as np
 
 from liver_p2p_reg.cloud_io import extent_mm
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.methods import check_method_name
-from liver_p2p_reg.registration.preprocess import voxel_downsample
 from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.result import RegistrationResult
+from liver_p2p_reg.stream.checks import Refused, checked_points, same_model
 from liver_p2p_reg.stream.fiducials import FiducialStore
 from liver_p2p_reg.stream.intake import Decoder, Intake, IntraopCloud, finite_rows, points_decoder
 from liver_p2p_reg.stream.outputs import (
@@ -40,31 +40,31 @@ from liver_p2p_reg.stream.outputs import (
     result_values,
     units_warning,
 )
+from liver_p2p_reg.stream.record_hooks import RecorderFactory, Recording
 from liver_p2p_reg.stream.survey import Survey
 from liver_p2p_reg.stream.tracking import Tracker
 
 LOG = logging.getLogger("liver_p2p_reg.node")
 
 
-class _Refused(Exception):
-    """A frame not registered: the level and message of its diagnostic."""
-
-    def __init__(self, level: int, message: str) -> None:
-        super().__init__(message)
-        self.level, self.message = level, message
-
-
 class NodeCore:
-    """State machine of register_node; thread-safe (callbacks vs. one registration worker)."""
+    """State machine of register_node; thread-safe (callbacks vs. one registration worker).
 
-    def __init__(self, config: Config | None = None, registrar: Registrar | None = None) -> None:
+    recorder_factory: opens the flight recorder when `config.record_path` is set (bags/recorder.py)."""
+
+    def __init__(
+        self,
+        config: Config | None = None,
+        registrar: Registrar | None = None,
+        recorder_factory: RecorderFactory | None = None,
+    ) -> None:
         self.config = (config or Config()).validate()
         check_method_name(self.config.method)  # an unknown method is refused now, not with an ERROR per frame
         self.registrar = registrar or Registrar(self.config)
         self._lock = threading.Lock()  # guards the model state below (cheap, callbacks)
         self._register_lock = threading.Lock()  # one registration at a time
         self.preop_mm: np.ndarray | None = None
-        self.preop_frame = "ct"
+        self.preop_frame, self.preop_stamp_ns = "ct", 0
         self.fiducials = FiducialStore()
         self._preop_scale_mm: float | None = None
         self._preop_problem = ""  # why the current model cannot be registered against (wrong units)
@@ -73,6 +73,10 @@ class NodeCore:
         self._survey_state: Survey | None = None  # survey mode only
         self.last_output: CoreOutput | None = None
         self.processed = 0
+        self._registering = False  # a registration has read the model (a new one waits for its end)
+        self._next_model: tuple[np.ndarray, str, int, str] | None = None
+        self._recording = Recording(recorder_factory, self)
+        self._recording.follow(self.config)  # opens the recording when record_path is set
 
     # ---------------------------------------------------------------- inputs
     @property
@@ -100,7 +104,8 @@ class NodeCore:
         check_method_name(config.method)
         registrar = Registrar(config)
         registrar.cache = self.registrar.cache
-        with self._register_lock:  # never swap under a running registration
+        with self._register_lock, self._lock:  # never swap under a running registration
+            self._recording.follow(config)  # InputError (record_path cannot be written): nothing changed
             self.config, self.registrar = config, registrar
         return config
 
@@ -124,29 +129,38 @@ class NodeCore:
         """
         points = finite_rows(np.asarray(points_mm, dtype=np.float64).reshape(-1, 3))
         if len(points) < self.config.min_points:
-            return Diagnostic(
-                ERROR,
-                PREOP_DIAG_NAME,
-                f"preop model has {len(points)} valid points (< {self.config.min_points}); ignored",
-            )
+            message = f"preop model has {len(points)} valid points (< {self.config.min_points}); ignored"
+            return Diagnostic(ERROR, PREOP_DIAG_NAME, message)
+        with self._lock:
+            current = self._next_model or (self.preop_mm, self.preop_frame, self.preop_stamp_ns)
+        if same_model(current, points, frame_id or "ct", int(stamp_ns)):
+            message = f"preop model unchanged ({len(points)} points, same content and stamp): kept"
+            return Diagnostic(OK, PREOP_DIAG_NAME, message, {"points": str(len(points)), "unchanged": "true"})
         extent = extent_mm(points)
         unit_warning = units_warning(extent, "preop model", self.config)
-        with self._lock:
-            self.preop_mm = points
-            self.preop_frame = frame_id or "ct"
-            centre = points.mean(axis=0)
-            self._preop_scale_mm = float(np.max(np.linalg.norm(points - centre, axis=1)))
-            self._preop_problem = unit_warning
-            self._intake.new_model()
-            self._tracker.forget()  # a pose of another model is no prior
-            self._survey_state = None  # nor is a surface fused against it
-            self.fiducials.new_model(stamp_ns)
-        values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": self.preop_frame}
+        model = (points, frame_id or "ct", int(stamp_ns), unit_warning)
+        with self._lock:  # a registration running now ends against the model it started with
+            if self._registering:
+                self._next_model = model
+            else:
+                self._use_model(*model)
+        values = {"points": str(len(points)), "extent_mm": f"{extent:.1f}", "frame_id": model[1]}
         if unit_warning:
             return Diagnostic(WARN, PREOP_DIAG_NAME, unit_warning, values)
         if warm_up:
             return self.warm_up_model()
         return Diagnostic(OK, PREOP_DIAG_NAME, f"preop model received ({len(points)} points)", values)
+
+    def _use_model(self, points: np.ndarray, frame_id: str, stamp_ns: int, problem: str) -> None:
+        """Make a model current (under self._lock, between registrations)."""
+        self.preop_mm, self.preop_frame, self.preop_stamp_ns = points, frame_id, stamp_ns
+        self._preop_scale_mm = float(np.max(np.linalg.norm(points - points.mean(axis=0), axis=1)))
+        self._preop_problem = problem
+        self._intake.new_model()
+        self._tracker.forget()  # a pose of another model is no prior
+        self._survey_state = None  # nor is a surface fused against it
+        self.fiducials.new_model(stamp_ns)
+        self._recording.preop(points, frame_id, stamp_ns)
 
     def warm_up_model(self) -> Diagnostic:
         """Do the current model's own share of the work (its features, ICP index, ...) now, once,
@@ -167,6 +181,7 @@ class NodeCore:
     def set_preop_fiducials(self, points_mm: np.ndarray | None, stamp_ns: int | None = None) -> None:
         """Ordered fiducials inside the preop model stamped `stamp_ns` (None: the current model), mm."""
         self.fiducials.set_preop(points_mm, stamp_ns)
+        self._recording.preop_fiducials(points_mm, stamp_ns)
 
     def set_intraop_fiducials(self, points_mm: np.ndarray, stamp_ns: int) -> None:
         """Ground-truth fiducials in the sensor frame for the cloud with the same header stamp."""
@@ -221,6 +236,14 @@ class NodeCore:
             return self.last_output
         return self._register(cloud, "reregister")
 
+    def register_now(self, frame_id: str, stamp_ns: int, decode: Decoder, reason: str) -> CoreOutput:
+        """Register this cloud now as `reason` says, past the mode and the rate limit (a recording's replay)."""
+        return self._register(IntraopCloud(frame_id, int(stamp_ns), decode), reason)
+
+    def close_recording(self) -> None:
+        """Close the flight recording, if one is open (its file is complete then)."""
+        self._recording.close()
+
     def flush(self) -> CoreOutput | None:
         """Register a still-pending cloud ignoring the rate limit (end of a replayed bag)."""
         self._intake.release()
@@ -237,8 +260,16 @@ class NodeCore:
     # ---------------------------------------------------------------- registration
     def _register(self, cloud: IntraopCloud, reason: str) -> CoreOutput:
         with self._register_lock:
-            output = self._register_locked(cloud, reason)
-            self._tracker.remember(output, cloud.frame_id)
+            cloud = self._recording.begin(cloud)
+            try:
+                output = self._register_locked(cloud, reason)
+                self._tracker.remember(output, cloud.frame_id)
+                self._recording.registration(cloud, reason, output)
+            finally:
+                with self._lock:
+                    self._registering, model, self._next_model = False, self._next_model, None
+                    if model is not None:  # it came during the registration
+                        self._use_model(*model)
         self.last_output = output
         with self._lock:
             self.processed += 1
@@ -248,19 +279,22 @@ class NodeCore:
         start = time.perf_counter()
         values: dict[str, str] = {"frame_id": cloud.frame_id, "stamp_ns": str(cloud.stamp_ns), "mode": self.config.mode}
         with self._lock:
+            self._registering = True
             preop, preop_frame = self.preop_mm, self.preop_frame
             scale_mm, preop_problem = self._preop_scale_mm, self._preop_problem
         fid_s, fid_t = self.fiducials.pair(cloud.stamp_ns)
+        self._recording.paired(fid_s, fid_t)
         try:
             if preop is None:
-                raise _Refused(ERROR, "no preop model received yet (/preop/points)")
+                raise Refused(ERROR, "no preop model received yet (/preop/points)")
             if preop_problem:  # kept with a WARN on arrival; a pose against it would be meaningless
-                raise _Refused(ERROR, f"{preop_problem}; not registered")
-            points, warnings = self._checked_points(cloud, scale_mm, values)
+                raise Refused(ERROR, f"{preop_problem}; not registered")
+            points, n_raw, warnings = checked_points(cloud, self.config, scale_mm, values)
+            self._intake.keep_latest(IntraopCloud(cloud.frame_id, cloud.stamp_ns, points_decoder(points, n_raw)))
             prep_ms = (time.perf_counter() - start) * 1e3
             cached = set(self.registrar.cache)
             result = self._solve(preop, points, fid_s, fid_t, cloud.frame_id, reason, values, warnings)
-        except _Refused as refused:
+        except Refused as refused:
             return CoreOutput([Diagnostic(refused.level, DIAG_NAME, refused.message, values)], reason=reason)
         result.runtime_ms.setdefault("node_prepare", prep_ms)
         values.update(result_values(result))
@@ -275,40 +309,6 @@ class NodeCore:
         pose = PoseOutput(cloud.stamp_ns, cloud.frame_id, preop_frame, T)
         return CoreOutput([diag], pose, transform_points(T, preop), result, reason)
 
-    def _checked_points(
-        self, cloud: IntraopCloud, scale_mm: float | None, values: dict[str, str]
-    ) -> tuple[np.ndarray, list[str]]:
-        """The cloud's points as registered (voxelized when too many) and its warnings; _Refused when
-        it cannot be registered. Fills `values` with its counts and extent. Not cloud_io.clean_points:
-        the node words its diagnostics itself, counts the point minimum after voxelizing, and drops
-        NaN points silently (a depth camera's organized cloud has them in every frame)."""
-        if not cloud.frame_id:
-            raise _Refused(ERROR, "intraop cloud has an empty header.frame_id (a pose needs its frame); not registered")
-        try:
-            points, n_raw = cloud.decode()
-        except InputError as exc:
-            raise _Refused(ERROR, f"bad intraop cloud: {exc}") from None
-        values["input_points"] = str(n_raw)
-        if n_raw == 0:
-            raise _Refused(ERROR, "empty intraop cloud (0 points)")
-        if len(points) == 0:
-            raise _Refused(ERROR, f"intraop cloud has no valid points (all {n_raw} are NaN/inf)")
-        warnings: list[str] = []
-        if len(points) >= self.config.max_input_points:
-            voxel_mm = (scale_mm or extent_mm(points)) * self.config.voxel_size_norm / 2
-            points = voxel_downsample(points, voxel_mm)
-            warnings.append(f"{n_raw} input points voxelized to {len(points)} ({voxel_mm:.2f} mm voxels)")
-        values["valid_points"] = str(len(points))
-        if len(points) < self.config.min_points:
-            raise _Refused(ERROR, f"too few valid intraop points: {len(points)} < min_points {self.config.min_points}")
-        extent = extent_mm(points)
-        values["extent_mm"] = f"{extent:.1f}"
-        unit_warning = units_warning(extent, "intraop cloud", self.config)
-        if unit_warning:
-            raise _Refused(WARN, unit_warning + "; not registered")
-        self._intake.keep_latest(IntraopCloud(cloud.frame_id, cloud.stamp_ns, points_decoder(points, n_raw)))
-        return points, warnings
-
     def _solve(
         self,
         preop: np.ndarray,
@@ -320,17 +320,17 @@ class NodeCore:
         values: dict[str, str],
         warnings: list[str],
     ) -> RegistrationResult:
-        """The frame's result: a survey step, a tracked pose, or else the full method (_Refused when it raises)."""
+        """The frame's result: a survey step, a tracked pose, or else the full method (Refused when it raises)."""
 
         def guarded(what: str, call: Callable[[], Any]) -> Any:
-            """call(), or _Refused with the frame's ERROR: the node must survive anything a method raises."""
+            """call(), or Refused with the frame's ERROR: the node must survive anything a method raises."""
             try:
                 return call()
             except LiverP2PError as exc:
-                raise _Refused(ERROR, f"registration failed: {exc}") from None
+                raise Refused(ERROR, f"registration failed: {exc}") from None
             except Exception as exc:
                 LOG.exception("%s raised", what)
-                raise _Refused(ERROR, f"registration crashed: {type(exc).__name__}: {exc}") from None
+                raise Refused(ERROR, f"registration crashed: {type(exc).__name__}: {exc}") from None
 
         origin = self._origin()
         if self.config.mode == "survey" and reason != "reregister":  # ---- survey mode (survey.py)
@@ -379,6 +379,7 @@ class NodeCore:
             )
             if survey is not None:
                 survey.reset()
+            self._recording.event("reset_survey")
         return f"survey reset: {dropped}; the next frame is registered globally"
 
     def _origin(self) -> np.ndarray | None:
@@ -390,4 +391,5 @@ class NodeCore:
             "received_clouds": str(self.received),
             "registered_clouds": str(self.processed),
             "dropped_clouds": str(self.dropped),
+            **self._recording.status(),
         }

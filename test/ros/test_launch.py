@@ -20,6 +20,7 @@ JAZZY_NODE_KWARGS = {"executable", "package", "name", "namespace", "exec_name", 
 JAZZY_NODE_KWARGS |= {"ros_arguments", "arguments", "output", "condition", "emulate_tty", "respawn", "respawn_delay"}
 JAZZY_NODE_KWARGS |= {"sigterm_timeout", "sigkill_timeout", "additional_env", "cwd", "on_exit", "prefix", "log_cmd"}
 LOADER_PARAMETERS = {"model_path", "fiducials_path", "frame_id", "units"}
+MANAGED = {"register_lifecycle_node": "register_node", "preop_loader_lifecycle_node": "preop_loader_node"}
 
 
 def calls(tree: ast.AST, name: str) -> list[ast.Call]:
@@ -36,21 +37,36 @@ def test_launch_file_uses_the_jazzy_node_api_and_real_names():
     used = {c.args[0].value for c in calls(tree, "LaunchConfiguration") if isinstance(c.args[0], ast.Constant)}
     assert used <= declared, used - declared
     nodes = [c for c in calls(tree, "Node") if isinstance(keyword(c, "package"), ast.Constant)]
-    ours = {keyword(c, "executable").value: c for c in nodes if keyword(c, "package").value == "liver_p2p_reg"}
-    assert set(ours) == {"register_node", "preop_loader_node", "slicer_bridge_node"}
-    for call in nodes:
+    managed = calls(tree, "LifecycleNode")  # launch_ros.actions.LifecycleNode: name and namespace required
+    ours = {
+        keyword(c, "executable").value: c for c in nodes + managed if keyword(c, "package").value == "liver_p2p_reg"
+    }
+    assert set(ours) == {"register_node", "preop_loader_node", "slicer_bridge_node"} | MANAGED.keys()
+    for call in managed:
+        assert keyword(call, "namespace") is not None
+        assert keyword(call, "name").value == MANAGED[keyword(call, "executable").value]  # the plain node's name
+    for call in nodes + managed:
         assert not call.args, "launch_ros Node takes keyword arguments only"
         assert {k.arg for k in call.keywords} <= JAZZY_NODE_KWARGS, {k.arg for k in call.keywords} - JAZZY_NODE_KWARGS
     setup = (ROOT / "setup.py").read_text()
     for exe in ours:
         assert f'"{exe} = liver_p2p_reg.ros.{exe}:main"' in setup
     fields = {f.name for f in dataclasses.fields(Config)}
+    lists = {
+        t.id: v
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Assign)
+        for t, v in [(n.targets[0], n.value)]
+        if isinstance(t, ast.Name)
+    }
     for exe, allowed in (("register_node", fields), ("preop_loader_node", LOADER_PARAMETERS)):
-        params = keyword(ours[exe], "parameters")
-        for item in params.elts:
-            if isinstance(item, ast.Dict):
-                keys = {k.value for k in item.keys}
-                assert keys <= allowed, (exe, keys - allowed)
+        for name in (exe, {"register_node": "register_lifecycle_node"}.get(exe, "preop_loader_lifecycle_node")):
+            params = keyword(ours[name], "parameters")
+            params = lists.get(getattr(params, "id", None), params)  # a list named once, used by both variants
+            for item in params.elts:
+                if isinstance(item, ast.Dict):
+                    keys = {k.value for k in item.keys}
+                    assert keys <= allowed, (name, keys - allowed)
 
 
 def test_launch_description_builds_with_launch_ros(tmp_path):
@@ -70,4 +86,4 @@ def test_launch_description_builds_with_launch_ros(tmp_path):
     description = PythonLaunchDescriptionSource(str(LAUNCH)).get_launch_description(None)
     assert isinstance(description, LaunchDescription)
     names = {getattr(e, "name", None) for e in description.entities}
-    assert {"model_path", "bag", "rviz", "method"} <= names
+    assert {"model_path", "bag", "rviz", "method", "managed"} <= names

@@ -259,9 +259,12 @@ def test_no_tracking_when_disabled_due_or_not_continuous(cfg):
 def test_a_new_preop_model_clears_the_prior_pose():
     core, preop, fid_ct = tracking_core()
     send_frame(core, preop, fid_ct, ground_truth(), 1, 0.0)
-    core.set_preop(preop)
+    # the same message again (a looped bag, a loader re-publishing): unchanged, the prior stays
+    assert core.set_preop(preop).values.get("unchanged") == "true"
+    assert send_frame(core, preop, fid_ct, nudged(ground_truth()), 2, 1.0).result.method == "track"
+    core.set_preop(preop, stamp_ns=7)  # a new model message, if of the same shape
     core.set_preop_fiducials(fid_ct)  # markers belong to their model: a new model needs its own
-    out = send_frame(core, preop, fid_ct, nudged(ground_truth()), 2, 1.0)
+    out = send_frame(core, preop, fid_ct, nudged(ground_truth()), 3, 2.0)
     assert out.result.method == "procrustes"
 
 

@@ -1,0 +1,319 @@
+"""Read a flight recording back (record by record, through its rotated files) and re-run every registration in it.
+
+The re-run drives a NodeCore with the recorded parameters, models and survey resets in their
+recorded order and registers exactly the recorded clouds with their recorded reasons (no intake,
+no rate limit, no drop), with the fiducial pair each one used; `liver-p2p register` recordings
+(reason `register`) go through the Registrar as the command did. Every pose is compared bit for
+bit with the recorded one.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from io import BytesIO
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.bags.io import typestore
+from liver_p2p_reg.bags.recorder import (
+    TOPIC_CONFIG,
+    TOPIC_EVENT,
+    TOPIC_META,
+    TOPIC_REGISTRATION,
+    continuation,
+    message_points_mm,
+    recorder_factory,
+    run_environment,
+    weights_sha256,
+)
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
+from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
+from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.record_hooks import restore_tracker
+
+# what a pose's bits depend on besides its inputs: a difference is said before the comparison
+ENVIRONMENT_KEYS = ("package_version", "code_version", "numpy", "torch", "open3d", "usable_cores", "omp_num_threads")
+
+
+@dataclass
+class RecordedMessage:
+    """One message of a recording, deserialized, with the file it came from."""
+
+    topic: str
+    msgtype: str
+    log_ns: int
+    msg: Any
+    file: Path
+
+    @property
+    def values(self) -> dict[str, Any]:
+        """The JSON of a std_msgs/String record."""
+        return json.loads(self.msg.data)
+
+
+@dataclass
+class ReadState:
+    """What reading found besides the messages: the files read and whether the last one was cut short."""
+
+    files: list[Path]
+    truncated: bool = False  # the last file ends without its footer, maybe inside a record (writer killed)
+
+
+def read_file(path: Path, state: ReadState) -> Iterator[RecordedMessage]:
+    """The messages of one MCAP file, record by record; a truncated tail ends it (state.truncated)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Message, Schema
+
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    store = typestore()
+    with open(path, "rb") as fh:
+        if fh.read(8) != b"\x89MCAP0\r\n":
+            raise InputError(f"{path} is not an MCAP file")
+        while True:
+            head = fh.read(9)
+            if len(head) < 9:  # the end, without the footer a closed file has
+                state.truncated = True
+                return
+            opcode, length = struct.unpack("<BQ", head)
+            body = fh.read(length)
+            if len(body) < length:
+                state.truncated = True
+                return
+            stream = ReadDataStream(BytesIO(body))
+            if opcode == Opcode.SCHEMA:
+                schema = Schema.read(stream)
+                schemas[schema.id] = schema.name
+            elif opcode == Opcode.CHANNEL:
+                channel = Channel.read(stream)
+                channels[channel.id] = (channel.topic, schemas.get(channel.schema_id, ""))
+            elif opcode == Opcode.MESSAGE:
+                message = Message.read(stream, length)
+                topic, msgtype = channels[message.channel_id]
+                yield RecordedMessage(
+                    topic, msgtype, message.log_time, store.deserialize_cdr(message.data, msgtype), path
+                )
+            elif opcode in (Opcode.DATA_END, Opcode.FOOTER):  # the summary follows: nothing to replay
+                return
+
+
+def first_meta(path: Path) -> dict[str, Any] | None:
+    """The /flight_recorder/meta of a file (its first message), None for any other MCAP or file."""
+    try:
+        for item in read_file(Path(path), ReadState([])):
+            return item.values if item.topic == TOPIC_META else None
+    except (InputError, OSError, KeyError, ValueError, struct.error):
+        return None
+    return None
+
+
+def is_recording(path: str | Path) -> bool:
+    """Whether `path` is a flight recording (a bare .mcap starting with /flight_recorder/meta)."""
+    path = Path(path)
+    return path.is_file() and path.suffix == ".mcap" and first_meta(path) is not None
+
+
+def read_recording(path: str | Path, state: ReadState | None = None) -> Iterator[RecordedMessage]:
+    """Every message of a recording from `path` on, through its rotated files (same session, next index)."""
+    path = Path(path)
+    meta = first_meta(path)
+    if meta is None:
+        raise InputError(f"{path} is not a flight recording (no {TOPIC_META})")
+    state = state if state is not None else ReadState([])
+    base = path
+    if meta["file_index"]:  # a later file of a series: its base name is the first file's
+        base = path.with_name(path.stem.rsplit("_", 1)[0] + path.suffix)
+    index = meta["file_index"]
+    while True:
+        state.files.append(path)
+        state.truncated = False
+        yield from read_file(path, state)
+        index += 1
+        following = continuation(base, index)
+        nxt = first_meta(following) if following.is_file() else None
+        if state.truncated or nxt is None or nxt.get("session") != meta["session"] or nxt.get("file_index") != index:
+            return
+        path = following
+
+
+# ---------------------------------------------------------------- the re-run
+@dataclass
+class Rerun:
+    """What re-running a recording gave."""
+
+    files: list[str]
+    registrations: int = 0  # registrations recorded (completed ones) and re-run
+    poses: int = 0  # of them, those that recorded a pose
+    identical: int = 0  # of those, poses re-run bit for bit
+    no_pose: int = 0  # recorded without a pose and re-run without one
+    differences: list[str] = field(default_factory=list)  # one line per registration that differs
+    truncated: bool = False  # the last file ends without its footer (its writer was killed)
+    notes: list[str] = field(default_factory=list)  # how this run's environment differs from the recording's
+
+    @property
+    def ok(self) -> bool:
+        return not self.differences
+
+    def summary(self) -> str:
+        line = (
+            f"{self.registrations} registrations re-run from {len(self.files)} file(s): {self.identical} of "
+            f"{self.poses} poses bitwise identical to the recorded ones, {self.no_pose} without a pose as recorded"
+        )
+        if self.truncated:
+            line += "; the recording ends without its footer (writer killed): read up to its last complete registration"
+        return line
+
+
+class _Rerunner:
+    """The state of one re-run: the core, the preop model as recorded, the cloud of the registration being read."""
+
+    def __init__(self, record_path: str | None, overwrite: bool) -> None:
+        self.record_path = record_path or ""
+        self.factory = recorder_factory("overwrite" if overwrite else "refuse") if record_path else None
+        self.core: NodeCore | None = None
+        self.source: np.ndarray | None = None  # the preop model as recorded (`register` uses it unfiltered)
+        self.cloud: np.ndarray | None = None
+        self.preop_fiducials: np.ndarray | None = None  # the last /preop/fiducials: a pair's preop side
+        self.intraop_fiducials: np.ndarray | None = None  # the registration's own
+        self.report = Rerun([])
+
+    def config(self, values: dict[str, Any]) -> None:
+        config = Config.from_dict({**values["config"], "record_path": self.record_path})
+        if self.core is None:
+            self.core = NodeCore(config, recorder_factory=self.factory)
+        else:
+            self.core.reconfigure(config.to_dict())  # also a change of record_path only: a new registrar, as live
+        here = weights_sha256(config)
+        if values.get("weights_sha256", "") != here:
+            self.note(f"recorded with weights sha256 {values.get('weights_sha256') or '-'}, re-run with {here or '-'}")
+
+    def note(self, text: str) -> None:
+        if text not in self.report.notes:
+            self.report.notes.append(text)
+
+    def message(self, topic: str, msg: Any, values: dict[str, Any] | None) -> None:
+        if topic == TOPIC_CONFIG:
+            self.config(values)
+            return
+        core = self._core()
+        if topic == TOPIC_PREOP:
+            self.source = message_points_mm(msg)
+            core.set_preop(self.source, msg.header.frame_id, stamp_to_ns(msg.header.stamp))
+        elif topic == TOPIC_PREOP_FIDUCIALS:
+            points = message_points_mm(msg)
+            self.preop_fiducials = points if len(points) else None
+            core.set_preop_fiducials(self.preop_fiducials, stamp_to_ns(msg.header.stamp))
+        elif topic == TOPIC_INTRAOP:
+            self.cloud = message_points_mm(msg)
+        elif topic == TOPIC_INTRAOP_FIDUCIALS:
+            self.intraop_fiducials = message_points_mm(msg)
+        elif topic == TOPIC_EVENT and values["event"] == "tracker":
+            restore_tracker(core, values)
+        elif topic == TOPIC_EVENT and values["event"] == "reset_survey":
+            core.reset_survey()
+        elif topic == TOPIC_REGISTRATION:
+            self.registration(values)
+
+    def _core(self) -> NodeCore:
+        if self.core is None:
+            raise InputError(f"flight recording: a record before the first {TOPIC_CONFIG}")
+        return self.core
+
+    def registration(self, values: dict[str, Any]) -> None:
+        points, self.cloud = self.cloud, None
+        fid_t, self.intraop_fiducials = self.intraop_fiducials, None
+        fiducials = (self.preop_fiducials, fid_t) if values["fiducials"] else None
+        if fiducials is not None and (fiducials[0] is None or fid_t is None):
+            raise InputError(f"flight recording: registration {values['seq']} lacks its fiducials")
+        if values["decoded"] and points is None:
+            raise InputError(f"flight recording: registration {values['seq']} lacks its {TOPIC_INTRAOP} cloud")
+        T = self._run(values, points, fiducials)
+        report, recorded = self.report, values["pose"]
+        report.registrations += 1
+        where = f"registration {values['seq']} (stamp {values['stamp_ns']}, {values['reason']})"
+        if recorded is None:
+            if T is None:
+                report.no_pose += 1
+            else:
+                report.differences.append(f"{where}: recorded without a pose, re-run with one")
+            return
+        report.poses += 1
+        want = np.asarray(recorded["T_sensor_ct_mm"], dtype=np.float64)
+        if T is None:
+            report.differences.append(f"{where}: recorded with a pose, re-run without one")
+        elif np.asarray(T, dtype=np.float64).tobytes() == want.tobytes():
+            report.identical += 1
+        else:
+            delta = float(np.max(np.abs(np.asarray(T, dtype=np.float64) - want)))
+            report.differences.append(f"{where}: pose differs (max |dT| {delta:.3g}, mm in its translation)")
+
+    def _run(self, values: dict[str, Any], points: np.ndarray | None, fiducials: tuple | None) -> np.ndarray | None:
+        """The re-run registration's pose, T_sensor_ct (mm), or None."""
+        core = self._core()
+        fid_s, fid_t = fiducials or (None, None)
+        if values["reason"] == "register":  # `liver-p2p register`: the Registrar call the command made
+            extras = values["extras"]
+            try:
+                result = core.registrar.register(
+                    self.source,
+                    points,
+                    method=core.config.method,
+                    source_fiducials_mm=fid_s,
+                    target_fiducials_mm=fid_t,
+                    initial_T_mm=None if extras.get("initial_T_mm") is None else np.asarray(extras["initial_T_mm"]),
+                    sensor_origin_mm=extras.get("sensor_origin_mm"),
+                )
+            except LiverP2PError:
+                return None
+            return result.T_target_source if result.ok and np.isfinite(result.T_target_source).all() else None
+        core.fiducials.set_preop(fid_s, None)  # the pair the recorded registration used, whatever came when
+        if fid_t is not None:
+            core.fiducials.set_intraop(fid_t, values["stamp_ns"])
+        n_raw, error = values["n_raw"], values["decode_error"] or "the recording holds no points for it"
+
+        def decode() -> tuple[np.ndarray, int]:
+            if points is None:
+                raise InputError(error)
+            return points, n_raw
+
+        output = core.register_now(values["frame_id"], values["stamp_ns"], decode, values["reason"])
+        return None if output.pose is None else output.pose.T_sensor_ct_mm
+
+
+def rerun_recording(path: str | Path, *, record_path: str | None = None, overwrite: bool = False) -> Rerun:
+    """Re-run every completed registration of a flight recording (from `path` through its rotated files).
+
+    record_path: record the re-run itself there (refused if it exists unless `overwrite`).
+    """
+    state = ReadState([])
+    rerun = _Rerunner(record_path, overwrite)
+    here = run_environment()
+    current: Path | None = None
+    skipping = False  # inside the head of a rotated file, whose state the re-run already has
+    try:
+        for item in read_recording(path, state):
+            values = item.values if item.msgtype == "std_msgs/msg/String" else None
+            if item.file != current:
+                current, skipping = item.file, len(state.files) > 1
+            if item.topic == TOPIC_META:
+                for key in ENVIRONMENT_KEYS:
+                    if str(values.get(key)) != str(here[key]):
+                        rerun.note(f"recorded with {key} {values.get(key)}, re-run with {here[key]}")
+            elif item.topic == TOPIC_EVENT and values["event"] == "snapshot_end":
+                skipping = False
+            elif not skipping:
+                rerun.message(item.topic, item.msg, values)
+    finally:
+        if rerun.core is not None:
+            rerun.core.close_recording()
+    rerun.report.files = [str(p) for p in state.files]
+    rerun.report.truncated = state.truncated
+    return rerun.report

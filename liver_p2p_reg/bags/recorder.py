@@ -1,0 +1,363 @@
+"""The flight recorder: NodeCore's hook (stream/record_hooks.py) written to rosbag2-compatible MCAP, and read back.
+
+One bare MCAP file per recording (profile `ros2`, CDR messages with their `ros2msg` schemas, as
+rosbag2 writes them), unchunked and flushed after every registration: a writer killed at any
+moment leaves every completed registration readable; `bags/flight_replay.py` reads the records one
+by one, stops cleanly at a truncated tail (no footer, summary or index needed) and re-runs them.
+Topics and the exactness of what they carry: msg_docs/flight_recorder.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.bags.io import DIAGNOSTIC_ARRAY, POINTCLOUD2, POSE_STAMPED, _qos, rosbags_output_types, typestore
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.ros.messages import diagnostic_array, pose_stamped
+from liver_p2p_reg.ros.pointcloud2 import FLOAT64, M_PER_MM, cloud_to_points_mm, points_to_cloud
+from liver_p2p_reg.ros.topics import (
+    TOPIC_DIAGNOSTICS,
+    TOPIC_INTRAOP,
+    TOPIC_INTRAOP_FIDUCIALS,
+    TOPIC_POSE,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+    qos_of,
+)
+from liver_p2p_reg.stream.record_hooks import Recorder, RegistrationRecord
+
+FORMAT = "liver_p2p_reg.flight_recorder/1"
+STRING = "std_msgs/msg/String"
+TOPIC_META = "/flight_recorder/meta"  # first message of every file: versions, weights, session, file index
+TOPIC_CONFIG = "/flight_recorder/config"  # the full parameter set, at the head of a file and after every change
+TOPIC_EVENT = "/flight_recorder/event"  # reset_survey; in a file's head: tracker (the prior), snapshot_end
+TOPIC_REGISTRATION = "/flight_recorder/registration"  # one per registration, its last record (the commit)
+MM_FIELDS = ("x_mm", "y_mm", "z_mm")  # exact float64 millimetres, beside x/y/z, when float32 metres lose bits
+EXISTING = ("refuse", "overwrite", "new")  # an existing file: InputError, replaced, or a new timestamped name
+
+
+# ---------------------------------------------------------------- points, exactly
+def points_message(points_mm: np.ndarray, frame_id: str, stamp_ns: int) -> Any:
+    """A PointCloud2 in metres (float32, as the bags) that decodes back to exactly these millimetres; when
+    float32 metres cannot (points not from a float32 cloud), float64 x_mm/y_mm/z_mm fields carry them exactly."""
+    points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    types = rosbags_output_types().cloud
+    metres = (points * M_PER_MM).astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):
+        exact = bool(np.isfinite(points).all()) and np.array_equal(metres.astype(np.float64) * 1e3, points)
+    if exact:
+        return points_to_cloud(metres, types, frame_id=frame_id, stamp_ns=stamp_ns)
+    extra = {name: points[:, i].copy() for i, name in enumerate(MM_FIELDS)}
+    return points_to_cloud(metres, types, frame_id=frame_id, stamp_ns=stamp_ns, extra_fields=extra)
+
+
+def message_points_mm(msg: Any) -> np.ndarray:
+    """The millimetres `points_message` stored, bit for bit (NaN rows included when it stored them)."""
+    fields = {f.name: f for f in msg.fields}
+    if not all(name in fields for name in MM_FIELDS):
+        return cloud_to_points_mm(msg)  # float32 metres decode exactly as the node decodes them
+    if any(int(fields[name].datatype) != FLOAT64 for name in MM_FIELDS) or msg.is_bigendian:
+        raise InputError("flight recording: x_mm/y_mm/z_mm must be little-endian float64")
+    n, step = int(msg.width) * int(msg.height), int(msg.point_step)
+    raw = np.frombuffer(memoryview(msg.data).cast("B"), dtype=np.uint8)
+    rec = np.frombuffer(raw, dtype=np.dtype({"names": list(MM_FIELDS), "formats": ["<f8"] * 3,
+                        "offsets": [int(fields[k].offset) for k in MM_FIELDS], "itemsize": step}), count=n)  # fmt: skip
+    return np.stack([rec[k] for k in MM_FIELDS], axis=1).astype(np.float64)
+
+
+def _exact(array: np.ndarray | None) -> list | None:
+    """A small float array as JSON lists (Python floats round-trip through JSON bit for bit)."""
+    return None if array is None else np.asarray(array, dtype=np.float64).tolist()
+
+
+# ---------------------------------------------------------------- metadata
+_HASHES: dict[tuple[str, int, int], str] = {}
+
+
+def weights_file(config: Config) -> Path | None:
+    """The matcher weights a config's method reads (None: the method uses none)."""
+    if config.weights_path:
+        return Path(config.weights_path)
+    if not config.method.startswith("learned"):
+        return None
+    from liver_p2p_reg.registration.features.learned.weights import BUNDLED_WEIGHTS
+
+    return BUNDLED_WEIGHTS
+
+
+def weights_sha256(config: Config) -> str:
+    """sha256 of the weights file the config's method reads ("" when none; "missing: PATH" if absent)."""
+    path = weights_file(config)
+    if path is None:
+        return ""
+    try:
+        stat = path.stat()
+    except OSError:
+        return f"missing: {path}"
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    if key not in _HASHES:
+        digest = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+        _HASHES[key] = digest.hexdigest()
+    return _HASHES[key]
+
+
+def run_environment() -> dict[str, Any]:
+    """What makes a pose reproducible besides its inputs: versions, weights, threads."""
+    from importlib import metadata
+
+    from liver_p2p_reg import __version__
+    from liver_p2p_reg.bench.sysinfo import code_version
+
+    def _version(dist: str) -> str:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return "not installed"
+
+    return {
+        "package_version": __version__,
+        "code_version": code_version(),
+        "python": sys.version.split()[0],
+        "numpy": np.__version__,
+        "torch": _version("torch"),
+        "open3d": _version("open3d-cpu") if _version("open3d") == "not installed" else _version("open3d"),
+        "usable_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS", ""),
+    }
+
+
+# ---------------------------------------------------------------- file names
+def continuation(path: Path, index: int) -> Path:
+    """The file `index` of a rotated recording: PATH itself, then PATH_001.mcap, PATH_002.mcap, ..."""
+    return path if index == 0 else path.with_name(f"{path.stem}_{index:03d}{path.suffix}")
+
+
+def _series(path: Path) -> list[Path]:
+    return [path, *sorted(path.parent.glob(f"{path.stem}_[0-9][0-9][0-9]{path.suffix}"))]
+
+
+def recording_path(record_path: str, existing: str) -> Path:
+    """Where a recording asked for as `record_path` goes (a folder: flight_<time>.mcap in it)."""
+    path = Path(record_path).expanduser()
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    if record_path.endswith(os.sep) or path.is_dir():
+        path = path / f"flight_{stamp}.mcap"
+    if path.suffix != ".mcap":
+        raise InputError(f"record_path {record_path}: a flight recording is an .mcap file (or a folder for one)")
+    if not path.parent.is_dir():
+        raise InputError(f"record_path {record_path}: folder {path.parent} does not exist")
+    taken = [p for p in _series(path) if p.exists()]
+    if taken and existing == "refuse":
+        raise InputError(f"{taken[0]} exists; pass --force to overwrite it")
+    if taken and existing == "overwrite":
+        for old in taken:
+            old.unlink() if old.is_file() else shutil.rmtree(old)
+    elif taken:  # "new": a recording is evidence, never overwritten
+        base, n = path.with_name(f"{path.stem}-{stamp}{path.suffix}"), 1
+        path = base
+        while any(p.exists() for p in _series(path)):
+            n += 1
+            path = base.with_name(f"{base.stem}-{n}{base.suffix}")
+    return path
+
+
+# ---------------------------------------------------------------- the writer
+class McapRecorder(Recorder):
+    """Writes one recording (the Recorder protocol of stream/record_hooks.py); rotates beyond record_max_mb."""
+
+    def __init__(self, record_path: str, config: Config, *, existing: str = "new") -> None:
+        self.base = recording_path(record_path, existing)
+        self.session = uuid.uuid4().hex
+        self.max_bytes = int(config.record_max_mb * 1e6)
+        self.index, self.registrations, self._last_ns = -1, 0, 0
+        self._config = config
+        self._environment = run_environment()
+        self._open(0)
+
+    def _open(self, index: int) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.index, self.path = index, str(continuation(self.base, index))
+        self._file = open(self.path, "xb")  # noqa: SIM115 (closed in close / rotate)
+        self._writer = Writer(self._file, use_chunking=False, compression=CompressionType.NONE)
+        self._writer.start(profile="ros2", library="liver_p2p_reg flight recorder")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._model_stamp_ns, self._fiducials_key = 0, b""  # the last model and preop fiducials in this file
+        previous = continuation(self.base, index - 1).name if index else ""
+        meta = {"format": FORMAT, "session": self.session, "file_index": index, "previous_file": previous}
+        meta.update(started_unix_ns=time.time_ns(), **self._environment, weights_sha256=weights_sha256(self._config))
+        self._json(TOPIC_META, meta)
+        self._writer.flush()
+
+    def _channel(self, topic: str, msgtype: str) -> int:
+        if topic not in self._channels:
+            import yaml
+            from rosbags.rosbag2.metadata import dump_qos_v9
+
+            store = typestore()
+            if msgtype not in self._schemas:
+                msgdef, _ = store.generate_msgdef(msgtype, ros_version=2)
+                self._schemas[msgtype] = self._writer.register_schema(msgtype, "ros2msg", msgdef.encode())
+            qos = yaml.safe_dump(dump_qos_v9([_qos(latched=qos_of(topic).latched)]), sort_keys=False).strip()
+            metadata = {"offered_qos_profiles": qos, "topic_type_hash": store.hash_rihs01(msgtype)}
+            self._channels[topic] = self._writer.register_channel(topic, "cdr", self._schemas[msgtype], metadata)
+        return self._channels[topic]
+
+    def _write(self, topic: str, msgtype: str, msg: Any) -> None:
+        self._last_ns = max(time.time_ns(), self._last_ns)  # log times never go back (unindexed files)
+        raw = typestore().serialize_cdr(msg, msgtype)
+        self._writer.add_message(self._channel(topic, msgtype), self._last_ns, bytes(raw), self._last_ns)
+
+    def _json(self, topic: str, values: dict[str, Any]) -> None:
+        self._write(topic, STRING, typestore().types[STRING](data=json.dumps(values)))
+
+    # ---------------------------------------------------------------- the Recorder protocol
+    def config(self, config: Config, snapshot: bool = False) -> None:
+        self._config = config
+        self._json(TOPIC_CONFIG, {"config": config.to_dict(), "snapshot": snapshot, "weights_sha256": weights_sha256(config)})  # fmt: skip
+        self._writer.flush()
+
+    def preop(self, points_mm: np.ndarray, frame_id: str, stamp_ns: int, snapshot: bool = False) -> None:
+        self._model_stamp_ns = int(stamp_ns)
+        self._write(TOPIC_PREOP, POINTCLOUD2, points_message(points_mm, frame_id, stamp_ns))
+        self._writer.flush()
+
+    def preop_fiducials(self, points_mm: np.ndarray | None, stamp_ns: int, snapshot: bool = False) -> None:
+        points = np.zeros((0, 3)) if points_mm is None else np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        self._fiducials_key = points.tobytes()  # none (0 points): the model's markers removed
+        self._write(TOPIC_PREOP_FIDUCIALS, POINTCLOUD2, points_message(points, "ct", stamp_ns))
+
+    def event(self, name: str, values: dict[str, Any] | None = None) -> None:
+        self._json(TOPIC_EVENT, {"event": name, **(values or {})})
+        self._writer.flush()
+
+    def registration(self, record: RegistrationRecord) -> None:
+        """The input cloud, the pose and the diagnostics on the node's topics, then the JSON record; flushed."""
+        out, types = record.output, rosbags_output_types()
+        if record.points_mm is not None:
+            self._write(TOPIC_INTRAOP, POINTCLOUD2, points_message(record.points_mm, record.frame_id, record.stamp_ns))
+        if record.fiducials_mm is not None:  # the pair it used: the model's markers (when not the last written)
+            fid_s, fid_t = (np.asarray(f, dtype=np.float64).reshape(-1, 3) for f in record.fiducials_mm)
+            if fid_s.tobytes() != self._fiducials_key or not len(fid_s):
+                self.preop_fiducials(fid_s, self._model_stamp_ns)
+            self._write(TOPIC_INTRAOP_FIDUCIALS, POINTCLOUD2, points_message(fid_t, record.frame_id, record.stamp_ns))
+        if out.pose is not None:
+            self._write(TOPIC_POSE, POSE_STAMPED, pose_stamped(out.pose, types))
+        self._write(TOPIC_DIAGNOSTICS, DIAGNOSTIC_ARRAY, diagnostic_array(out.diagnostics, record.stamp_ns, types))
+        pose = out.pose
+        values = {
+            "seq": self.registrations,
+            "reason": record.reason,
+            "frame_id": record.frame_id,
+            "stamp_ns": record.stamp_ns,
+            "decoded": record.points_mm is not None,
+            "n_raw": record.n_raw,
+            "decode_error": record.decode_error,
+            "fiducials": record.fiducials_mm is not None,
+            "pose": None
+            if pose is None
+            else {
+                "T_sensor_ct_mm": _exact(pose.T_sensor_ct_mm),
+                "frame_id": pose.frame_id,
+                "child_frame_id": pose.child_frame_id,
+                "stamp_ns": pose.stamp_ns,
+            },  # fmt: skip
+            "level": out.level,
+            "message": out.summary,
+            "method": None if out.result is None else out.result.method,
+            "extras": record.extras,
+        }
+        self._json(TOPIC_REGISTRATION, values)
+        self.registrations += 1
+        self._writer.flush()  # the commit: everything up to here survives a killed writer
+
+    def rotate_due(self) -> bool:
+        return self.max_bytes > 0 and self._file.tell() >= self.max_bytes
+
+    def rotate(self) -> None:
+        self._finish()
+        self._open(self.index + 1)
+
+    def _finish(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self._finish()
+
+
+def recorder_factory(existing: str = "new") -> Callable[[str, Config], Recorder]:
+    """NodeCore's recorder_factory: (record_path, config) -> an open McapRecorder (see EXISTING)."""
+    if existing not in EXISTING:
+        raise ValueError(f"existing must be one of {EXISTING}")
+    return lambda record_path, config: McapRecorder(record_path, config, existing=existing)
+
+
+# ---------------------------------------------------------------- `liver-p2p register --record`
+def open_command_recording(path: str | Path, config: Config, source_mm: np.ndarray, *, overwrite: bool) -> McapRecorder:
+    """A recording of `liver-p2p register`: the config and SOURCE as its head; registrations follow."""
+    recorder = McapRecorder(str(path), config, existing="overwrite" if overwrite else "refuse")
+    _command_head(recorder, config, source_mm)
+    return recorder
+
+
+def _command_head(recorder: McapRecorder, config: Config, source_mm: np.ndarray) -> None:
+    recorder.config(config, snapshot=True)
+    recorder.preop(source_mm, "ct", 0, snapshot=True)
+    recorder.event("snapshot_end")
+
+
+def record_command_registration(
+    recorder: McapRecorder,
+    index: int,
+    target: str,
+    target_mm: np.ndarray,
+    fiducials: tuple[np.ndarray | None, np.ndarray | None],
+    extras: dict[str, Any],
+    result: Any,
+    config: Config,
+    source_mm: np.ndarray,
+) -> None:
+    """One registration of `liver-p2p register` (reason `register`; `result` a RegistrationResult or the
+    LiverP2PError it raised); rotates beyond record_max_mb like the node's recordings."""
+    from liver_p2p_reg.stream.outputs import (
+        DIAG_NAME,
+        ERROR,
+        CoreOutput,
+        Diagnostic,
+        PoseOutput,
+        registered_diagnostic,
+        result_values,
+    )
+
+    if isinstance(result, Exception):
+        output = CoreOutput([Diagnostic(ERROR, DIAG_NAME, f"registration failed: {result}")], reason="register")
+    else:
+        diag = registered_diagnostic(result, result_values(result), [], config)
+        pose = PoseOutput(index, target, "ct", np.asarray(result.T_target_source, dtype=np.float64))
+        output = CoreOutput([diag], pose, result=result, reason="register")
+    fid_s, fid_t = fiducials
+    pair = None if fid_s is None or fid_t is None else (np.asarray(fid_s), np.asarray(fid_t))
+    points = np.asarray(target_mm, dtype=np.float64).reshape(-1, 3)
+    record = RegistrationRecord("register", target, index, points, len(points), "", pair, output, extras)
+    recorder.registration(record)
+    if recorder.rotate_due():
+        recorder.rotate()
+        _command_head(recorder, config, source_mm)
