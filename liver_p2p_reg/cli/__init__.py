@@ -26,6 +26,7 @@ _SUBCOMMAND_MODULES = (
     "replay_cmd",
     "config_cmd",
     "demo_cmd",
+    "soak_cmd",
 )
 
 
