@@ -130,9 +130,7 @@ RCLPY_ADAPTERS = {
     "livegraph/graph.py",
     "livegraph/demo.py",
 }
-ROS_PYTHON = (
-    r"(rclpy|lifecycle_msgs|rosgraph_msgs|sensor_msgs|geometry_msgs|diagnostic_msgs|std_msgs|std_srvs|rcl_interfaces|builtin_interfaces|tf2_ros)"
-)
+ROS_PYTHON = r"(rclpy|lifecycle_msgs|rosgraph_msgs|sensor_msgs|geometry_msgs|diagnostic_msgs|std_msgs|std_srvs|rcl_interfaces|builtin_interfaces|tf2_ros)"
 
 
 def test_no_rclpy_outside_ros_adapters() -> None:

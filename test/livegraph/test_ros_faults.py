@@ -58,7 +58,9 @@ def test_a_looped_bag_with_its_clock_jumping_back(graph):
     by_stamp = {}
     for v in done:
         by_stamp.setdefault(int(v["stamp_ns"]), set()).add(round(float(v.get("rms_tre_mm", "nan")), 1))
-    assert all(len(tres) == 1 for tres in by_stamp.values()), [(v["stamp_ns"][-10:], v.get("rms_tre_mm"), v.get("tracked")) for v in done]
+    assert all(len(tres) == 1 for tres in by_stamp.values()), [
+        (v["stamp_ns"][-10:], v.get("rms_tre_mm"), v.get("tracked")) for v in done
+    ]
     # the periodic status keeps coming on the steady clock; the node logs nothing above INFO
     statuses = [s for s, _ in graph.probe.diagnostics(0, DIAG_NAME) if "received_clouds" in values_of(s)]
     assert len(statuses) >= 3
