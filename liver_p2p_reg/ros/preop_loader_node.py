@@ -64,7 +64,7 @@ class PreopLoaderWiring:
     def _declare(self: Any) -> None:
         for name, default in (("model_path", ""), ("fiducials_path", ""), ("frame_id", "ct"), ("units", "mm")):
             self.declare_parameter(name, default)
-        self._publishers: list[Any] = []
+        self._model_publishers: list[Any] = []  # not `_publishers`: rclpy's Node keeps its own list by that name
         self.loaded: dict[str, Any] | None = None
 
     def _load(self: Any) -> None:
@@ -99,13 +99,13 @@ class PreopLoaderWiring:
 
     def _latched(self: Any, msg_type: type, topic: str) -> Any:
         publisher = self.create_publisher(msg_type, topic, rclpy_qos(topic))
-        self._publishers.append(publisher)
+        self._model_publishers.append(publisher)
         return publisher
 
     def _unpublish(self: Any) -> None:
-        for publisher in self._publishers:
+        for publisher in self._model_publishers:
             self.destroy_publisher(publisher)
-        self._publishers = []
+        self._model_publishers = []
 
 
 class PreopLoaderNode(PreopLoaderWiring, Node):

@@ -134,6 +134,7 @@ class NodeCore:
         with self._lock:
             current = self._next_model or (self.preop_mm, self.preop_frame, self.preop_stamp_ns)
         if same_model(current, points, frame_id or "ct", int(stamp_ns)):
+            self.fiducials.forget_frames()
             message = f"preop model unchanged ({len(points)} points, same content and stamp): kept"
             return Diagnostic(OK, PREOP_DIAG_NAME, message, {"points": str(len(points)), "unchanged": "true"})
         extent = extent_mm(points)

@@ -36,6 +36,13 @@ class FiducialStore:
             self._intraop.clear()
             self._paired_once = False
 
+    def forget_frames(self) -> None:
+        """The current model came again (same content and stamp): its markers stay, the intraop fiducials
+        go, as with a new model (a cloud whose own fiducials never come must not meet an earlier set)."""
+        with self._lock:
+            self._intraop.clear()
+            self._paired_once = False
+
     def set_preop(self, points_mm: np.ndarray | None, stamp_ns: int | None = None) -> None:
         """Preop fiducials of the model stamped `stamp_ns` (None: the current model)."""
         with self._lock:

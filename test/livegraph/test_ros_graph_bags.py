@@ -20,7 +20,9 @@ from liver_p2p_reg.stream.intake import RATE_TOLERANCE  # noqa: E402
 
 # Every frame a full registration: a pose then depends only on its model and cloud, so frames the
 # live node drops under load (latest-only) cannot change the others, and each compares one to one.
-PARAMS = {"track_previous_pose": False}
+# No sensor origin: replay takes none for random-crop bags (their clouds are in no sensor's frame), and the
+# free-space score it adds can pick another candidate; the live node must run the same configuration.
+PARAMS = {"track_previous_pose": False, "sensor_at_frame_origin": False}
 
 
 def pose_matrix(position, orientation):
@@ -39,11 +41,8 @@ def by_stamp(messages, topic):
 
 
 def same_arithmetic(values):
-    """A registration diagnostic's values without the timings and the cache state (which differ by design) and
-    the free-space keys: the live node takes the sensor at its frame's origin (the default), replay not for
-    random-crop bags, whose clouds are in no sensor's frame (their violation is 0, so the pose is the same)."""
-    skip = ("model_cache_computed", "free_space", "free_space_violation")
-    return {k: v for k, v in values.items() if not k.startswith("runtime_ms.") and k not in skip}
+    """A registration diagnostic's values without the timings and the cache state (which differ by design)."""
+    return {k: v for k, v in values.items() if not k.startswith("runtime_ms.") and k != "model_cache_computed"}
 
 
 def registration_values(messages):
