@@ -26,6 +26,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from liver_p2p_reg.bags.recorder import recording_path
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.registration.methods import check_method_name
@@ -264,6 +265,8 @@ class RegisterWiring:
         try:  # validate now (against earlier sets not yet applied), so the answer carries the reason ...
             config = self._accepted.replace(**changes)
             check_method_name(config.method)
+            if config.record_path and config.record_path != self._accepted.record_path:
+                recording_path(config.record_path, "new")  # a folder that does not exist: refused now, with why
         except LiverP2PError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         # ... and apply on the worker, between registrations, without blocking this callback

@@ -299,6 +299,9 @@ def test_the_node_switches_recordings_at_runtime_and_closes_them_on_shutdown(tmp
         graph.probe.wait_for(second.is_file, 30)
         graph.send_frame(BAG_A, 1)
         assert graph.wait_attempts(since, 2), graph.node.stderr()
+        # a recording that cannot be opened is refused by the parameter set itself, with the reason
+        (refused,) = graph.probe.set_parameters({"record_path": str(tmp_path / "no" / "such.mcap")})
+        assert not refused.successful and "does not exist" in refused.reason, refused.reason
         code, _ = graph.node.stop(signal.SIGINT)
         assert code == 0, graph.node.stderr()
     finally:
