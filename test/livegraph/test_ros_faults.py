@@ -78,8 +78,14 @@ def test_a_looped_bag_with_its_clock_jumping_back(graph):
     poses = [p.msg for p in graph.probe.since(TOPIC_POSE)]
     assert len(poses) == len(done)
     fid_ct, fid_cam = bag_fiducials_mm(BAG_A)
+    # a TRE may be absent (a cloud's fiducials handled before the loop's repeated model, which forgets them:
+    # callbacks of two topics come in either order), never stale; before the fix no later loop had one at all
+    scored = [v for v in done[5:] if "rms_tre_mm" in v]
+    assert len(scored) >= len(done[5:]) // 2, [(v["stamp_ns"][-10:], v.get("rms_tre_mm")) for v in done]
     for values, pose in zip(done, poses, strict=True):
         assert stamp_ns(pose) == int(values["stamp_ns"])
+        if "rms_tre_mm" not in values:
+            continue
         T = pose_mm(pose)
         own = np.sqrt(np.mean(np.sum((fid_ct @ T[:3, :3].T + T[:3, 3] - fid_cam[stamp_ns(pose)]) ** 2, axis=1)))
         assert abs(float(values["rms_tre_mm"]) - own) < 0.01, (values["stamp_ns"], values["rms_tre_mm"], own)
