@@ -1,5 +1,7 @@
 """Node core: bad inputs give the right diagnostic and no pose; modes, rate limit and latest-only."""
 
+import threading
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -363,3 +365,36 @@ def test_reconfigure_validates_the_method_and_keeps_the_cache():
     core.reconfigure({"residual_warn_mm": 9.0})
     assert core.config.residual_warn_mm == 9.0 and core.registrar.config.residual_warn_mm == 9.0
     assert core.registrar.cache == cache
+
+
+def test_a_model_arriving_during_a_registration_becomes_current_after_it():
+    """Was: the model swapped mid-registration, and the old model's pose became the new model's tracking prior."""
+    from liver_p2p_reg.registration.methods import Method, add_method, remove_method, run_method
+
+    entered, release = threading.Event(), threading.Event()
+
+    def slow_procrustes(source, target, config, ctx):
+        entered.set()
+        assert release.wait(10)
+        return run_method("procrustes", source, target, config, ctx)
+
+    add_method("slow-procrustes", Method(doc="procrustes after a signal (test)", run=slow_procrustes))
+    try:
+        core, preop, fid_ct = tracking_core()
+        core.reconfigure({"method": "slow-procrustes"})
+        worker = threading.Thread(target=send_frame, args=(core, preop, fid_ct, ground_truth(), 1, 0.0))
+        worker.start()
+        assert entered.wait(10)
+        other = preop[::-1] * 1.05  # another model, while the registration runs
+        assert core.set_preop(other, stamp_ns=9, warm_up=False).level == OK
+        assert core.preop_mm is not other and np.array_equal(core.preop_mm, preop)  # not swapped under it
+        release.set()
+        worker.join(10)
+        assert np.array_equal(core.preop_mm, other) and core.preop_stamp_ns == 9  # current once it ended
+        core.reconfigure({"method": "procrustes"})
+        core.set_preop_fiducials(fid_ct)
+        out = send_frame(core, other, fid_ct, nudged(ground_truth()), 2, 1.0)
+        assert out.result.method == "procrustes"  # a full registration: the old model's pose is no prior
+    finally:
+        release.set()
+        remove_method("slow-procrustes")
