@@ -163,7 +163,9 @@ class Soak:
                     self.counters = {k: int(v) for k, v in values.items() if k.endswith("_clouds")}
                     continue
                 error = level_of(status) == ERROR_LEVEL
-                self.preop_answers += status.name == PREOP_DIAG_NAME and ("warm_up_ms" in values or error)
+                # an answer: warmed up, refused, or the same model as the one the node holds (bags of one liver)
+                answered = "warm_up_ms" in values or values.get("unchanged") == "true" or error
+                self.preop_answers += status.name == PREOP_DIAG_NAME and answered
                 if error:
                     self.error(f"{status.name}: {status.message[:160]}")
         if len(self.sent) > 1000:  # clouds that got no pose (dropped, latest-only): forget the old ones
