@@ -209,6 +209,7 @@ class RegisterWiring:
     def _on_intraop(self, msg: PointCloud2) -> None:
         now_s = time.monotonic()
         self.health.on_cloud(now_s, stamp_to_ns(msg.header.stamp), self._now_ns())
+        self._publish_status_on_change()  # a silence ended: STALE no more
         diags = feed_intraop_msg(self.core, msg, now_s)  # O(1): decoding happens in the worker
         if diags:
             self._report(diags)
@@ -252,9 +253,13 @@ class RegisterWiring:
         self.diag_pub.publish(diagnostic_array([status, stream], self._now_ns(), RCLPY_TYPES))
 
     def _publish_status_on_change(self) -> None:
-        """A level change is published at once, not at the next period (diagnostic_updater's force_update)."""
+        """A level change is published at once, not at the next period (diagnostic_updater's force_update):
+        a registration's new level, or the end of a silence (STALE -> the last result's level) on a cloud."""
         core = self.core
-        if core is not None and core.status().level != self._status_level:
+        if core is None or not self.active:
+            return
+        silent_s = self.health.silent_for_s(time.monotonic())
+        if stale_when_silent(core.status(), silent_s, core.config.stale_after_s).level != self._status_level:
             self._publish_status()
 
     def _on_parameters(self, params: list[Any]) -> SetParametersResult:
