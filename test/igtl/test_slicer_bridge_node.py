@@ -400,7 +400,11 @@ def test_with_the_real_register_node(tmp_path: Path) -> None:
         while not player.models and time.monotonic() < end:
             time.sleep(0.05)
         assert player.models, "register_node never reported the preop model"
-        time.sleep(0.5)  # the bridge's match to register_node's /diagnostics, discovered alongside
+        # the bridge's /registration/pose subscription known to the graph (this node's and the bridge's): a pose
+        # published before register_node has matched it is lost (volatile), and once a clean-clone suite saw none
+        while player.node.count_subscribers("/registration/pose") < 2 and time.monotonic() < end:
+            time.sleep(0.05)
+        time.sleep(0.5)  # the bridge's match to register_node's /diagnostics and pose, discovered alongside
         clouds = [d for t, d in raw if t == "/intraop/points"][:2]
         for i, cloud in enumerate(clouds):
             player.publish("/intraop/points", cloud)
