@@ -3,12 +3,9 @@
 Defaults live here and only here. `config/registration.yaml` (the ROS parameter file) is
 generated from these defaults with `liver-p2p config --ros` and a test checks that it matches.
 
-Flat outside, sectioned inside. Users write flat names (`Config(k=5)`, `config.k`, `replace(k=5)`, YAML keys,
-ROS parameters), so those stay. Each field is declared once, with its default, in the section of the stage that
-reads it (`P2PSection`, `IcpSection`, ...); Config inherits all sections, and a stage takes its section's view
-(`config.p2p`, a copy), so no stage keeps defaults of its own (the P2P module's settings class did, two of them
-not Config's). Inheritance, because nested section objects would nest the flat names (`config.p2p.k`, nested
-YAML), and a list of each section's names beside flat fields would be a second list to keep in step with them.
+Flat outside, sectioned inside: users write flat names (`Config(k=5)`, YAML keys, ROS parameters); each field is
+declared once, with its default, in the section of the stage that reads it, Config inherits all sections, and a
+stage takes its section's view (`config.p2p`, a copy), so no stage keeps defaults of its own.
 """
 
 from __future__ import annotations
@@ -45,6 +42,7 @@ MINIMUMS: dict[str, float] = {
     "survey_max_points": 1000,
     "residual_warn_mm": 0,
     "uncertainty_warn_mm": 0,
+    "structure_error_warn_mm": 0,
     "free_space_band_mm": 0,
     "free_space_weight": 0,
     "free_space_warn": 0,
@@ -149,12 +147,10 @@ class FreeSpaceSection:
     # intraop clouds arrive in their sensor's own frame (the ROS convention), so the sensor sits at
     # (0, 0, 0) there and free space is checked; false for clouds transformed into another frame
     sensor_at_frame_origin: bool = True
-    # moved preop surface more than this in front of the observed surface, along the sensor's rays,
-    # violates free space (the band tolerates deformation and noise; freespace.py)
+    # moved preop surface this far in front of the observed one along the rays violates free space (freespace.py)
     free_space_band_mm: float = 10.0
-    # P2P selection, ICP screening and the ambiguity test rank hypotheses by
-    # residual x (1 + this x violation), violation = share of the view's footprint the pose
-    # contradicts; chosen on validation camera crops by docs/freespace/rule.md
+    # selection, screening and the ambiguity test rank hypotheses by residual x (1 + this x violation), violation =
+    # share of the view's footprint the pose contradicts; chosen on validation camera crops (docs/freespace/rule.md)
     free_space_weight: float = 0.5
 
 
@@ -163,14 +159,17 @@ class VerdictSection:
     """Confidence and verdict: when a registration is reported WARN or ambiguous."""
 
     residual_warn_mm: float = 4.0  # mean closest-point residual above this -> WARN
-    # pose uncertainty (expected organ-point displacement under the fit's misfit, confidence.py)
-    # above this -> WARN; chosen on the training store's validation livers, never the test set
-    # (scripts/calibrate_confidence.py; README "Confidence" has the test-set effect)
+    # pose uncertainty (expected organ-point displacement under the fit's misfit, confidence.py) above this -> WARN;
+    # chosen on validation livers (scripts/calibrate_confidence.py; README "Confidence" has the test-set effect)
     uncertainty_warn_mm: float = 15.0
     free_space_warn: float = 0.1  # a pose contradicting more than this share of the view's footprint -> WARN
     # a rival hypothesis (after ICP screening if the method screens), residual within this factor of the best ...
     ambiguity_residual_ratio: float = 1.2
     ambiguity_pose_mm: float = 15.0  # ... and a pose differing by this much -> ambiguous
+    # per-point error bounds (error_bound.py), calibrated by `liver-p2p calibrate-bound` on validation sets:
+    error_coverage: float = 0.9  # the share of true positions each bound contains (one the calibration holds)
+    structure_error_warn_mm: float = 10.0  # a structure's (no structures: the interior's) bound above this -> WARN
+    error_calibration_path: str = ""  # empty: the calibration bundled with the package
 
 
 @dataclass
@@ -285,8 +284,9 @@ class Config(
                 "need 0 < refit_radius_end_norm <= refit_radius_start_norm, got "
                 f"{self.refit_radius_end_norm} and {self.refit_radius_start_norm}"
             )
-        if not 0 < self.icp_trim_ratio <= 1:
-            raise InputError(f"icp_trim_ratio must be in (0, 1], got {self.icp_trim_ratio}")
+        for name in ("icp_trim_ratio", "error_coverage"):
+            if not 0 < getattr(self, name) <= 1:
+                raise InputError(f"{name} must be in (0, 1], got {getattr(self, name)}")
         if not 0 <= self.expected_extent_min_mm < self.expected_extent_max_mm:
             raise InputError(
                 "need 0 <= expected_extent_min_mm < expected_extent_max_mm, got "

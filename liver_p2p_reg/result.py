@@ -64,6 +64,19 @@ class RegistrationResult:
     warnings: list[str] = field(default_factory=list)
     rms_tre_mm: float | None = None  # filled when ground-truth fiducials are given
     max_tre_mm: float | None = None
+    # the interior's RMS error lies below this with `error_coverage` (registration/error_bound.py; the
+    # interior is the fiducials when given, else the preop surface shrunk halfway to its centroid)
+    error_bound_mm: float = float("nan")
+    error_coverage: float = float("nan")
+    error_model: Any = None  # evaluates per-point bounds (registration/error_calibration.ErrorModel)
+    error_calibration_note: str = ""  # why the bound's coverage is not known here (another method, other weights)
+
+    def error_bound_at(self, points_mm: np.ndarray) -> np.ndarray:
+        """Per preop point (mm): the distance within which its true position lies with `error_coverage`."""
+        points_mm = np.asarray(points_mm, float).reshape(-1, 3)
+        if self.error_model is None:
+            return np.full(len(points_mm), np.nan)
+        return self.error_model.bounds_mm(points_mm)
 
     @property
     def rotation(self) -> np.ndarray:
@@ -88,6 +101,9 @@ class RegistrationResult:
             "n_target": int(self.n_target),
             "ambiguous": bool(self.ambiguous),
             "uncertainty_mm": _finite_or_none(self.uncertainty_mm),
+            "error_bound_mm": _finite_or_none(self.error_bound_mm),
+            "error_coverage": _finite_or_none(self.error_coverage),
+            "error_calibration_note": self.error_calibration_note,
             "free_space_violation": _finite_or_none(self.free_space_violation),
             "free_space": self.free_space,
             "chosen_candidate": self.chosen,

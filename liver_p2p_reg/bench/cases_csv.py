@@ -38,6 +38,8 @@ TAIL_COLUMNS = (
     "ambiguous",
     "uncertainty_mm",
     "free_space_violation",
+    "error_bound_mm",
+    "bound_coverage",
     "seed",
 )
 FLOAT_COLUMNS = {
@@ -53,6 +55,8 @@ FLOAT_COLUMNS = {
     "method_visibility",
     "uncertainty_mm",
     "free_space_violation",
+    "error_bound_mm",
+    "bound_coverage",
 }
 INT_COLUMNS = {"n_candidates", "n_matches", "seed"}
 BOOL_COLUMNS = {"failed", "ambiguous"}

@@ -96,6 +96,9 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
         ambiguous=bool(result.ambiguous),
         uncertainty_mm=float(result.uncertainty_mm),
         free_space_violation=float(result.free_space_violation),
+        error_bound_mm=float(result.error_bound_mm),
+        # the share of interior markers within their per-point bound (error_bound.py)
+        bound_coverage=float(np.mean(tre_mm(T, src_marker, tgt_marker) <= result.error_bound_at(src_marker))),
     )
     for stage, ms in result.runtime_ms.items():
         if stage != "total":
@@ -129,6 +132,8 @@ def _failed(initial_rms: float, initial_max: float, reason: str, start: float) -
         "ambiguous": False,
         "uncertainty_mm": math.nan,
         "free_space_violation": math.nan,
+        "error_bound_mm": math.nan,
+        "bound_coverage": math.nan,
     }
 
 

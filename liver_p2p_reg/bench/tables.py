@@ -186,11 +186,14 @@ class Tables:
                 return {"error"}
             uncertainty = row.get("uncertainty_mm", 0.0)  # absent from runs before the column existed
             violation = row.get("free_space_violation", math.nan)  # NaN: no sensor origin given
-            return set(pose_warnings(row["residual_mm"], row["ambiguous"], uncertainty, cfg, violation))
+            bound = row.get("error_bound_mm", math.nan)  # absent from runs before the error bound
+            return set(pose_warnings(row["residual_mm"], row["ambiguous"], uncertainty, cfg, violation, bound))
 
         kinds = ["residual", "ambiguous", "uncertainty"]
         if any(math.isfinite(r.get("free_space_violation", math.nan)) for r in rows):
             kinds.append("free_space")  # only runs with the sensor origin (`--sensor-aware`) can warn by it
+        if any(math.isfinite(r.get("error_bound_mm", math.nan)) for r in rows):
+            kinds.append("error_bound")
         header = [
             "method",
             f"poses off by ≥ {SUCCESS_TAU_MM:g} mm",

@@ -27,6 +27,7 @@ _SUBCOMMAND_MODULES = (
     "config_cmd",
     "demo_cmd",
     "soak_cmd",
+    "calibrate_cmd",
 )
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -116,11 +116,13 @@ def pose_warnings(
     uncertainty_mm: float,
     config: Config,
     free_space_violation: float = float("nan"),
+    error_bound_mm: float = float("nan"),
 ) -> dict[str, str]:
     """Why a registered pose should not be trusted as is (the node's WARN rules): reason -> message.
 
-    Reasons: "residual", "ambiguous", "uncertainty", "free_space"; empty when the pose is OK. A
-    NaN warns, except the free-space violation, which is NaN when the sensor origin is unknown.
+    Reasons: "residual", "ambiguous", "uncertainty", "free_space", "error_bound"; empty when the pose
+    is OK. A NaN warns, except the free-space violation (NaN: the sensor origin is unknown) and the
+    error bound (NaN: not computed for this pose; an unbounded pose is inf and warns).
     """
     out: dict[str, str] = {}
     if not residual_mm <= config.residual_warn_mm:
@@ -137,13 +139,34 @@ def pose_warnings(
             f"the pose puts preop surface where the sensor saw none: {free_space_violation:.0%} of the view "
             f"(above {config.free_space_warn:.0%})"
         )
+    if error_bound_mm > config.structure_error_warn_mm:
+        out["error_bound"] = (
+            f"error bound at depth {error_bound_mm:.1f} mm ({config.error_coverage:.0%}) "
+            f"above {config.structure_error_warn_mm} mm"
+        )
     return out
 
 
-def result_warnings(result: Any, config: Config) -> dict[str, str]:
+def result_warnings(
+    result: Any, config: Config, structure_bounds_mm: Mapping[str, np.ndarray] | None = None
+) -> dict[str, str]:
     """`pose_warnings` of a RegistrationResult plus the warnings the method itself attached
-    (e.g. prepared weights made for another liver): reason -> message."""
+    (e.g. prepared weights made for another liver): reason -> message.
+
+    With structures (label -> per-point bounds, mm) the verdict follows their bounds: any point
+    above `structure_error_warn_mm` warns, naming the structure; without, the interior's bound.
+    """
     violation = getattr(result, "free_space_violation", float("nan"))
-    out = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config, violation)
+    interior = getattr(result, "error_bound_mm", float("nan")) if not structure_bounds_mm else float("nan")
+    out = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config, violation, interior)
+    limit = config.structure_error_warn_mm
+    wide = {label: float(np.max(b)) for label, b in (structure_bounds_mm or {}).items() if len(b)}
+    wide = {label: b for label, b in wide.items() if not b <= limit}
+    if wide:
+        worst = max(wide, key=lambda label: wide[label])
+        out["structures"] = (
+            f"error bound at {', '.join(sorted(wide))} up to {wide[worst]:.1f} mm ({config.error_coverage:.0%}, "
+            f"'{worst}') above {limit} mm"
+        )
     out.update({f"method{i}": message for i, message in enumerate(getattr(result, "warnings", []))})
     return out

@@ -82,12 +82,16 @@ class Registrar:
         from liver_p2p_reg.registration.confidence import (
             is_ambiguous,  # scipy: imported with the first registration, not with the API
         )
+        from liver_p2p_reg.registration.error_calibration import attach_error_model
 
         cfg = self.config
         hypotheses = result.screened or result.candidates
         result.ambiguous = is_ambiguous(
             hypotheses, source, cfg.ambiguity_residual_ratio, cfg.ambiguity_pose_mm, cfg.free_space_weight
         )
+        t_bound = time.perf_counter()
+        attach_error_model(result, source, target, fid_s, cfg)
+        result.runtime_ms["error_bound"] = (time.perf_counter() - t_bound) * 1e3
         if fid_s is not None and fid_t is not None:
             result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
             result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))

@@ -1,0 +1,159 @@
+"""Registers benchmark cases and keeps, per interior marker, the error-bound features and the true error."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_info, case_seed, list_case_paths, read_case
+from liver_p2p_reg.bench.cases import sensor_origin_mm as case_origin
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.metrics import transform_points
+from liver_p2p_reg.registration.error_bound import FEATURES
+
+# Verdict reasons recorded per pose besides the bound itself (which the calibration decides afterwards).
+OTHER_REASONS = ("residual", "ambiguous", "uncertainty", "free_space")
+
+
+def collect_set(folder: Path, noise_mm: float, config: Config, workers: int, progress: bool = True) -> dict:
+    """Register every case of a set (its target with `noise_mm` of the benchmark's noise) with the
+    configured method; arrays per pose and, flattened with pose offsets, per marker."""
+    paths = list_case_paths(folder)
+    if not paths:
+        raise InputError(f"no case files (case_*.npz) in {folder}")
+    infos = [_noisy(case_info(p), noise_mm) for p in paths]
+    config_dict = config.to_dict()
+    bar = tqdm(total=len(infos), desc=f"bound data {folder.name}", unit="case", disable=not progress)
+    rows: list[dict[str, Any]] = []
+    if workers <= 1:
+        for info in infos:
+            rows.append(collect_case(info, config_dict))
+            bar.update()
+    else:
+        saved = os.environ.get("OMP_NUM_THREADS")
+        os.environ["OMP_NUM_THREADS"] = "1"  # W workers use W cores
+        try:
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+                for row in pool.map(collect_case, infos, [config_dict] * len(infos), chunksize=4):
+                    rows.append(row)
+                    bar.update()
+        finally:
+            os.environ.pop("OMP_NUM_THREADS", None) if saved is None else os.environ.update(OMP_NUM_THREADS=saved)
+    bar.close()
+    return stack_rows(rows, folder.name, noise_mm)
+
+
+def _noisy(info: CaseInfo, noise_mm: float) -> CaseInfo:
+    import dataclasses
+
+    if noise_mm <= 0:
+        return info
+    return dataclasses.replace(info, noise_mm=info.noise_mm + noise_mm, added_noise_mm=noise_mm)
+
+
+def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
+    """One case: the pose, its verdict reasons, and per marker the bound's features and the true error."""
+    from liver_p2p_reg.registration.confidence import result_warnings
+    from liver_p2p_reg.registration.registrar import Registrar
+
+    data = read_case(info.path)
+    src, tgt = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
+    config = Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)})
+    row: dict[str, Any] = {"case_id": info.case_id, "liver_id": int(data.get("liver_id", -1))}
+    row["visibility"] = info.visibility
+    try:
+        result = Registrar(config).register(
+            data["src_pcd"],
+            add_target_noise(np.asarray(data["tgt_pcd"], float), info),
+            source_fiducials_mm=src,
+            target_fiducials_mm=tgt,
+            sensor_origin_mm=case_origin(data),
+        )
+        ok = bool(result.ok and result.error_model is not None)
+    except LiverP2PError:
+        result, ok = None, False
+    if not ok:  # a failed registration leaves the organ where it was: unbounded, warned
+        err = np.linalg.norm(src - tgt, axis=1)
+        return {
+            **row,
+            "method_visibility": np.nan,
+            "ok": False,
+            "reasons": "failed",
+            "bound_ms": np.nan,
+            "errors": err,
+            "features": np.full((len(src), len(FEATURES)), np.nan),
+            "rms_mm": _rms(err),
+        }
+    err = np.linalg.norm(transform_points(result.T_target_source, src) - tgt, axis=1)
+    reasons = [r for r in result_warnings(result, config) if r in OTHER_REASONS]
+    return {
+        **row,
+        "method_visibility": float(result.visibility),
+        "ok": True,
+        "reasons": ",".join(reasons),
+        "bound_ms": float(result.runtime_ms.get("error_bound", np.nan)),
+        "errors": err,
+        "features": result.error_model.evidence.features(src),
+        "rms_mm": _rms(err),
+    }
+
+
+def _rms(err: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(err**2)))
+
+
+def stack_rows(rows: list[dict[str, Any]], name: str, noise_mm: float) -> dict[str, np.ndarray]:
+    """Per-pose arrays plus the markers' features and errors, flattened (`start` indexes each pose's first)."""
+    counts = [len(r["errors"]) for r in rows]
+    out: dict[str, np.ndarray] = {
+        "set": np.array([name] * len(rows)),
+        "case_id": np.array([r["case_id"] for r in rows]),
+        "noise_mm": np.full(len(rows), float(noise_mm)),
+        "start": np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64) if rows else np.zeros(0, np.int64),
+        "count": np.asarray(counts, np.int64),
+        "errors": np.concatenate([r["errors"] for r in rows]) if rows else np.zeros(0),
+        "features": np.concatenate([r["features"] for r in rows]) if rows else np.zeros((0, len(FEATURES))),
+    }
+    for key in ("liver_id", "visibility", "method_visibility", "rms_mm", "ok", "reasons", "bound_ms"):
+        out[key] = np.array([r[key] for r in rows])
+    return out
+
+
+def concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Several collections as one (pose offsets shifted)."""
+    if len(parts) == 1:
+        return parts[0]
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
+    counts = out["count"]
+    out["start"] = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    return out
+
+
+def subset(data: dict[str, np.ndarray], poses: np.ndarray) -> dict[str, np.ndarray]:
+    """The collection restricted to the poses where `poses` (a boolean mask) is true."""
+    per = np.repeat(np.arange(len(data["count"])), data["count"])
+    marker = poses[per]
+    out = {k: (v[marker] if k in ("errors", "features") else v[poses]) for k, v in data.items() if k != "start"}
+    out["start"] = np.concatenate([[0], np.cumsum(out["count"])[:-1]]).astype(np.int64)
+    return out
+
+
+def save(path: Path, data: dict[str, np.ndarray]) -> Path:
+    """Write a collection as a compressed NPZ (no pickled objects)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **data)
+    return path
+
+
+def load(path: Path) -> dict[str, np.ndarray]:
+    """Read a collection written by `save`."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

@@ -1,0 +1,141 @@
+"""Split-conformal calibration of the error bound: a scale model on half the livers, quantiles on the other half."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.error_bound import FEATURES
+from liver_p2p_reg.registration.error_calibration import FORMAT
+
+COVERAGES = (0.8, 0.9, 0.95)
+VISIBILITY_EDGES = (0.1, 0.15, 0.2, 0.3)  # the protocol's bins, on the voxelized M/N known at run time
+ERROR_FLOOR_MM = 0.5  # log(error + floor): sub-millimetre errors do not dominate the scale fit
+MIN_GROUP = 30  # fewer calibration poses in a visibility group: it takes the pooled quantiles
+
+
+def split_livers(liver_ids: np.ndarray, seed: int, sources: np.ndarray | None = None) -> tuple[list[int], list[int]]:
+    """The livers that fit the scale model and those that calibrate its quantiles: half of each source's
+    livers each (generator and real anatomy apart, so both halves hold both), seeded."""
+    ids = np.asarray(liver_ids).astype(int)
+    sources = np.zeros(len(ids), dtype=str) if sources is None else np.asarray(sources)
+    livers = sorted(set(ids.tolist()))
+    if len(livers) < 2:
+        raise InputError(f"calibration needs poses of at least 2 livers (one to fit, one to calibrate), got {livers}")
+    rng = np.random.default_rng(seed)
+    fit: list[int] = []
+    for source in sorted(set(sources.tolist())):
+        mine = sorted(set(ids[sources == source].tolist()))
+        fit += [mine[i] for i in rng.permutation(len(mine))[: len(mine) // 2]]
+    fit = sorted(fit) or [livers[0]]  # one liver per source: the first fits, the others calibrate
+    return fit, sorted(set(livers) - set(fit))
+
+
+def liver_source(set_names: np.ndarray) -> np.ndarray:
+    """Where each pose's liver comes from: the first word of its set's name (`insilico`, `real`)."""
+    return np.array([str(name).split("-")[0] for name in set_names])
+
+
+def pose_index(data: dict[str, np.ndarray]) -> np.ndarray:
+    """Per marker, the index of its pose."""
+    return np.repeat(np.arange(len(data["count"])), data["count"])
+
+
+def fit_scale(data: dict[str, np.ndarray], poses: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients of log(error + floor) on the features, each pose weighted equally."""
+    per = pose_index(data)
+    mask = np.isin(per, poses) & np.all(np.isfinite(data["features"]), axis=1)
+    if mask.sum() < len(FEATURES) * 10:
+        raise InputError(f"too few usable markers to fit the error scale ({int(mask.sum())})")
+    X, y = data["features"][mask], np.log(data["errors"][mask] + ERROR_FLOOR_MM)
+    w = np.sqrt(1.0 / data["count"][per[mask]])
+    coef, *_ = np.linalg.lstsq(X * w[:, None], y * w, rcond=None)
+    return coef
+
+
+def scores(data: dict[str, np.ndarray], coef: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per marker error / scale, and per pose interior RMS error / RMS scale (0 where the scale is inf)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        scale = np.exp(data["features"] @ coef)
+    scale = np.where(np.isfinite(scale), scale, np.inf)
+    point = np.where(np.isfinite(scale), data["errors"] / scale, 0.0)
+    per = pose_index(data)
+    sum_e2 = np.bincount(per, data["errors"] ** 2, minlength=len(data["count"]))
+    sum_s2 = np.bincount(per, np.where(np.isfinite(scale), scale**2, np.inf), minlength=len(data["count"]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pose = np.where(np.isfinite(sum_s2), np.sqrt(sum_e2 / sum_s2), 0.0)
+    return point, pose
+
+
+def conformal_quantile(values: np.ndarray, weights: np.ndarray, coverage: float, n_poses: int) -> float:
+    """The weighted split-conformal quantile: level coverage x (1 + 1/n), the finite-sample correction."""
+    level = min(1.0, coverage * (1.0 + 1.0 / max(n_poses, 1)))
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order]) / np.sum(weights)
+    return float(values[order][min(np.searchsorted(cum, level - 1e-12), len(values) - 1)])
+
+
+def group_of(visibility: np.ndarray, edges: tuple[float, ...] = VISIBILITY_EDGES) -> np.ndarray:
+    """Visibility group of each pose (its run-time M/N), as BoundCalibration.group computes it."""
+    v = np.where(np.isfinite(visibility), visibility, 0.0)
+    return np.searchsorted(np.asarray(edges), v, side="right")
+
+
+def calibrate(data: dict[str, np.ndarray], seed: int, coverages: tuple[float, ...] = COVERAGES) -> dict[str, Any]:
+    """The calibration (JSON-ready) from collected validation poses; failed poses are left out (they warn)."""
+    ok = data["ok"].astype(bool)
+    fit_livers, cal_livers = split_livers(data["liver_id"][ok], seed, liver_source(data["set"][ok]))
+    poses = np.arange(len(ok))
+    coef = fit_scale(data, poses[ok & np.isin(data["liver_id"], fit_livers)])
+    point, pose = scores(data, coef)
+    per = pose_index(data)
+    cal = ok & np.isin(data["liver_id"], cal_livers)
+    groups = group_of(data["method_visibility"])
+    n_groups = len(VISIBILITY_EDGES) + 1
+
+    def quantiles(members: np.ndarray) -> tuple[list[float], list[float]]:
+        n, marker = int(members.sum()), members[per]
+        w = 1.0 / data["count"][per[marker]]  # each pose weighs the same whatever its marker count
+        qp = [conformal_quantile(point[marker], w, c, n) for c in coverages]
+        return qp, [conformal_quantile(pose[members], np.ones(n), c, n) for c in coverages]
+
+    pooled = quantiles(cal)
+    point_q, pose_q, counts = [], [], []
+    for g in range(n_groups):
+        members = cal & (groups == g)
+        counts.append(int(members.sum()))
+        qp, qs = quantiles(members) if counts[-1] >= MIN_GROUP else pooled
+        point_q.append(qp)
+        pose_q.append(qs)
+    return {
+        "format": FORMAT,
+        "version": 1,
+        "features": list(FEATURES),
+        "coefficients": [float(c) for c in coef],
+        "visibility_edges": list(VISIBILITY_EDGES),
+        "coverages": list(coverages),
+        "point_quantiles": point_q,
+        "pose_quantiles": pose_q,
+        "calibration_poses_per_group": counts,
+        "fit_livers": fit_livers,
+        "calibration_livers": cal_livers,
+        "left_out_failed_poses": int((~ok).sum()),
+    }
+
+
+def coverage_at(data: dict[str, np.ndarray], calibration: Any, coverage: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per marker its bound (mm) and per pose its interior bound (mm) under a BoundCalibration."""
+    groups = group_of(data["method_visibility"], calibration.visibility_edges)
+    j = calibration.column(coverage)
+    scale = calibration.scale_mm(data["features"])
+    per = pose_index(data)
+    point_bound = calibration.point_quantiles[groups[per], j] * scale
+    rms_scale = np.sqrt(np.bincount(per, scale**2, minlength=len(groups)) / np.maximum(data["count"], 1))
+    pose_bound = calibration.pose_quantiles[groups, j] * rms_scale
+    failed = ~data["ok"].astype(bool)
+    pose_bound[failed] = math.inf
+    point_bound[failed[per]] = math.inf
+    return point_bound, pose_bound

@@ -1,0 +1,130 @@
+"""`liver-p2p calibrate-bound`: the error bound's split-conformal calibration on validation sets, judged on test sets."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+
+# generator and real-anatomy, random and camera crops (`liver-p2p dataset generate --testset NAME --out data`)
+DEFAULT_VAL = ("data/insilico-val-v2", "data/insilico-val-camera-v2", "data/real-val-v2", "data/real-val-camera-v2")
+RESULTS_PAGE = Path("docs/results/error_bound.md")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "calibrate-bound",
+        help="calibrate the per-point error bound by split-conformal prediction on validation sets "
+        "(and judge it on test sets)",
+    )
+    p.add_argument(
+        "--val",
+        nargs="+",
+        default=list(DEFAULT_VAL),
+        metavar="DIR",
+        help="validation case folders (default: %(default)s)",
+    )
+    p.add_argument(
+        "--judge",
+        nargs="+",
+        default=[],
+        metavar="DIR",
+        help="test case folders to judge the calibration on (writes the results page)",
+    )
+    p.add_argument("--noise-mm", type=float, default=2.0, help="sensor noise added to every target (default: 2)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the liver split (default: 0)")
+    p.add_argument("--workers", type=int, default=2, help="registration processes (default: 2)")
+    p.add_argument("--cache", default="out/bound", help="collected poses per set, reused when unchanged")
+    p.add_argument("--out", help="calibration file to write (default: the bundled one)")
+    p.add_argument("--force", action="store_true", help="replace an existing, different calibration file")
+    p.add_argument("--report", default=str(RESULTS_PAGE), help="results page of --judge (default: %(default)s)")
+    p.add_argument(
+        "--readme",
+        nargs="?",
+        const="README.md",
+        metavar="README",
+        help="also write README's ERROR_BOUND block (default README: ./README.md)",
+    )
+    p.add_argument("--config", help="YAML configuration (method, weights) the calibration is for")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from liver_p2p_reg.bench import bound_data
+    from liver_p2p_reg.bench.bound_fit import calibrate
+    from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, _weights_sha256, read_calibration
+
+    config = (Config.from_yaml(args.config) if args.config else Config()).validate()
+    out = Path(args.out) if args.out else BUNDLED_CALIBRATION
+    weights = _weights_sha256(config) if config.method.startswith("learned") else ""
+    val = bound_data.concat([_collected(Path(d), args, config, weights) for d in args.val])
+    cal = calibrate(val, args.seed)
+    sets = [{"set": Path(d).name, "cases": int((val["set"] == Path(d).name).sum())} for d in args.val]
+    cal.update(
+        method=config.method,
+        weights_sha256=weights,
+        provenance={
+            "summary": f"{', '.join(s['set'] for s in sets)} ({len(val['count'])} poses, "
+            f"{args.noise_mm:g} mm noise, seed {args.seed}; scale fitted on livers {cal['fit_livers']}, quantiles "
+            f"on livers {cal['calibration_livers']})",
+            "sets": sets,
+            "case_ids_sha256": hashlib.sha256("\n".join(sorted(val["case_id"])).encode()).hexdigest(),
+            "noise_mm": args.noise_mm,
+            "seed": args.seed,
+            "command": "liver-p2p calibrate-bound " + " ".join(f"--val {d}" for d in args.val),
+        },
+    )
+    text = json.dumps(cal, indent=1) + "\n"
+    if out.exists() and out.read_text() == text:
+        print(f"{out}: unchanged (the calibration was reproduced bitwise)")
+    elif out.exists() and not args.force:
+        raise InputError(f"{out} exists and differs from this calibration; give --force to replace it")
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text)
+        print(f"wrote {out}")
+    if args.judge:
+        _judge(args, config, weights, read_calibration(out))
+    return 0
+
+
+def _collected(folder: Path, args: argparse.Namespace, config: Config, weights: str) -> dict:
+    """The collected poses of a set: from the cache when made with the same cases, settings and weights."""
+    from liver_p2p_reg.bench import bound_data
+    from liver_p2p_reg.bench.cases import list_case_paths
+    from liver_p2p_reg.registration.error_bound import FEATURES
+
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder of cases (make it with liver-p2p dataset)")
+    key = json.dumps([config.to_dict(), weights, FEATURES, args.noise_mm, [p.name for p in list_case_paths(folder)]])
+    stamp = hashlib.sha256(key.encode()).hexdigest()[:16]
+    cache = Path(args.cache) / f"{folder.name}-noise{args.noise_mm:g}mm-{stamp}.npz"
+    if cache.exists():
+        return bound_data.load(cache)
+    data = bound_data.collect_set(folder, args.noise_mm, config, args.workers, progress=sys.stderr.isatty())
+    bound_data.save(cache, data)
+    return data
+
+
+def _judge(args: argparse.Namespace, config: Config, weights: str, calibration) -> None:
+    from liver_p2p_reg.bench import bound_data
+    from liver_p2p_reg.bench.bound_markdown import results_page
+    from liver_p2p_reg.bench.readme import replace_readme_block
+
+    data = bound_data.concat([_collected(Path(d), args, config, weights) for d in args.judge])
+    command = "liver-p2p calibrate-bound " + " ".join(["--judge", *args.judge])
+    page, block = results_page(
+        data, calibration, config.error_coverage, config.structure_error_warn_mm, args.seed, command
+    )
+    report = Path(args.report)
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(page)
+    print(f"wrote {report}")
+    if args.readme:
+        replace_readme_block(Path(args.readme), block, "ERROR_BOUND")
+        print(f"wrote the ERROR_BOUND block of {args.readme}")

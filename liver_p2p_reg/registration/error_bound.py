@@ -1,0 +1,169 @@
+"""Per-point error bound of a rigid pose: what the fit pins down, the lever arm from the view, the misfit."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from liver_p2p_reg.metrics import transform_points
+
+MAX_SOURCE = 3000  # preop points the fit's Hessian is built on (a stride sample: ~1 ms tree)
+MAX_VIEW = 2000  # intraop points kept to measure each point's distance from the visible patch
+NORMAL_NEIGHBORS = 10
+MIN_PAIRS = 6
+MAX_PAIRS = 600  # trimmed pairs the Hessian is built from (a stride sample: normals dominate the cost)
+INTERIOR_SHRINK = 0.5  # no fiducials: the surface sample pulled halfway to its centroid stands for the interior
+# The features every bound is computed from, in this order (the calibration's coefficients follow it).
+FEATURES = ("const", "log_rigid", "log_lever", "log_residual", "log_visibility", "log_rival_gap", "log_rival_ratio")
+RIVAL_GAP_MM = 5.0  # a hypothesis whose pose differs by more than this on the organ is a rival, not the same pose
+RIVAL_RATIO_CAP = 4.0  # no rival, or one fitting this much worse: as good as none
+
+
+@dataclass(frozen=True)
+class PoseEvidence:
+    """What one registration knows about its own error, in the preop frame (mm, radians)."""
+
+    T_target_source: np.ndarray  # (4, 4) the pose
+    centre_mm: np.ndarray  # (3,) centre of the visible patch in the preop frame
+    cov: np.ndarray  # (6, 6) pose covariance per unit misfit (rotation about centre_mm, translation)
+    sigma_mm: float  # RMS point-to-plane misfit of the trimmed pairs
+    view_mm: np.ndarray  # (M, 3) the intraop view moved into the preop frame (a stride sample)
+    residual_mm: float
+    visibility: float
+    interior_mm: np.ndarray  # (K, 3) where the pose-level bound is taken: fiducials or the shrunk surface
+    view_tree: cKDTree | None = None  # over view_mm, built once
+    # the best-fitting rival hypothesis (another basin): its pose and residual / the best residual
+    rival_T: np.ndarray | None = None
+    rival_ratio: float = RIVAL_RATIO_CAP
+
+    def rigid_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """RMS displacement of each point under the pose's misfit-driven covariance (mm); inf if unconstrained."""
+        if not np.all(np.isfinite(self.cov)):
+            return np.full(len(points_mm), np.inf)
+        x = np.asarray(points_mm, float) - self.centre_mm
+        # A point x moves by omega x x + v = A (omega, v) with A = [-[x]_x | I]; E|dx|^2 = tr(A cov A^T).
+        A = np.zeros((len(x), 3, 6))
+        A[:, 0, 1], A[:, 0, 2], A[:, 1, 2] = x[:, 2], -x[:, 1], x[:, 0]
+        A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = -x[:, 2], x[:, 1], -x[:, 0]
+        A[:, :, 3:] = np.eye(3)
+        spread2 = np.sum((A @ self.cov) * A, axis=(1, 2))
+        return self.sigma_mm * np.sqrt(np.maximum(spread2, 0.0))
+
+    def lever_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """Distance of each point from the visible patch (mm): deformation the view cannot see grows with it."""
+        tree = self.view_tree if self.view_tree is not None else cKDTree(self.view_mm)
+        dist, _ = tree.query(np.asarray(points_mm, float), k=1)
+        return dist
+
+    def features(self, points_mm: np.ndarray) -> np.ndarray:
+        """(N, len(FEATURES)) features of each point (FEATURES); non-finite where the pose is unconstrained."""
+        points_mm = np.asarray(points_mm, float).reshape(-1, 3)
+        n = len(points_mm)
+        out = np.empty((n, len(FEATURES)))
+        out[:, 0] = 1.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[:, 1] = np.log1p(self.rigid_mm(points_mm))
+            out[:, 2] = np.log1p(self.lever_mm(points_mm))
+            out[:, 3] = np.log(max(self.residual_mm, 0.0) + 0.5)
+            out[:, 4] = np.log(max(self.visibility, 1e-3)) if np.isfinite(self.visibility) else np.nan
+            out[:, 5] = 0.0 if self.rival_T is None else np.log1p(self.rival_gap_mm(points_mm))
+            out[:, 6] = np.log(min(max(self.rival_ratio, 1.0), RIVAL_RATIO_CAP))
+        return out
+
+    def rival_gap_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """How far each point lies between the chosen pose and the rival's (mm): where a flip would move it."""
+        if self.rival_T is None:
+            return np.zeros(len(points_mm))
+        return np.linalg.norm(
+            transform_points(self.rival_T, points_mm) - transform_points(self.T_target_source, points_mm), axis=1
+        )
+
+
+def pose_evidence(
+    T_target_source: np.ndarray,
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    *,
+    residual_mm: float,
+    visibility: float,
+    trim_ratio: float,
+    interior_mm: np.ndarray | None = None,
+    hypotheses: Sequence[tuple[np.ndarray, float]] = (),
+) -> PoseEvidence:
+    """Linearize the trimmed point-to-plane fit at the final pose, in mm, on stride samples of both clouds.
+
+    Method-independent (any pose of any method): the target moved into the preop frame is paired
+    with its closest preop points; pairs farther than 3x the median pair distance are not
+    overlap, and the worst (1 - trim_ratio) of the rest are trimmed, as ICP does. `hypotheses`
+    (pose, residual mm) are the method's other candidates: the best-fitting one in another basin is the rival.
+    """
+    T = np.asarray(T_target_source, dtype=np.float64)
+    source = np.asarray(source_mm, float)[:: max(1, len(source_mm) // MAX_SOURCE)]
+    view = transform_points(np.linalg.inv(T), np.asarray(target_mm, float))
+    view = view[:: max(1, len(view) // MAX_VIEW)]
+    if interior_mm is None or len(interior_mm) == 0:
+        centroid = source.mean(axis=0)
+        interior_mm = centroid + INTERIOR_SHRINK * (source[:: max(1, len(source) // 300)] - centroid)
+    tree = cKDTree(source)
+    dist, idx = tree.query(view, k=1)
+    centre = view.mean(axis=0)
+    cov, sigma = np.full((6, 6), np.inf), float("nan")
+    keep = np.flatnonzero(dist <= 3.0 * max(float(np.median(dist)), 1e-6))
+    if len(keep) >= MIN_PAIRS:
+        keep = keep[dist[keep] <= np.quantile(dist[keep], trim_ratio)]
+    keep = keep[:: max(1, len(keep) // MAX_PAIRS)]
+    if len(keep) >= MIN_PAIRS:
+        p, s = view[keep], source[idx[keep]]
+        at, back = np.unique(idx[keep], return_inverse=True)  # one normal per preop point paired
+        n = _normals(source, tree, at)[back]
+        J = np.hstack([np.cross(p - centre, n), n])  # d(misfit)/d(omega, v) per pair
+        sigma = float(np.sqrt(np.mean(np.einsum("ij,ij->i", p - s, n) ** 2)))
+        try:
+            inv = np.linalg.inv(J.T @ J / len(keep))
+            if np.all(np.isfinite(inv)):
+                cov = inv
+        except np.linalg.LinAlgError:
+            pass
+    return PoseEvidence(
+        T_target_source=T,
+        centre_mm=centre,
+        cov=cov,
+        sigma_mm=sigma,
+        view_mm=view,
+        residual_mm=float(residual_mm),
+        visibility=float(visibility),
+        interior_mm=np.asarray(interior_mm, float).reshape(-1, 3),
+        view_tree=cKDTree(view),
+        **_rival(T, hypotheses, interior_mm, residual_mm),
+    )
+
+
+def _rival(
+    T: np.ndarray, hypotheses: Sequence[tuple[np.ndarray, float]], points: np.ndarray, residual_mm: float
+) -> dict:
+    """The best-fitting hypothesis whose pose moves the organ by more than RIVAL_GAP_MM (RMS) from T."""
+    usable = [(np.asarray(H, float), float(r)) for H, r in hypotheses if np.isfinite(r) and np.all(np.isfinite(H))]
+    if not usable:
+        return {}
+    best = min([residual_mm, *(r for _, r in usable)])
+    moved = transform_points(T, points)
+    rivals = [
+        (r, H)
+        for H, r in usable
+        if np.sqrt(np.mean(np.sum((transform_points(H, points) - moved) ** 2, axis=1))) > RIVAL_GAP_MM
+    ]
+    if not rivals:
+        return {}
+    r, H = min(rivals, key=lambda item: item[0])
+    return {"rival_T": H, "rival_ratio": r / max(best, 1e-6)}
+
+
+def _normals(points: np.ndarray, tree: cKDTree, at: np.ndarray) -> np.ndarray:
+    """Unit normals (sign arbitrary: the covariance is quadratic in them) by PCA of neighbours."""
+    _, nb = tree.query(points[at], k=min(NORMAL_NEIGHBORS, len(points)))
+    local = points[nb] - points[nb].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    return vectors[:, :, 0]

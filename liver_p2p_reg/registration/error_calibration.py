@@ -1,0 +1,177 @@
+"""The error bound's split-conformal calibration: reading it, and turning a pose's evidence into bounds (mm)."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.error_bound import FEATURES, PoseEvidence
+
+BUNDLED_CALIBRATION = Path(__file__).resolve().parents[1] / "weights" / "error_bound_v1.json"
+FORMAT = "liver_p2p_reg error-bound calibration"
+
+
+@dataclass(frozen=True)
+class BoundCalibration:
+    """Scale model exp(features . coefficients) and, per visibility group and coverage, conformal quantiles."""
+
+    coefficients: np.ndarray  # (len(FEATURES),)
+    visibility_edges: tuple[float, ...]  # groups: below the first edge, between edges, above the last
+    coverages: tuple[float, ...]
+    point_quantiles: np.ndarray  # (groups, coverages): error / scale at one point
+    pose_quantiles: np.ndarray  # (groups, coverages): interior RMS error / RMS scale over the interior
+    weights_sha256: str  # of the matcher weights the calibration ran with ("" for a method without weights)
+    method: str
+    provenance: dict[str, Any]  # data, seed, command: what `liver-p2p calibrate-bound` recorded
+
+    def scale_mm(self, features: np.ndarray) -> np.ndarray:
+        """Predicted error scale (mm) of each row of features; inf where a feature is not finite."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            scale = np.exp(np.asarray(features, float) @ self.coefficients)
+        return np.where(np.isfinite(scale), scale, np.inf)
+
+    def group(self, visibility: float) -> int:
+        """Index of the visibility group a pose belongs to (its voxelized M/N, known at run time)."""
+        v = float(visibility) if np.isfinite(visibility) else 0.0
+        return int(np.searchsorted(np.asarray(self.visibility_edges), v, side="right"))
+
+    def column(self, coverage: float) -> int:
+        """The quantiles' column of this coverage; a coverage it was not calibrated for is refused."""
+        for i, c in enumerate(self.coverages):
+            if abs(c - coverage) < 1e-9:
+                return i
+        held = ", ".join(f"{c:g}" for c in self.coverages)
+        raise InputError(f"error_coverage {coverage:g} is not calibrated (this calibration holds {held})")
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """One pose's bounds: evaluate at any preop points (mm) with the configured coverage."""
+
+    evidence: PoseEvidence
+    calibration: BoundCalibration
+    coverage: float
+
+    def bounds_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """Per point: the distance (mm) within which its true position lies with `coverage`."""
+        cal = self.calibration
+        q = cal.point_quantiles[cal.group(self.evidence.visibility), cal.column(self.coverage)]
+        return q * cal.scale_mm(self.evidence.features(points_mm))
+
+    def pose_bound_mm(self) -> float:
+        """The bound of the interior's RMS error (fiducials, or the shrunk preop surface)."""
+        cal = self.calibration
+        scale = cal.scale_mm(self.evidence.features(self.evidence.interior_mm))
+        q = cal.pose_quantiles[cal.group(self.evidence.visibility), cal.column(self.coverage)]
+        return float(q * np.sqrt(np.mean(scale**2)))
+
+
+def read_calibration(path: str | Path = "") -> BoundCalibration:
+    """Read a calibration file (empty: the bundled one); one-line InputError when it is missing or malformed."""
+    p = Path(path) if path else BUNDLED_CALIBRATION
+    try:
+        stat = p.stat()
+    except OSError:
+        raise InputError(f"error-bound calibration {p} not found (make one: liver-p2p calibrate-bound)") from None
+    return _read(str(p.resolve()), stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=8)
+def _read(path: str, _mtime_ns: int) -> BoundCalibration:
+    try:
+        raw = json.loads(Path(path).read_text())
+        if raw.get("format") != FORMAT:
+            raise ValueError(f"format is not '{FORMAT}'")
+        coefficients = np.asarray(raw["coefficients"], float)
+        if raw["features"] != list(FEATURES) or coefficients.shape != (len(FEATURES),):
+            raise ValueError(f"features must be {list(FEATURES)}")
+        edges = tuple(float(e) for e in raw["visibility_edges"])
+        coverages = tuple(float(c) for c in raw["coverages"])
+        point_q, pose_q = np.asarray(raw["point_quantiles"], float), np.asarray(raw["pose_quantiles"], float)
+        shape = (len(edges) + 1, len(coverages))
+        if point_q.shape != shape or pose_q.shape != shape:
+            raise ValueError(f"quantiles must be {shape[0]} groups x {shape[1]} coverages")
+        if not (np.all(np.isfinite(point_q)) and np.all(np.isfinite(pose_q)) and np.all(np.isfinite(coefficients))):
+            raise ValueError("non-finite numbers")
+        return BoundCalibration(
+            coefficients=coefficients,
+            visibility_edges=edges,
+            coverages=coverages,
+            point_quantiles=point_q,
+            pose_quantiles=pose_q,
+            weights_sha256=str(raw.get("weights_sha256", "")),
+            method=str(raw.get("method", "")),
+            provenance=dict(raw.get("provenance", {})),
+        )
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
+
+
+@functools.lru_cache(maxsize=8)
+def file_sha256(path: str, _mtime_ns: int = 0) -> str:
+    """SHA-256 of a file (the matcher weights a calibration ran with), cached per path and mtime."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def attach_error_model(
+    result: Any, source_mm: np.ndarray, target_mm: np.ndarray, interior_mm: np.ndarray | None, config: Any
+) -> None:
+    """Give a registered pose its error model and interior bound (`result.error_bound_mm`); ~5 ms.
+
+    The bound is calibrated for one method and its weights: another method, or other weights, is
+    told in `result.error_calibration_note` (the bound is still given: the best available, not a calibrated one).
+    """
+    from liver_p2p_reg.registration.error_bound import pose_evidence
+
+    T = np.asarray(result.T_target_source, float)
+    if not result.ok or T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return
+    calibration = read_calibration(config.error_calibration_path)
+    calibration.column(config.error_coverage)  # an uncalibrated coverage is refused before any work
+    evidence = pose_evidence(
+        T,
+        source_mm,
+        target_mm,
+        residual_mm=result.residual_mm,
+        visibility=result.visibility,
+        trim_ratio=config.icp_trim_ratio,
+        interior_mm=interior_mm,
+        hypotheses=[(c.T_target_source, c.residual_mm) for c in (result.screened or result.candidates) if c.ok],
+    )
+    model = ErrorModel(evidence, calibration, config.error_coverage)
+    result.error_model = model
+    result.error_bound_mm = model.pose_bound_mm()
+    result.error_coverage = config.error_coverage
+    # Not a WARN: the bound is still the best estimate there is; the user is told it is not a calibrated one.
+    # A tracked pose is the calibrated method's ICP refinement from the previous pose: its calibration holds.
+    if result.method not in (calibration.method, "track"):
+        result.error_calibration_note = (
+            f"error bound calibrated for {calibration.method}, not {result.method}: its coverage is not known"
+        )
+    elif calibration.weights_sha256 and _weights_sha256(config) != calibration.weights_sha256:
+        result.error_calibration_note = (
+            "error bound calibrated with other matcher weights: its coverage is not known "
+            "(recalibrate: liver-p2p calibrate-bound)"
+        )
+
+
+def _weights_sha256(config: Any) -> str:
+    """SHA-256 of the matcher weights this configuration uses (the bundled ones when none is set)."""
+    from liver_p2p_reg.registration.features.learned.weights import BUNDLED_WEIGHTS
+
+    path = Path(config.weights_path) if config.weights_path else BUNDLED_WEIGHTS
+    try:
+        return file_sha256(str(path.resolve()), path.stat().st_mtime_ns)
+    except OSError:
+        return ""

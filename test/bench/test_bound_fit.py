@@ -1,0 +1,101 @@
+"""Split-conformal calibration of the error bound on a synthetic collection whose true error law is known."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from liver_p2p_reg.bench.bound_fit import calibrate, conformal_quantile, coverage_at, split_livers
+from liver_p2p_reg.bench.bound_report import bin_rows, judge
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.error_bound import FEATURES
+from liver_p2p_reg.registration.error_calibration import FORMAT, read_calibration
+
+
+def synthetic_collection(seed: int, poses: int = 400, markers: int = 40) -> dict[str, np.ndarray]:
+    """Poses whose marker errors are |N(0, s^2 I)| with s = exp(features . w): a law the fit can find."""
+    rng = np.random.default_rng(seed)
+    w = np.array([0.3, 0.8, 0.4, 0.2, -0.3, 0.3, -0.5])
+    vis = rng.uniform(0.05, 0.4, poses)
+    feats = np.empty((poses * markers, len(FEATURES)))
+    feats[:, 0] = 1.0
+    feats[:, 1] = rng.uniform(0, 2, len(feats))
+    feats[:, 2] = rng.uniform(0, 4, len(feats))
+    feats[:, 3] = np.repeat(rng.uniform(0, 1.5, poses), markers)
+    feats[:, 4] = np.repeat(np.log(vis), markers)
+    feats[:, 5] = rng.uniform(0, 3, len(feats))
+    feats[:, 6] = np.repeat(rng.uniform(0, np.log(4), poses), markers)
+    scale = np.exp(feats @ w)
+    errors = scale * np.linalg.norm(rng.normal(size=(len(feats), 3)), axis=1) / np.sqrt(3)
+    per = np.repeat(np.arange(poses), markers)
+    rms = np.sqrt(np.bincount(per, errors**2) / markers)
+    return {
+        "set": np.array(["real-val-v2"] * poses),
+        "case_id": np.array([f"c{i}" for i in range(poses)]),
+        "noise_mm": np.full(poses, 2.0),
+        "start": np.arange(poses) * markers,
+        "count": np.full(poses, markers),
+        "errors": errors,
+        "features": feats,
+        "liver_id": rng.integers(0, 8, poses),
+        "visibility": vis,
+        "method_visibility": vis,
+        "rms_mm": rms,
+        "ok": np.ones(poses, bool),
+        "reasons": np.array([""] * poses),
+        "bound_ms": np.full(poses, 5.0),
+    }
+
+
+def _as_calibration(tmp_path, raw):
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps({**raw, "method": "learned-p2p-icp", "weights_sha256": ""}))
+    return read_calibration(path)
+
+
+def test_the_bound_covers_its_share_of_fresh_poses(tmp_path):
+    cal = _as_calibration(tmp_path, calibrate(synthetic_collection(0), seed=0))
+    assert cal.coverages == (0.8, 0.9, 0.95)
+    fresh = synthetic_collection(1, poses=1500)
+    for coverage in cal.coverages:
+        point_bound, pose_bound = coverage_at(fresh, cal, coverage)
+        assert abs(np.mean(fresh["errors"] <= point_bound) - coverage) < 0.03
+        assert abs(np.mean(fresh["rms_mm"] <= pose_bound) - coverage) < 0.05
+    rows = bin_rows(fresh, judge(fresh, cal, 0.9, 10.0))
+    assert all(0.85 <= r["coverage"] <= 0.95 for r in rows)
+
+
+def test_the_calibration_is_the_same_from_the_same_data_and_seed():
+    data = synthetic_collection(0)
+    first, again = json.dumps(calibrate(data, seed=0)), json.dumps(calibrate(data, seed=0))
+    assert first == again
+    assert json.loads(first)["format"] == FORMAT
+    assert json.dumps(calibrate(data, seed=1)) != first  # another liver split
+
+
+def test_the_livers_that_fit_never_calibrate():
+    fit, cal = split_livers(np.arange(8), seed=0)
+    assert len(fit) == len(cal) == 4 and not set(fit) & set(cal)
+    ids = np.array([1, 2, 3, 4, 5, 6, 7, 8, 91, 92, 93, 94, 95, 96])
+    fit, cal = split_livers(ids, seed=0, sources=np.array(["real"] * 8 + ["insilico"] * 6))
+    for source in (set(range(1, 9)), set(range(91, 97))):  # each source split in halves
+        assert len(source & set(fit)) == len(source & set(cal)) == len(source) // 2
+    with pytest.raises(InputError, match="at least 2 livers"):
+        split_livers(np.zeros(5), seed=0)
+
+
+def test_failed_poses_are_left_out_and_unbounded(tmp_path):
+    data = synthetic_collection(0)
+    data["ok"][:10] = False
+    raw = calibrate(data, seed=0)
+    assert raw["left_out_failed_poses"] == 10
+    _, pose_bound = coverage_at(data, _as_calibration(tmp_path, raw), 0.9)
+    assert np.all(np.isinf(pose_bound[:10])) and np.all(np.isfinite(pose_bound[10:]))
+
+
+def test_the_conformal_quantile_has_the_finite_sample_correction():
+    values = np.arange(1.0, 11.0)  # 10 scores: level 0.9 x (1 + 1/10) = 0.99 -> the largest
+    assert conformal_quantile(values, np.ones(10), 0.9, 10) == 10.0
+    assert conformal_quantile(values, np.ones(10), 0.5, 10) == 6.0  # 0.55 -> the 6th

@@ -1,0 +1,131 @@
+"""The per-point error bound: where it widens, what the result carries, bad calibrations and the verdict."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from synthetic_cases import blob_mm, partial_case, rigid
+
+from liver_p2p_reg import Config, Registrar
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.metrics import transform_points
+from liver_p2p_reg.registration.confidence import result_warnings
+from liver_p2p_reg.registration.error_bound import pose_evidence
+from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, ErrorModel, read_calibration
+
+
+def _model(source, target, T, visibility, noise_rng=None):
+    if noise_rng is not None:
+        target = target + noise_rng.uniform(-1.0, 1.0, target.shape)
+    evidence = pose_evidence(T, source, target, residual_mm=1.0, visibility=visibility, trim_ratio=0.9)
+    return ErrorModel(evidence, read_calibration(), 0.9)
+
+
+def _crop(source, share):
+    centre = source[np.argmax(source[:, 0] + 0.5 * source[:, 2])]
+    return np.argsort(np.linalg.norm(source - centre, axis=1))[: int(share * len(source))], centre
+
+
+def test_a_point_far_from_the_visible_patch_gets_a_wider_bound_than_one_under_it(rng):
+    source, T = blob_mm(rng), rigid(rng)
+    keep, centre = _crop(source, 0.15)
+    model = _model(source, transform_points(T, source[keep]), T, 0.15, rng)
+    inside = source.mean(axis=0)
+    under = inside + 0.8 * (centre - inside)  # beneath the patch
+    far = inside - 0.8 * (centre - inside)  # the other side of the organ
+    b_under, b_far = model.bounds_mm(np.array([under, far]))
+    assert np.isfinite(b_under) and b_under > 0
+    assert b_far > 1.5 * b_under
+
+
+def test_a_full_view_gets_a_narrower_bound_than_a_10_percent_view_of_the_same_liver(rng):
+    source, T = blob_mm(rng), rigid(rng)
+    keep, _ = _crop(source, 0.10)
+    interior = source.mean(axis=0) + 0.5 * (source[::50] - source.mean(axis=0))
+    small = _model(source, transform_points(T, source[keep]), T, 0.10, np.random.default_rng(1))
+    full = _model(source, transform_points(T, source[::3]), T, 1.0, np.random.default_rng(1))
+    assert np.median(full.bounds_mm(interior)) < 0.5 * np.median(small.bounds_mm(interior))
+    assert full.pose_bound_mm() < small.pose_bound_mm()
+
+
+@pytest.fixture(scope="module")
+def registered():
+    source, target, _, fid_s, fid_t = partial_case(np.random.default_rng(3), share=0.3)
+    registrar = Registrar(method="fpfh-ransac-icp")
+    return (
+        registrar,
+        source,
+        target,
+        fid_s,
+        registrar.register(source, target, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t),
+    )
+
+
+def test_every_registration_carries_its_bound(registered):
+    _, _, _, fid_s, result = registered
+    assert np.isfinite(result.error_bound_mm) and result.error_bound_mm > 0
+    assert result.error_coverage == 0.9
+    bounds = result.error_bound_at(fid_s)
+    assert bounds.shape == (len(fid_s),) and np.all(np.isfinite(bounds)) and np.all(bounds > 0)
+    out = result.to_json_dict()
+    assert out["error_bound_mm"] == pytest.approx(result.error_bound_mm) and out["error_coverage"] == 0.9
+    assert "error_bound" in result.runtime_ms
+    # The calibration is for the default method: another one is told its coverage is unknown.
+    assert "error bound calibrated for learned-p2p-icp, not fpfh-ransac-icp" in result.error_calibration_note
+    assert not any("error bound" in w for w in result.warnings)  # told, not warned
+
+
+def test_a_higher_coverage_gives_a_wider_bound(registered):
+    registrar, source, target, fid_s, result = registered
+    wide = Registrar(registrar.config.replace(error_coverage=0.95)).register(source, target, source_fiducials_mm=fid_s)
+    assert np.all(wide.error_bound_at(fid_s) > result.error_bound_at(fid_s))
+
+
+@pytest.mark.parametrize(
+    "content, says",
+    [
+        (None, "not found"),
+        ("{not json", "not usable"),
+        (json.dumps({"format": "something else"}), "not usable"),
+    ],
+)
+def test_a_bad_calibration_file_is_a_one_line_error(tmp_path, registered, content, says):
+    _, source, target, _, _ = registered
+    path = tmp_path / "calibration.json"
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(InputError, match=says) as info:
+        Registrar(method="fpfh-ransac-icp", error_calibration_path=str(path)).register(source, target)
+    assert "\n" not in str(info.value)
+
+
+def test_a_coverage_the_calibration_does_not_hold_is_refused(registered):
+    _, source, target, _, _ = registered
+    with pytest.raises(InputError, match="error_coverage 0.5 is not calibrated"):
+        Registrar(method="fpfh-ransac-icp", error_coverage=0.5).register(source, target)
+
+
+def test_a_calibration_made_with_other_weights_is_told(tmp_path, registered):
+    _, source, target, _, _ = registered
+    raw = json.loads(BUNDLED_CALIBRATION.read_text())
+    raw["weights_sha256"] = "0" * 64
+    path = tmp_path / "other.json"
+    path.write_text(json.dumps(raw))
+    result = Registrar(error_calibration_path=str(path)).register(source, target)
+    assert "other matcher weights" in result.error_calibration_note
+    assert result.to_json_dict()["error_calibration_note"] == result.error_calibration_note
+
+
+def test_the_verdict_follows_the_bound(registered):
+    _, _, _, fid_s, result = registered
+    tight = Config(structure_error_warn_mm=1e6)
+    assert "error_bound" not in result_warnings(result, tight)
+    assert "error_bound" in result_warnings(result, Config(structure_error_warn_mm=0.01))
+    limit = float(result.error_bound_at(fid_s[:3]).min()) * 0.5
+    bounds = {"tumour": result.error_bound_at(fid_s[:3]), "vessel": np.array([0.5 * limit])}
+    reasons = result_warnings(result, Config(structure_error_warn_mm=limit), bounds)
+    assert "'tumour'" in reasons["structures"] and "vessel" not in reasons["structures"]
+    assert "error_bound" not in reasons  # with structures the verdict is theirs
+    assert "structures" not in result_warnings(result, tight, bounds)
