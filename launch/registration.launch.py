@@ -31,6 +31,7 @@ def generate_launch_description():
             "fiducials_path": fiducials_path,
             "frame_id": "ct",
             "units": LaunchConfiguration("units"),
+            "structures_paths": LaunchConfiguration("structures"),
         }
     ]
     register_parameters = [params, {"method": LaunchConfiguration("method")}]
@@ -41,6 +42,11 @@ def generate_launch_description():
                 "model_path", default_value="", description="preop mesh/cloud in mm (PLY/STL/OBJ/VTK)"
             ),
             DeclareLaunchArgument("fiducials_path", default_value="", description="optional preop fiducials file (mm)"),
+            DeclareLaunchArgument(
+                "structures",
+                default_value="",
+                description="optional subsurface structures, comma-separated FILE[:LABEL] (mm, the ct frame)",
+            ),
             DeclareLaunchArgument("units", default_value="mm", description="units of model_path: mm or m"),
             DeclareLaunchArgument("bag", default_value="", description="optional rosbag2 directory to play"),
             DeclareLaunchArgument("rviz", default_value="false", description="open RViz with config/registration.rviz"),

@@ -25,11 +25,12 @@ MESH_SAMPLES_PER_MM2 = 0.5  # surface sampling density for meshes (about 1.4 mm 
 MAX_MESH_SAMPLES = 200_000
 
 
-def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> np.ndarray:
+def load_points(path: str | Path, *, key: str | None = None, seed: int = 0, sample_meshes: bool = True) -> np.ndarray:
     """Load an (N, 3) float64 array in mm from a cloud or mesh file.
 
     Meshes (files with triangles) are sampled uniformly over their surface, together with
-    their vertices, so coarse meshes still give a dense surface. Raises InputError.
+    their vertices, so coarse meshes still give a dense surface (sample_meshes=False: the
+    vertices only). Raises InputError.
     """
     path = check_point_file(path)
     suffix = path.suffix.lower()
@@ -45,7 +46,8 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0) -> n
                 if magic != b"ply":  # checked here: Open3D's reader would print its own complaint to stderr
                     raise InputError(f"cannot read {path}: not a PLY file (it does not start with 'ply')")
             vertices, triangles = load_mesh(path)
-            points = vertices if len(triangles) == 0 else sample_mesh_surface(vertices, triangles, seed=seed)
+            sample = sample_meshes and len(triangles) > 0
+            points = sample_mesh_surface(vertices, triangles, seed=seed) if sample else vertices
     except InputError:
         raise
     except Exception as exc:  # any parser failure becomes one readable line

@@ -125,6 +125,7 @@ RCLPY_ADAPTERS = {
     "ros/preop_loader_lifecycle_node.py",
     "ros/slicer_bridge_node.py",
     "ros/node_main.py",
+    "ros/rclpy_types.py",  # the rclpy message classes the nodes share
     "ros/topics.py",  # only inside functions: the rclpy profile of a topic's QoS description
     "bags/player.py",
     "livegraph/graph.py",

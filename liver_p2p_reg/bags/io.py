@@ -13,7 +13,7 @@ import numpy as np
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.ros.pointcloud2 import MessageTypes
-from liver_p2p_reg.ros.topics import INPUT_TOPICS, qos_of
+from liver_p2p_reg.ros.topics import INPUT_TOPICS, STRUCTURE_INPUT_TOPICS, qos_of
 
 if TYPE_CHECKING:
     from liver_p2p_reg.ros.messages import OutputTypes
@@ -149,7 +149,7 @@ def _qos(*, latched: bool, best_effort: bool = False, depth: int = 1) -> Any:
 
 # Offered QoS recorded per topic so `ros2 bag play` republishes latched topics as latched
 # (the inputs' documented profiles, ros.topics; every other recorded QoS: reliable, volatile, depth 1).
-LATCHED_TOPICS = tuple(topic for topic in INPUT_TOPICS if qos_of(topic).latched)
+LATCHED_TOPICS = tuple(topic for topic in INPUT_TOPICS + STRUCTURE_INPUT_TOPICS if qos_of(topic).latched)
 
 
 class BagWriter:

@@ -32,7 +32,10 @@ from liver_p2p_reg.ros.messages import (
     feed_intraop_msg,
     feed_preop_fiducials_msg,
     feed_preop_msg,
+    feed_structure_labels_msg,
+    feed_structures_msg,
     pose_stamped,
+    registered_structures_cloud,
     transform_stamped,
 )
 from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, cloud_to_points_mm, points_to_cloud, stamp_to_ns
@@ -43,17 +46,22 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_STRUCTURES,
     TOPIC_REGISTERED,
+    TOPIC_STRUCTURE_LABELS,
+    TOPIC_STRUCTURES,
     TOPIC_TRANSFORM,
 )
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.outputs import ERROR, LEVEL_NAMES, OK, CoreOutput
+from liver_p2p_reg.structures_io import Structure, structure_bounds
 
 LOG = logging.getLogger("liver_p2p_reg.replay")
 OUTPUT_TOPICS = {
     TOPIC_POSE: POSE_STAMPED,
     TOPIC_TRANSFORM: TRANSFORM_STAMPED,
     TOPIC_REGISTERED: POINTCLOUD2,
+    TOPIC_STRUCTURES: POINTCLOUD2,
     TOPIC_DIAGNOSTICS: DIAGNOSTIC_ARRAY,
 }
 
@@ -94,6 +102,7 @@ def replay_bag(
     plot_path: str | Path | None = None,
     observer: object | None = None,
     record_path: str | Path | None = None,
+    structures: list[Structure] | None = None,
 ) -> ReplayRow:
     """Drive a NodeCore with a bag's messages in log-time order; optionally write inputs + outputs.
 
@@ -103,6 +112,7 @@ def replay_bag(
     observer: gets on_input(topic, msg) for every message read and on_output(CoreOutput) for
     every output (the Slicer link of `replay --slicer`).
     record_path: flight-record the replay there (bags/recorder.py; else config.record_path, if set).
+    structures: moved with every pose (the command line's --structures; else those the bag carries).
     """
     from liver_p2p_reg.bags.recorder import recorder_factory
 
@@ -114,6 +124,8 @@ def replay_bag(
     if record_path:
         config = config.replace(record_path=str(record_path))
     core = NodeCore(config, registrar, recorder_factory("overwrite" if overwrite else "refuse"))
+    if structures:
+        core.structures.set_structures(structures)
     types = rosbags_output_types()
     writer = BagWriter(out_path, overwrite=overwrite) if out_path else None
     outputs: list[CoreOutput] = []
@@ -142,6 +154,9 @@ def replay_bag(
                 output.registered_preop_mm * M_PER_MM, types.cloud, frame_id=output.pose.frame_id, stamp_ns=stamp_ns
             )
             writer.write(TOPIC_REGISTERED, POINTCLOUD2, log_ns, cloud)
+            # with every pose, empty without structures, as register_node publishes it
+            cloud = registered_structures_cloud(output.structures, types.cloud, output.pose.frame_id, stamp_ns)
+            writer.write(TOPIC_STRUCTURES, POINTCLOUD2, log_ns, cloud)
         writer.write(TOPIC_DIAGNOSTICS, DIAGNOSTIC_ARRAY, log_ns, diagnostic_array(output.diagnostics, stamp_ns, types))
 
     try:
@@ -151,17 +166,16 @@ def replay_bag(
                 observer.on_input(item.topic, item.msg)
             if writer is not None and item.topic not in OUTPUT_TOPICS:
                 writer.write(item.topic, item.msgtype, item.timestamp_ns, item.msg)
+            if item.topic == TOPIC_STRUCTURE_LABELS and not structures:  # std_msgs/String
+                feed_structure_labels_msg(core, item.msg.data)
             if item.msgtype != POINTCLOUD2:
                 continue
             if item.topic == TOPIC_PREOP:
-                diag = feed_preop_msg(core, item.msg)
+                diag = diagnostic_array([feed_preop_msg(core, item.msg)], item.timestamp_ns, types)
                 if writer is not None:
-                    writer.write(
-                        TOPIC_DIAGNOSTICS,
-                        DIAGNOSTIC_ARRAY,
-                        item.timestamp_ns,
-                        diagnostic_array([diag], item.timestamp_ns, types),
-                    )
+                    writer.write(TOPIC_DIAGNOSTICS, DIAGNOSTIC_ARRAY, item.timestamp_ns, diag)
+            elif item.topic == TOPIC_PREOP_STRUCTURES and not structures:
+                feed_structures_msg(core, item.msg)
             elif item.topic == TOPIC_PREOP_FIDUCIALS:
                 feed_preop_fiducials_msg(core, item.msg)
             elif item.topic == TOPIC_INTRAOP_FIDUCIALS:
@@ -218,7 +232,7 @@ def _plot_frame(
     result = output.result
     warnings = None
     if output.level != OK:  # the node's reasons, else (e.g. a units warning) its whole message
-        reasons = result_warnings(result, core.config)
+        reasons = result_warnings(result, core.config, structure_bounds(output.structures) or None)
         warnings = list(reasons.values()) or [output.summary]
     plot_registration(
         core.preop_mm,
@@ -289,10 +303,11 @@ def replay_bags(
     plot_dir: str | Path | None = None,
     observer: object | None = None,
     record: str | Path | None = None,
+    structures: list[Structure] | None = None,
 ) -> list[ReplayRow]:
     """Replay several bags with one Registrar (method caches shared); output bags go to out_dir/<name>,
     overlay PNGs of each bag's last registered frame to plot_dir/<name>.png, flight recordings to
-    `record` (one bag) or record/<name>.mcap (several)."""
+    `record` (one bag) or record/<name>.mcap (several); `structures` move with every bag's poses."""
     if not paths:
         raise InputError("no bags given")
     check_method_name(config.method)  # an unknown method is one InputError up front, not an ERROR per frame
@@ -324,6 +339,7 @@ def replay_bags(
                 plot_path=plots[path],
                 observer=observer,
                 record_path=recording,
+                structures=structures,
             )
         )
     return rows
@@ -351,17 +367,8 @@ def format_flags(rows: Sequence[ReplayRow]) -> list[str]:
 def format_table(rows: Sequence[ReplayRow]) -> str:
     """Markdown-style table: bag, frames, visibility, RMS-TRE (mean and worst frame), residual,
     uncertainty, runtime (p50), status."""
-    header = [
-        "bag",
-        "frames",
-        "visibility",
-        "RMS-TRE mm (mean)",
-        "(worst frame)",
-        "residual mm",
-        "uncertainty mm",
-        "runtime ms (p50)",
-        "status",
-    ]
+    header = "bag|frames|visibility|RMS-TRE mm (mean)|(worst frame)|residual mm|uncertainty mm|runtime ms (p50)|status"
+    header = header.split("|")
     body = [
         [
             r.bag,

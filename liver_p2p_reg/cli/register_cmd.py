@@ -11,8 +11,8 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Any
 
+from liver_p2p_reg.cli.register_inputs import load_initial_transform, sensor_origin
 from liver_p2p_reg.config import SELECTION_RULES
 from liver_p2p_reg.errors import InputError, LiverP2PError
 
@@ -64,6 +64,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="where the depth sensor stood when it saw TARGET (mm, TARGET's frame; (0,0,0) for a cloud in the "
         "sensor's own frame; e.g. --sensor-origin -10,0,5): poses that put "
         "SOURCE's surface where the sensor saw none are then ruled out (free space); default: unknown",
+    )
+    p.add_argument(
+        "--structures",
+        metavar="FILE[:LABEL]",
+        nargs="+",
+        action="extend",
+        help="subsurface structures (tumours, vessels; points or a mesh's vertices, mm, SOURCE's frame; LABEL "
+        "defaults to the file's name): each view's JSON gets `structures`, their points moved by the pose with an "
+        "error bound per point, and the verdict follows those bounds",
     )
     p.add_argument(
         "--output",
@@ -154,40 +163,6 @@ def _output_paths(
     return paths
 
 
-def load_initial_transform(path: Path) -> Any:
-    """A 4x4 pose from a JSON result (its "transform"), a JSON/NPY matrix or a whitespace text matrix."""
-    import numpy as np
-
-    if not path.is_file():
-        raise InputError(f"file not found: {path}")
-    try:
-        if path.suffix.lower() == ".json":
-            data = json.loads(path.read_text())
-            matrix = np.asarray(data["transform"] if isinstance(data, dict) else data, dtype=np.float64)
-        elif path.suffix.lower() == ".npy":
-            matrix = np.load(path, allow_pickle=False)
-        else:
-            matrix = np.loadtxt(path, dtype=np.float64, ndmin=2, delimiter=None, comments="#")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"cannot read --initial-transform {path}: {str(exc).splitlines()[0]}") from None
-    if matrix.shape != (4, 4):
-        raise InputError(f"--initial-transform {path}: expected a 4x4 matrix, got shape {matrix.shape}")
-    return matrix
-
-
-def sensor_origin(text: str | None) -> list[float] | None:
-    """`X,Y,Z` in mm -> three numbers; a bad value is one InputError line."""
-    if text is None:
-        return None
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(abs(v) < float("inf") for v in values):
-        raise InputError(f"--sensor-origin must be three finite numbers X,Y,Z in mm, got {text!r}")
-    return values
-
-
 def run(args: argparse.Namespace) -> int:
     from liver_p2p_reg.registration.methods import check_method_name
 
@@ -215,6 +190,9 @@ def run(args: argparse.Namespace) -> int:
         if path is not None:
             check_point_file(path)
     initial_T = load_initial_transform(Path(args.initial_transform)) if args.initial_transform else None
+    from liver_p2p_reg.structures_io import load_structures
+
+    args.structure_list = load_structures(args.structures or [])  # InputError: one line, exit 2
     source = load_points(source_path, seed=config.seed)
     views = [load_points(t, seed=config.seed) for t in targets]  # every file is read before any work
     fiducials = (None, None)
@@ -289,6 +267,8 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
 
 def _register_each(args, config, registrar, source_path, source, views, fiducials, initial_T, paths, slicer, recorder):
     """The registrations of _register_all, each recorded when --record is given."""
+    from liver_p2p_reg.structures_io import place_structures
+
     quiet = bool(getattr(args, "quiet", False))
     several = len(views) > 1
     fid_s, fid_t = fiducials
@@ -315,9 +295,12 @@ def _register_each(args, config, registrar, source_path, source, views, fiducial
             failed += 1
             continue
         _record(recorder, i, target_path, target, fiducials, initial_T, args, result, config, source)
-        warnings = _warnings(result, config)
+        placed = place_structures(result, args.structure_list)  # [] without --structures
+        warnings = _warnings(result, config, placed)
         payload = {"source": str(source_path), "target": str(target_path), **result.to_json_dict()}
         payload.update(status="WARN" if warnings else "OK", warnings=warnings)
+        if placed:
+            payload["structures"] = [p.to_json_dict() for p in placed]
         if outputs[i] is not None:
             outputs[i].write_text(json.dumps(payload, indent=2) + "\n")
         if json_to_stdout:
@@ -327,7 +310,7 @@ def _register_each(args, config, registrar, source_path, source, views, fiducial
         if slicer is not None:
             from liver_p2p_reg.cli.slicer import send_registration
 
-            send_registration(slicer, source_path, source, target, result, warnings)
+            send_registration(slicer, source_path, source, target, result, warnings, placed)
         written = _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved[i], plots[i])
         if not quiet:
             print(_summary(target_path, payload, outputs[i], written), file=summary_stream, flush=True)
@@ -346,10 +329,11 @@ def _record(recorder, i, target_path, target, fiducials, initial_T, args, result
     record_command_registration(recorder, i, str(target_path), target, fiducials, extras, result, config, source)
 
 
-def _warnings(result, config) -> list[str]:
+def _warnings(result, config, placed) -> list[str]:
     from liver_p2p_reg.registration.confidence import result_warnings
+    from liver_p2p_reg.structures_io import structure_bounds
 
-    warnings = list(result_warnings(result, config).values())
+    warnings = list(result_warnings(result, config, structure_bounds(placed) or None).values())
     if result.free_space.startswith("off"):  # an origin was given but cannot be the target's sensor
         warnings.append(f"--sensor-origin ignored: {result.free_space.removeprefix('off: ')}")
     return warnings
@@ -389,6 +373,12 @@ def _summary(target: Path, payload: dict, output: Path | None, written: list[Pat
         parts.append(f"RMS-TRE {payload['rms_tre_mm']:.2f} mm")
     if payload.get("visibility") is not None:
         parts.append(f"visibility {payload['visibility']:.2f}")
+    if payload.get("structures"):
+        n, bounds = len(payload["structures"]), [s["max_error_bound_mm"] for s in payload["structures"]]
+        known = [b for b in bounds if b is not None]  # none without an error model
+        parts.append(
+            f"{n} structure{'s' if n > 1 else ''}" + (f", error bound <= {max(known):.1f} mm" if known else "")
+        )
     parts.append(f"{payload['runtime_ms']['total']:.0f} ms")
     where = [f"JSON -> {output}" if output is not None else "JSON on stdout", *(str(p) for p in written)]
     line = f"{target.name}: {payload['status']} {payload['method']}: {', '.join(parts)}; {', '.join(where)}"

@@ -36,6 +36,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-frames", type=int, default=0, help="register at most this many frames per bag (0: all)")
     p.add_argument("--json", help="also write the per-bag rows as JSON here")
     p.add_argument(
+        "--structures",
+        metavar="FILE[:LABEL]",
+        nargs="+",
+        action="extend",
+        help="subsurface structures (mm, the preop frame) moved with every pose instead of those a bag carries "
+        "(/preop/structures): --out bags get /registration/structures, the verdicts follow their error bounds",
+    )
+    p.add_argument(
         "--slicer",
         metavar="PORT",
         type=int,
@@ -73,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"bag not found: {path}")
         if not is_bag_path(path):
             raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
+    from liver_p2p_reg.structures_io import load_structures
+
+    structures = load_structures(args.structures or [])  # a bad file: one line, exit 2, before any work
     slicer = None
     if args.slicer is not None:
         from liver_p2p_reg.cli.slicer import finish_replay, serve_replay
@@ -90,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
         plot_dir=args.plots,
         observer=slicer,
         record=args.record,
+        structures=structures,
     )
     if slicer is not None:
         finish_replay(slicer, args.slicer_wait)
@@ -123,7 +135,7 @@ def _rerun(args: argparse.Namespace) -> int:
         raise InputError("a flight recording is re-run on its own: give one recording and no bags")
     given = [o for o, v in (("--out", args.out), ("--plots", args.plots), ("--method", args.method),
              ("--mode", args.mode), ("--config", args.config), ("--max-frames", args.max_frames),
-             ("--slicer", args.slicer)) if v]  # fmt: skip
+             ("--slicer", args.slicer), ("--structures", args.structures)) if v]  # fmt: skip
     if given:
         raise InputError(f"{', '.join(given)}: a flight recording is re-run under its recorded parameters only")
     if args.record:

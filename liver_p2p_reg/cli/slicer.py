@@ -58,8 +58,10 @@ def send_registration(
     target_mm: np.ndarray,
     result: Any,
     warnings: list[str],
+    structures: list[Any] | None = None,
 ) -> None:
-    """Model (the file's mesh if it has one), intraop cloud, CTToSensor and the verdict; returns once sent.
+    """Model (the file's mesh if it has one), intraop cloud, CTToSensor, each structure (`PlacedStructure`s,
+    moved into the target's frame, a POLYDATA named by its label) and the verdict; returns once sent.
 
     Call it once per registration on the same connection; close `bridge.endpoint` at the end.
     """
@@ -73,6 +75,9 @@ def send_registration(
     bridge.send_model(vertices, triangles)
     bridge.send_cloud(target_mm)
     bridge.send_pose(result.T_target_source)
+    placed = structures or []
+    for device, structure in zip(bridge.structure_devices([s.label for s in placed]), placed, strict=True):
+        bridge.send_structure(device, structure.position_mm)
     message = f"registered: residual {result.residual_mm:.2f} mm"
     if result.rms_tre_mm is not None:
         message += f", RMS-TRE {result.rms_tre_mm:.2f} mm"

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from liver_p2p_reg.config import SlicerConfig
+from liver_p2p_reg.config import IGTL_DEVICE_NAME_BYTES, SlicerConfig
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl import scene, wire
 from liver_p2p_reg.igtl.endpoint import Endpoint, IgtlClient, IgtlServer, LogFn
@@ -58,6 +58,23 @@ class SlicerBridge:
         self._publish("POLYDATA", self.config.cloud_device, body, stamp_ns)
         return len(points)
 
+    def send_structure(self, device: str, points_sensor_mm: np.ndarray, stamp_ns: int = 0) -> int:
+        """One structure moved into the sensor frame (mm), under its own device (`structure_device`), its points
+        drawn as the cloud's are (each a small triangle; the first N points of the POLYDATA are the structure's);
+        returns points sent."""
+        points = _finite(points_sensor_mm, f"structure {device}")
+        body = wire.polydata_body(*scene.splat(points, self.config.point_size_mm))
+        self._publish("POLYDATA", device, body, stamp_ns)
+        return len(points)
+
+    def structure_devices(self, labels: list[str]) -> list[str]:
+        """The device names of structures with these labels: each label as it is when it is a valid device
+        name, else made one (non-ASCII and unprintable characters as '_', cut to 20 bytes), never one of the
+        bridge's own devices nor another structure's (a clash gets a '~2', '~3', ... suffix)."""
+        c = self.config
+        taken = {c.transform_device, c.model_device, c.cloud_device, c.status_device}
+        return [_device_name(label, taken) for label in labels]
+
     def send_pose(self, T_sensor_ct_mm: np.ndarray, stamp_ns: int = 0) -> np.ndarray:
         """The CTToSensor TRANSFORM of a pose T_sensor_ct (mm); returns the matrix sent."""
         matrix = scene.slicer_transform(T_sensor_ct_mm, self.config.ct_convention)
@@ -75,6 +92,18 @@ class SlicerBridge:
         stamp_ns = stamp_ns or time.time_ns()  # no stamp (a file on the command line): now
         message = wire.pack_message(type_name, device, body, stamp_ns)
         self.endpoint.publish(f"{type_name}:{device}", message, replace)
+
+
+def _device_name(label: str, taken: set[str]) -> str:
+    """A valid, unused device name for a label (adds it to `taken`)."""
+    name = "".join(ch if ch.isascii() and ch.isprintable() else "_" for ch in label)[:IGTL_DEVICE_NAME_BYTES] or "_"
+    candidate, n = name, 1
+    while candidate in taken:
+        n += 1
+        suffix = f"~{n}"
+        candidate = name[: IGTL_DEVICE_NAME_BYTES - len(suffix)] + suffix
+    taken.add(candidate)
+    return candidate
 
 
 def _finite(points: np.ndarray, what: str) -> np.ndarray:

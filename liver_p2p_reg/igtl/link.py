@@ -20,9 +20,18 @@ from scipy.spatial.transform import Rotation
 from liver_p2p_reg.bags.io import POINTCLOUD2, typestore
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl.bridge import SlicerBridge
-from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_points_mm, stamp_to_ns
-from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_POSE, TOPIC_PREOP, TOPIC_PREOP_MESH
+from liver_p2p_reg.ros.messages import parse_structure_labels
+from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_points_mm, cloud_to_structures, stamp_to_ns
+from liver_p2p_reg.ros.topics import (
+    TOPIC_INTRAOP,
+    TOPIC_POSE,
+    TOPIC_PREOP,
+    TOPIC_PREOP_MESH,
+    TOPIC_STRUCTURE_LABELS,
+    TOPIC_STRUCTURES,
+)
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, CoreOutput
+from liver_p2p_reg.stream.structures import fallback_label
 
 LOG = logging.getLogger("liver_p2p_reg.slicer")
 # NodeCore.status() adds these counters to the last registration's diagnostic for its periodic
@@ -91,6 +100,7 @@ class SlicerLink:
         self._mesh_stamp: int | None = None  # header stamp of the last mesh sent (its points need no resend)
         self._last_cloud_s = -np.inf
         self._deferred: tuple[np.ndarray, int] | None = None  # a pose's cloud held back by cloud_rate_hz
+        self._structure_names: dict[int, str] = {}  # label id -> name (/preop/structure_labels)
         self.counters = {
             "models_sent": 0,
             "poses_sent": 0,
@@ -98,6 +108,7 @@ class SlicerLink:
             "clouds_missing": 0,  # a pose whose cloud was not received (best-effort QoS) or no longer kept
             "clouds_superseded": 0,  # held back by cloud_rate_hz, then replaced by a newer pose's
             "statuses_sent": 0,
+            "structures_sent": 0,  # POLYDATA messages, one per structure and pose
             "bad_messages": 0,
         }
 
@@ -150,6 +161,26 @@ class SlicerLink:
         """/registration/pose: the CTToSensor TRANSFORM, then the cloud that was registered."""
         self._guard(TOPIC_POSE, lambda: self.send_pose(pose_to_T_mm(msg.pose), stamp_to_ns(msg.header.stamp)))
 
+    def on_structure_labels_msg(self, msg: Any) -> None:
+        """/preop/structure_labels (std_msgs/String, JSON): the names of the structures' label ids."""
+
+        def keep() -> None:
+            names, _ = parse_structure_labels(msg.data)
+            self._structure_names = dict(enumerate(names))
+
+        self._guard(TOPIC_STRUCTURE_LABELS, keep)
+
+    def on_structures_msg(self, msg: Any) -> None:
+        """/registration/structures (sensor frame, label_id per point): a POLYDATA per structure, named by its label."""
+
+        def send() -> None:
+            points_m, ids, _ = cloud_to_structures(msg)
+            groups = [(int(i), points_m[ids == i] * MM_PER_M) for i in np.unique(ids)]
+            labels = [self._structure_names.get(i) or fallback_label(i) for i, _ in groups]
+            self.send_structures(labels, [points for _, points in groups], stamp_to_ns(msg.header.stamp))
+
+        self._guard(TOPIC_STRUCTURES, send)
+
     def on_diagnostics_msg(self, msg: Any) -> None:
         """/diagnostics: a STRING for each registration attempt (not for the periodic summary)."""
         stamp = stamp_to_ns(msg.header.stamp)
@@ -171,6 +202,12 @@ class SlicerLink:
         stamp = output.pose.stamp_ns if output.pose is not None else 0
         if output.pose is not None:
             self._guard("pose", lambda: self.send_pose(output.pose.T_sensor_ct_mm, stamp))
+            placed = output.structures
+            if placed:
+                self._guard(
+                    "structures",
+                    lambda: self.send_structures([s.label for s in placed], [s.position_mm for s in placed], stamp),
+                )
         for diag in output.diagnostics:
             if diag.name == DIAG_NAME:
                 self.bridge.send_status(diag.level_name, diag.message, stamp)
@@ -186,6 +223,12 @@ class SlicerLink:
             self.counters["clouds_missing"] += cloud is None
             self._deferred = None if cloud is None else (cloud, stamp_ns)
         self.tick()
+
+    def send_structures(self, labels: list[str], points_sensor_mm: list[np.ndarray], stamp_ns: int) -> None:
+        """Each structure (sensor frame, mm) as a POLYDATA under a device named after its label."""
+        for device, points in zip(self.bridge.structure_devices(labels), points_sensor_mm, strict=True):
+            self.bridge.send_structure(device, points, stamp_ns)
+            self.counters["structures_sent"] += 1
 
     def tick(self, force: bool = False) -> None:
         """Send the last pose's cloud if cloud_rate_hz allows it now (or `force`); call it now and then."""

@@ -35,6 +35,7 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_DIAGNOSTICS,
     TOPIC_POSE,
     TOPIC_REGISTERED,
+    TOPIC_STRUCTURES,
     TOPIC_TRANSFORM,
 )
 
@@ -175,6 +176,7 @@ class GraphProbe:
         TOPIC_POSE: PoseStamped,
         TOPIC_TRANSFORM: TransformStamped,
         TOPIC_REGISTERED: PointCloud2,
+        TOPIC_STRUCTURES: PointCloud2,
         TOPIC_DIAGNOSTICS: DiagnosticArray,
         "/rosout": Log,
     }

@@ -2,16 +2,28 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import json
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.ros.pointcloud2 import MessageTypes, cloud_to_points_mm, make_header, stamp_to_ns
+from liver_p2p_reg.ros.pointcloud2 import (
+    M_PER_MM,
+    MM_PER_M,
+    MessageTypes,
+    cloud_to_points_mm,
+    cloud_to_structures,
+    make_header,
+    stamp_to_ns,
+    structures_to_cloud,
+)
+from liver_p2p_reg.ros.topics import TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, PREOP_DIAG_NAME, WARN, Diagnostic, PoseOutput
+from liver_p2p_reg.structures_io import PlacedStructure, Structure
 
 
 def feed_preop_msg(core: NodeCore, msg: Any, *, warm_up: bool = True) -> Diagnostic:
@@ -47,6 +59,68 @@ def feed_intraop_fiducials_msg(core: NodeCore, msg: Any) -> Diagnostic | None:
 def feed_intraop_msg(core: NodeCore, msg: Any, now_s: float | None = None) -> list[Diagnostic]:
     """A /intraop/points PointCloud2 into the core; O(1): it is decoded only when registered."""
     return core.on_intraop_cloud(msg.header.frame_id, stamp_to_ns(msg.header.stamp), lambda: decode_cloud(msg), now_s)
+
+
+def feed_structures_msg(core: NodeCore, msg: Any) -> Diagnostic | None:
+    """A /preop/structures PointCloud2 (metres, label_id per point) into the core; a WARN diagnostic when unusable."""
+    try:
+        points_m, label_ids, _ = cloud_to_structures(msg)
+        core.structures.set_points(points_m * MM_PER_M, label_ids, stamp_to_ns(msg.header.stamp))
+    except InputError as exc:
+        return Diagnostic(WARN, PREOP_DIAG_NAME, f"ignoring bad {TOPIC_PREOP_STRUCTURES}: {exc}")
+    return None
+
+
+def feed_structure_labels_msg(core: NodeCore, text: str) -> Diagnostic | None:
+    """The JSON of a /preop/structure_labels std_msgs/String into the core; a WARN diagnostic when unusable."""
+    try:
+        names, stamp_ns = parse_structure_labels(text)
+    except InputError as exc:
+        return Diagnostic(WARN, PREOP_DIAG_NAME, f"ignoring bad {TOPIC_STRUCTURE_LABELS}: {exc}")
+    core.structures.set_names(names, stamp_ns)
+    return None
+
+
+def structure_labels_json(structures: Sequence[Structure], stamp_ns: int) -> str:
+    """The /preop/structure_labels text: {"labels": [name per label id], "stamp_ns": the structures' stamp}."""
+    names = [""] * (max((s.label_id for s in structures), default=-1) + 1)
+    for s in structures:
+        names[s.label_id] = s.label
+    return json.dumps({"labels": names, "stamp_ns": int(stamp_ns)})
+
+
+def parse_structure_labels(text: str) -> tuple[list[str], int | None]:
+    """(names, stamp_ns or None) of a /preop/structure_labels JSON text; InputError when it is not one."""
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f"not JSON ({exc})") from None
+    names = data.get("labels") if isinstance(data, dict) else None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise InputError('expected {"labels": [string, ...], "stamp_ns": int}')
+    stamp = data.get("stamp_ns")
+    if stamp is not None and (not isinstance(stamp, int) or isinstance(stamp, bool)):
+        raise InputError(f"stamp_ns must be an integer, got {stamp!r}")
+    return names, stamp
+
+
+def preop_structures_cloud(structures: Sequence[Structure], types: MessageTypes, frame_id: str, stamp_ns: int) -> Any:
+    """/preop/structures: every structure's points (preop frame, metres) with its label_id (empty: none)."""
+    points = np.concatenate([s.points_mm for s in structures]) if structures else np.zeros((0, 3))
+    ids = np.concatenate([np.full(len(s.points_mm), s.label_id) for s in structures]) if structures else []
+    return structures_to_cloud(points * M_PER_MM, np.asarray(ids), types, frame_id=frame_id, stamp_ns=stamp_ns)
+
+
+def registered_structures_cloud(
+    structures: Sequence[PlacedStructure], types: MessageTypes, frame_id: str, stamp_ns: int
+) -> Any:
+    """/registration/structures: the structures moved into the sensor frame (metres), label_id and error_bound (m)."""
+    points = np.concatenate([s.position_mm for s in structures]) if structures else np.zeros((0, 3))
+    ids = np.concatenate([np.full(len(s.position_mm), s.label_id) for s in structures]) if structures else []
+    bounds = np.concatenate([s.error_bound_mm for s in structures]) if structures else np.zeros(0)
+    return structures_to_cloud(
+        points * M_PER_MM, np.asarray(ids), types, frame_id=frame_id, stamp_ns=stamp_ns, error_bound_m=bounds * M_PER_MM
+    )
 
 
 def decode_cloud(msg: Any) -> tuple[np.ndarray, int]:

@@ -61,19 +61,35 @@ def cloud_to_points_m(msg: Any) -> np.ndarray:
     fields, big-endian data, organized clouds (height > 1, row padding); drops NaN/inf points.
     Raises InputError for missing x/y/z fields or a truncated buffer.
     """
+    rec = _records(msg, "xyz")
+    points = np.empty((len(rec), 3), dtype=np.float64)
+    with np.errstate(invalid="ignore"):  # garbage bytes may decode to NaN: dropped just below
+        points[:, 0], points[:, 1], points[:, 2] = rec["x"], rec["y"], rec["z"]
+    return points[np.isfinite(points).all(axis=1)]
+
+
+def cloud_fields(msg: Any, names: Sequence[str]) -> dict[str, np.ndarray]:
+    """The named fields of every point of a PointCloud2 (any layout, as `cloud_to_points_m`), each (N,) in its
+    own dtype, native byte order; nothing dropped, so the fields stay aligned. InputError for a missing field."""
+    rec = _records(msg, names)
+    return {name: rec[name].astype(rec.dtype[name].newbyteorder("=")) for name in names}
+
+
+def _records(msg: Any, names: Sequence[str]) -> np.ndarray:
+    """The cloud's points as a numpy record array of the named fields (a view of its data where it can be)."""
     by_name = {f.name: f for f in msg.fields}
-    missing = [name for name in "xyz" if name not in by_name]
+    missing = [name for name in names if name not in by_name]
     if missing:
         have = ", ".join(by_name) or "none"
         raise InputError(f"PointCloud2 lacks field(s) {', '.join(missing)} (fields: {have})")
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     n = height * width
-    if n == 0:
-        return np.zeros((0, 3))
+    if n == 0:  # an empty cloud is empty whatever its fields say
+        return np.zeros(0, dtype=[(name, "f8") for name in names])
     order = ">" if msg.is_bigendian else "<"
     formats, offsets = [], []
-    for name in "xyz":
+    for name in names:
         f = by_name[name]
         if int(f.datatype) not in _NUMPY_OF:
             raise InputError(f"PointCloud2 field {name} has unknown datatype {f.datatype}")
@@ -81,6 +97,7 @@ def cloud_to_points_m(msg: Any) -> np.ndarray:
         offsets.append(int(f.offset))
         if int(f.offset) + np.dtype(formats[-1]).itemsize > point_step:
             raise InputError(f"PointCloud2 field {name} lies outside point_step {point_step}")
+    dtype = np.dtype({"names": list(names), "formats": formats, "offsets": offsets, "itemsize": point_step})
     row_step = max(row_step, width * point_step)  # some writers leave row_step at 0
     raw = np.frombuffer(memoryview(msg.data).cast("B"), dtype=np.uint8)
     needed = (height - 1) * row_step + width * point_step
@@ -93,12 +110,7 @@ def cloud_to_points_m(msg: Any) -> np.ndarray:
         raw = np.ascontiguousarray(rows).reshape(-1)
     else:
         raw = raw[: n * point_step]
-    dtype = np.dtype({"names": ["x", "y", "z"], "formats": formats, "offsets": offsets, "itemsize": point_step})
-    rec = np.frombuffer(raw, dtype=dtype, count=n)
-    points = np.empty((n, 3), dtype=np.float64)
-    with np.errstate(invalid="ignore"):  # garbage bytes may decode to NaN: dropped just below
-        points[:, 0], points[:, 1], points[:, 2] = rec["x"], rec["y"], rec["z"]
-    return points[np.isfinite(points).all(axis=1)]
+    return np.frombuffer(raw, dtype=dtype, count=n)
 
 
 def cloud_to_points_mm(msg: Any) -> np.ndarray:
@@ -164,3 +176,35 @@ def points_to_cloud(
         data=types.wrap_bytes(rec.tobytes()),
         is_dense=bool(np.isfinite(points_m).all()),
     )
+
+
+def structures_to_cloud(
+    points_m: np.ndarray,
+    label_ids: np.ndarray,
+    types: MessageTypes,
+    *,
+    frame_id: str,
+    stamp_ns: int = 0,
+    error_bound_m: np.ndarray | None = None,
+) -> Any:
+    """A structures PointCloud2: x, y, z float32 (m), label_id uint32 and, when given, error_bound float32 (m)."""
+    extra = {"label_id": np.asarray(label_ids, dtype=np.uint32).reshape(-1)}
+    if error_bound_m is not None:
+        extra["error_bound"] = np.asarray(error_bound_m, dtype=np.float32).reshape(-1)
+    return points_to_cloud(points_m, types, frame_id=frame_id, stamp_ns=stamp_ns, extra_fields=extra)
+
+
+def cloud_to_structures(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(points (N, 3) float64 m, label ids (N,) int64, error bounds (N,) float64 m or None) of a structures
+    PointCloud2; points with a non-finite coordinate are dropped with their fields. InputError when the
+    cloud lacks x/y/z or label_id, or a label id is not a non-negative whole number."""
+    names = ["x", "y", "z", "label_id"] + (["error_bound"] if "error_bound" in field_names(msg) else [])
+    fields = cloud_fields(msg, names)
+    points = np.column_stack([fields[c].astype(np.float64) for c in "xyz"]).reshape(-1, 3)
+    ids = fields["label_id"].astype(np.float64)
+    keep = np.isfinite(points).all(axis=1)
+    points, ids = points[keep], ids[keep]
+    if not (np.isfinite(ids).all() and (ids >= 0).all() and (ids == np.round(ids)).all()):
+        raise InputError("PointCloud2 label_id must hold non-negative whole numbers")
+    bounds = fields["error_bound"].astype(np.float64)[keep] if "error_bound" in fields else None
+    return points, ids.astype(np.int64), bounds

@@ -13,8 +13,9 @@ from liver_p2p_reg.ros.preop_loader_node import PreopLoaderWiring
 
 class ManagedPreopLoaderNode(PreopLoaderWiring, LifecycleNode):
     """preop_loader_node under the ROS 2 node lifecycle: configure reads model_path (a missing or unreadable
-    file fails the transition with the reason; the node stays up to be configured again), activate publishes
-    the model latched, deactivate withdraws the publishers, cleanup forgets the model."""
+    file fails the transition with the reason; the node stays up to be configured again; a bad structure file
+    does not: it is an ERROR on /diagnostics once active), activate publishes the model and its structures
+    latched and starts the status on /diagnostics, deactivate withdraws them, cleanup forgets the model."""
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("preop_loader_node", **node_kwargs)

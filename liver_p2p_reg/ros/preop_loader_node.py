@@ -1,27 +1,43 @@
-"""rclpy adapter: preop_loader_node publishes a preop model (and fiducials) latched on /preop/*, in metres."""
+"""rclpy adapter: preop_loader_node publishes a preop model (fiducials, structures) latched on /preop/*, in metres."""
 
 from __future__ import annotations
 
-import array
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import Header
+from rclpy.timer import Timer
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
 from visualization_msgs.msg import Marker
 
 from liver_p2p_reg.cloud_io import MESH_FORMATS, load_mesh, load_points
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.ros.messages import diagnostic_array, preop_structures_cloud, structure_labels_json
 from liver_p2p_reg.ros.node_main import run_node
-from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud
-from liver_p2p_reg.ros.topics import TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_PREOP_MESH, rclpy_qos
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, points_to_cloud
+from liver_p2p_reg.ros.rclpy_types import RCLPY_TYPES
+from liver_p2p_reg.ros.topics import (
+    TOPIC_DIAGNOSTICS,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
+    TOPIC_PREOP_STRUCTURES,
+    TOPIC_STRUCTURE_LABELS,
+    rclpy_qos,
+)
+from liver_p2p_reg.stream.outputs import ERROR, LOADER_DIAG_NAME, OK, Diagnostic
+from liver_p2p_reg.structures_io import Structure, read_structures
 
-TYPES = MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw))
+TYPES = RCLPY_TYPES.cloud
 UNITS_TO_M = {"mm": M_PER_MM, "m": 1.0}
+STATUS_PERIOD_S = 1.0  # the loader's status on /diagnostics, repeated for late joiners (diagnostics are volatile)
 
 
 def load_model_m(path: str, units: str) -> np.ndarray:
@@ -56,6 +72,30 @@ def mesh_marker(path: str, units: str, frame_id: str, stamp: Time) -> Marker | N
     return marker
 
 
+def structure_specs(value: Any) -> list[str]:
+    """The structures_paths parameter as a list of 'FILE[:LABEL]' specs: a string array, or one string of
+    comma-separated specs (what a launch argument gives); empty entries are skipped."""
+    items = value.split(",") if isinstance(value, str) else list(value or [])
+    return [str(item).strip() for item in items if str(item).strip()]
+
+
+def loader_status(loaded: dict[str, Any]) -> Diagnostic:
+    """The loader's diagnostic: OK with what it published, ERROR naming each structure file it could not use."""
+    structures: list[Structure] = loaded["structures"]
+    values = {
+        "model_path": loaded["model_path"],
+        "model_points": str(len(loaded["model_m"])),
+        "structures": ",".join(s.label for s in structures),
+    }
+    published = f"model {loaded['model_path']} ({len(loaded['model_m'])} points), {len(structures)} structure(s)"
+    if not loaded["structure_errors"]:
+        return Diagnostic(OK, LOADER_DIAG_NAME, f"published {published}", values)
+    for spec, reason in loaded["structure_errors"]:
+        values[f"structure_error.{spec}"] = reason
+    reasons = "; ".join(reason for _, reason in loaded["structure_errors"])
+    return Diagnostic(ERROR, LOADER_DIAG_NAME, f"bad structure file(s): {reasons}; published {published}", values)
+
+
 class PreopLoaderWiring:
     """The loader's two steps, mixed into an rclpy Node or LifecycleNode: `_load` reads the files (the
     managed node's configure), `_publish_model` publishes them latched (activate); `_unpublish` removes the
@@ -64,19 +104,27 @@ class PreopLoaderWiring:
     def _declare(self: Any) -> None:
         for name, default in (("model_path", ""), ("fiducials_path", ""), ("frame_id", "ct"), ("units", "mm")):
             self.declare_parameter(name, default)
+        # a string array, or one string of comma-separated specs (dynamic typing: a launch argument is a string)
+        self.declare_parameter("structures_paths", [], ParameterDescriptor(dynamic_typing=True))
         self._model_publishers: list[Any] = []  # not `_publishers`: rclpy's Node keeps its own list by that name
         self.loaded: dict[str, Any] | None = None
 
     def _load(self: Any) -> None:
-        """Read the model (and fiducials) files now; InputError for a missing or unreadable one."""
+        """Read the model (and fiducials) files now, InputError for a missing or unreadable one; then the
+        structure files: a bad one is left out, reported as an ERROR on /diagnostics with its reason."""
         param = {n: self.get_parameter(n).value for n in ("model_path", "fiducials_path", "frame_id", "units")}
         model_m = load_model_m(param["model_path"], param["units"])
         fiducials_m = load_model_m(param["fiducials_path"], param["units"]) if param["fiducials_path"] else None
+        specs = structure_specs(self.get_parameter("structures_paths").value)
+        structures, errors = read_structures(specs, to_mm=UNITS_TO_M[param["units"]] * 1e3)
         stamp_ns = self.get_clock().now().nanoseconds
         # the mesh itself, for viewers (the Slicer bridge, RViz); same stamp as its points: they pair by it
         stamp = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
         mesh = mesh_marker(param["model_path"], param["units"], param["frame_id"], stamp)
         self.loaded = {**param, "model_m": model_m, "fiducials_m": fiducials_m, "mesh": mesh, "stamp_ns": stamp_ns}
+        self.loaded.update(structures=structures, structure_errors=errors)
+        for spec, reason in errors:
+            self.get_logger().error(f"structure {spec} not published: {reason}")
 
     def _publish_model(self: Any) -> None:
         loaded, log = self.loaded, self.get_logger()
@@ -96,6 +144,26 @@ class PreopLoaderWiring:
                 points_to_cloud(loaded["fiducials_m"], TYPES, frame_id=frame_id, stamp_ns=stamp_ns)
             )
             log.info(f"published {len(loaded['fiducials_m'])} fiducials on {TOPIC_PREOP_FIDUCIALS}")
+        # the structures, always (none: an empty cloud), so register_node drops another loader's set
+        structures = loaded["structures"]
+        self._latched(PointCloud2, TOPIC_PREOP_STRUCTURES).publish(
+            preop_structures_cloud(structures, TYPES, frame_id, stamp_ns)
+        )
+        self._latched(String, TOPIC_STRUCTURE_LABELS).publish(String(data=structure_labels_json(structures, stamp_ns)))
+        log.info(
+            f"published {len(structures)} structure(s) on {TOPIC_PREOP_STRUCTURES}: {[s.label for s in structures]}"
+        )
+        self.status = loader_status(loaded)
+        self.status_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, rclpy_qos(TOPIC_DIAGNOSTICS))
+        self._model_publishers.append(self.status_pub)
+        # on the steady clock, as register_node's status: a bag's /clock must not stop it
+        timer = self.create_timer(STATUS_PERIOD_S, self._publish_status, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._model_publishers.append(timer)
+        self._publish_status()
+
+    def _publish_status(self: Any) -> None:
+        stamp_ns = self.get_clock().now().nanoseconds
+        self.status_pub.publish(diagnostic_array([self.status], stamp_ns, RCLPY_TYPES))
 
     def _latched(self: Any, msg_type: type, topic: str) -> Any:
         publisher = self.create_publisher(msg_type, topic, rclpy_qos(topic))
@@ -103,8 +171,8 @@ class PreopLoaderWiring:
         return publisher
 
     def _unpublish(self: Any) -> None:
-        for publisher in self._model_publishers:
-            self.destroy_publisher(publisher)
+        for entity in self._model_publishers:  # publishers, and the status timer
+            (self.destroy_timer if isinstance(entity, Timer) else self.destroy_publisher)(entity)
         self._model_publishers = []
 
 
@@ -121,8 +189,9 @@ class PreopLoaderNode(PreopLoaderWiring, Node):
 def main(args: list[str] | None = None) -> int:
     """`ros2 run liver_p2p_reg preop_loader_node --ros-args -p model_path:=liver.stl`; exits the process.
 
-    It spins to keep the latched messages available for late joiners; a missing or unreadable file
-    is one fatal line and exit status 1.
+    It spins to keep the latched messages available for late joiners; a missing or unreadable model or
+    fiducials file is one fatal line and exit status 1; a bad structure file is an ERROR on /diagnostics
+    (the model and the other structures are published).
     """
     return run_node(PreopLoaderNode, "preop_loader_node", args, exit_process=True)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import array
 import dataclasses
 import logging
 import threading
@@ -10,9 +9,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -22,8 +20,8 @@ from rclpy.service import Service
 from rclpy.subscription import Subscription
 from rclpy.task import Future
 from rclpy.timer import Timer
-from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import Header
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from liver_p2p_reg.bags.recorder import recording_path
@@ -31,17 +29,20 @@ from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.registration.methods import check_method_name
 from liver_p2p_reg.ros.messages import (
-    OutputTypes,
     diagnostic_array,
     feed_intraop_fiducials_msg,
     feed_intraop_msg,
     feed_preop_fiducials_msg,
     feed_preop_msg,
+    feed_structure_labels_msg,
+    feed_structures_msg,
     pose_stamped,
+    registered_structures_cloud,
     transform_stamped,
 )
 from liver_p2p_reg.ros.node_main import RclpyLogHandler, declare_from, log_at, read_from, run_node
-from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, MessageTypes, points_to_cloud, stamp_to_ns
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, points_to_cloud, stamp_to_ns
+from liver_p2p_reg.ros.rclpy_types import RCLPY_TYPES  # also imported from here (tests, scripts)
 from liver_p2p_reg.ros.topics import (
     TOPIC_DIAGNOSTICS,
     TOPIC_INTRAOP,
@@ -49,7 +50,10 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_STRUCTURES,
     TOPIC_REGISTERED,
+    TOPIC_STRUCTURE_LABELS,
+    TOPIC_STRUCTURES,
     TOPIC_TRANSFORM,
     rclpy_qos,
 )
@@ -57,20 +61,6 @@ from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.health import StreamHealth, stale_when_silent
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, WARN, CoreOutput, Diagnostic
 
-RCLPY_TYPES = OutputTypes(
-    cloud=MessageTypes(PointCloud2, PointField, Header, Time, wrap_bytes=lambda raw: array.array("B", raw)),
-    PoseStamped=PoseStamped,
-    Pose=Pose,
-    Point=Point,
-    Quaternion=Quaternion,
-    TransformStamped=TransformStamped,
-    Transform=Transform,
-    Vector3=Vector3,
-    DiagnosticArray=DiagnosticArray,
-    DiagnosticStatus=DiagnosticStatus,
-    KeyValue=KeyValue,
-    level=lambda level: bytes([level]),  # DiagnosticStatus.level is a `byte` field: bytes in rclpy
-)
 DIAGNOSTICS_PERIOD_S = 1.0
 JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
 
@@ -113,10 +103,15 @@ class RegisterWiring:
         self.pose_pub = self.create_publisher(PoseStamped, TOPIC_POSE, rclpy_qos(TOPIC_POSE))
         self.transform_pub = self.create_publisher(TransformStamped, TOPIC_TRANSFORM, rclpy_qos(TOPIC_TRANSFORM))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_REGISTERED, rclpy_qos(TOPIC_REGISTERED))
+        self.structures_pub = self.create_publisher(PointCloud2, TOPIC_STRUCTURES, rclpy_qos(TOPIC_STRUCTURES))
         self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, rclpy_qos(TOPIC_DIAGNOSTICS))
-        self._kept = [self.pose_pub, self.transform_pub, self.cloud_pub, self.diag_pub]
+        self._kept = [self.pose_pub, self.transform_pub, self.cloud_pub, self.structures_pub, self.diag_pub]
         self._kept.append(self._subscribe(TOPIC_PREOP, self._on_preop))
         self._kept.append(self._subscribe(TOPIC_PREOP_FIDUCIALS, self._on_preop_fiducials))
+        # the structures: moved with every pose (stream/structures.py says which set is kept)
+        on_labels = lambda msg: self._report_any(feed_structure_labels_msg(self.core, msg.data))  # noqa: E731
+        self._kept.append(self._subscribe(TOPIC_PREOP_STRUCTURES, self._on_structures))
+        self._kept.append(self._subscribe(TOPIC_STRUCTURE_LABELS, on_labels, String))
         self.tf_broadcaster = None
         try:  # /tf is optional: tf2_ros has no PyPI wheel, so pip-only installs lack it
             from tf2_ros import TransformBroadcaster
@@ -162,10 +157,10 @@ class RegisterWiring:
             self._destroy(entity)
         self._kept, self.core, self.tf_broadcaster = [], None, None
 
-    def _subscribe(self: Any, topic: str, callback: Callable[[Any], None]) -> Any:
+    def _subscribe(self: Any, topic: str, callback: Callable[[Any], None], msg_type: type = PointCloud2) -> Any:
         """A subscription that reports a publisher with incompatible QoS once, as a WARN diagnostic."""
         events = SubscriptionEventCallbacks(incompatible_qos=lambda info: self._incompatible(topic, info))
-        return self.create_subscription(PointCloud2, topic, callback, rclpy_qos(topic), event_callbacks=events)
+        return self.create_subscription(msg_type, topic, callback, rclpy_qos(topic), event_callbacks=events)
 
     def _incompatible(self: Any, topic: str, info: Any) -> None:
         if info.total_count_change <= 0:
@@ -196,14 +191,14 @@ class RegisterWiring:
             self._report([diag])
 
     def _on_preop_fiducials(self, msg: PointCloud2) -> None:
-        diag = feed_preop_fiducials_msg(self.core, msg)
-        if diag is not None:
-            self._report([diag])
+        self._report_any(feed_preop_fiducials_msg(self.core, msg))
+
+    def _on_structures(self, msg: PointCloud2) -> None:
+        self._report_any(feed_structures_msg(self.core, msg))
+        self.get_logger().info(f"{len(self.core.structures.current())} structures ({msg.width * msg.height} points)")
 
     def _on_intraop_fiducials(self, msg: PointCloud2) -> None:
-        diag = feed_intraop_fiducials_msg(self.core, msg)
-        if diag is not None:
-            self._report([diag])
+        self._report_any(feed_intraop_fiducials_msg(self.core, msg))
         self._submit()  # a cloud may be waiting for exactly these
 
     def _on_intraop(self, msg: PointCloud2) -> None:
@@ -350,6 +345,10 @@ class RegisterWiring:
                 stamp_ns=stamp_ns,
             )
             self.cloud_pub.publish(cloud)
+            structures = registered_structures_cloud(
+                output.structures, RCLPY_TYPES.cloud, cloud.header.frame_id, stamp_ns
+            )
+            self.structures_pub.publish(structures)  # with every pose (empty without structures)
         self._report(output.diagnostics, stamp_ns)
         self._publish_status_on_change()
 
@@ -362,6 +361,10 @@ class RegisterWiring:
             self.diag_pub.publish(
                 diagnostic_array(diags, self._now_ns() if stamp_ns is None else stamp_ns, RCLPY_TYPES)
             )
+
+    def _report_any(self, diag: Diagnostic | None) -> None:
+        if diag is not None:
+            self._report([diag])
 
     def _log(self, level: int, text: str) -> None:
         log_at(self.get_logger(), level, text)

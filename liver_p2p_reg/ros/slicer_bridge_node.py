@@ -8,6 +8,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
 from visualization_msgs.msg import Marker
 
 from liver_p2p_reg.config import SlicerConfig
@@ -20,6 +21,8 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_MESH,
+    TOPIC_STRUCTURE_LABELS,
+    TOPIC_STRUCTURES,
     rclpy_qos,
 )
 
@@ -47,6 +50,11 @@ class SlicerBridgeNode(Node):
                 PointCloud2, TOPIC_INTRAOP, self.link.on_intraop_cdr, rclpy_qos(TOPIC_INTRAOP), raw=True
             )
         self.create_subscription(PoseStamped, TOPIC_POSE, self.link.on_pose_msg, rclpy_qos(TOPIC_POSE))
+        # the structures moved by each pose, one POLYDATA per label (named by /preop/structure_labels)
+        labels_qos = rclpy_qos(TOPIC_STRUCTURE_LABELS)
+        self.create_subscription(String, TOPIC_STRUCTURE_LABELS, self.link.on_structure_labels_msg, labels_qos)
+        structures_qos = rclpy_qos(TOPIC_STRUCTURES)
+        self.create_subscription(PointCloud2, TOPIC_STRUCTURES, self.link.on_structures_msg, structures_qos)
         diagnostics_qos = rclpy_qos(TOPIC_DIAGNOSTICS)
         self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.link.on_diagnostics_msg, diagnostics_qos)
         self.status_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, diagnostics_qos)
@@ -56,7 +64,8 @@ class SlicerBridgeNode(Node):
             where += f" {config.host}:{config.port}"
         self.get_logger().info(
             f"OpenIGTLink {config.role} {where}: {config.transform_device} (TRANSFORM), "
-            f"{config.model_device} and {config.cloud_device} (POLYDATA), {config.status_device} (STRING); "
+            f"{config.model_device}, {config.cloud_device} and one per structure label (POLYDATA), "
+            f"{config.status_device} (STRING); "
             f"ct frame in {config.ct_convention}"
         )
 

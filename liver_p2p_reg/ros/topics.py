@@ -8,14 +8,19 @@ from typing import Any
 TOPIC_PREOP = "/preop/points"
 TOPIC_PREOP_FIDUCIALS = "/preop/fiducials"
 TOPIC_PREOP_MESH = "/preop/mesh"
+TOPIC_PREOP_STRUCTURES = "/preop/structures"  # sensor_msgs/PointCloud2: x y z, label_id
+TOPIC_STRUCTURE_LABELS = "/preop/structure_labels"  # std_msgs/String: {"labels": [...], "stamp_ns": ...}
 TOPIC_INTRAOP = "/intraop/points"
 TOPIC_INTRAOP_FIDUCIALS = "/intraop/fiducials"
 TOPIC_POSE = "/registration/pose"
 TOPIC_TRANSFORM = "/registration/transform"
 TOPIC_REGISTERED = "/registration/registered_preop"
+TOPIC_STRUCTURES = "/registration/structures"  # sensor_msgs/PointCloud2: x y z, label_id, error_bound
 TOPIC_DIAGNOSTICS = "/diagnostics"
 # register_node's inputs, the topics a recorded case carries
 INPUT_TOPICS = (TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS)
+# register_node's other inputs from the loader (not all PointCloud2): bags carry and play them latched too
+STRUCTURE_INPUT_TOPICS = (TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS)
 
 
 @dataclass(frozen=True)
@@ -46,11 +51,14 @@ QOS_OF_TOPIC = {
     TOPIC_PREOP: LATCHED,
     TOPIC_PREOP_FIDUCIALS: LATCHED,
     TOPIC_PREOP_MESH: LATCHED,
+    TOPIC_PREOP_STRUCTURES: LATCHED,
+    TOPIC_STRUCTURE_LABELS: LATCHED,
     TOPIC_INTRAOP: SENSOR_DATA,
     TOPIC_INTRAOP_FIDUCIALS: RELIABLE,
     TOPIC_POSE: RELIABLE,
     TOPIC_TRANSFORM: RELIABLE,
     TOPIC_REGISTERED: NEWEST_ONLY,
+    TOPIC_STRUCTURES: RELIABLE,  # every pose's structures (a few hundred points): none lost
     TOPIC_DIAGNOSTICS: RELIABLE,
 }
 

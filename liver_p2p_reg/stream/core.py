@@ -41,8 +41,10 @@ from liver_p2p_reg.stream.outputs import (
     units_warning,
 )
 from liver_p2p_reg.stream.record_hooks import RecorderFactory, Recording
+from liver_p2p_reg.stream.structures import StructureStore
 from liver_p2p_reg.stream.survey import Survey
 from liver_p2p_reg.stream.tracking import Tracker
+from liver_p2p_reg.structures_io import place_structures
 
 LOG = logging.getLogger("liver_p2p_reg.node")
 
@@ -66,6 +68,7 @@ class NodeCore:
         self.preop_mm: np.ndarray | None = None
         self.preop_frame, self.preop_stamp_ns = "ct", 0
         self.fiducials = FiducialStore()
+        self.structures = StructureStore()  # moved with every pose (structures.py: the latest set received)
         self._preop_scale_mm: float | None = None
         self._preop_problem = ""  # why the current model cannot be registered against (wrong units)
         self._intake = Intake(self.fiducials)
@@ -305,10 +308,11 @@ class NodeCore:
         if not result.ok or not np.all(np.isfinite(result.T_target_source)):
             message = f"registration failed: {result.message or 'no valid transform'}"
             return CoreOutput([Diagnostic(ERROR, DIAG_NAME, message, values)], result=result, reason=reason)
-        diag = registered_diagnostic(result, values, warnings, self.config)
         T = np.asarray(result.T_target_source, dtype=np.float64)
+        placed = place_structures(result, self.structures.current(), T)
+        diag = registered_diagnostic(result, values, warnings, self.config, placed)
         pose = PoseOutput(cloud.stamp_ns, cloud.frame_id, preop_frame, T)
-        return CoreOutput([diag], pose, transform_points(T, preop), result, reason)
+        return CoreOutput([diag], pose, transform_points(T, preop), result, reason, placed)
 
     def _solve(
         self,
@@ -373,11 +377,9 @@ class NodeCore:
         """Forget the fused surface and the pose (the ~/reset_survey service); returns what was dropped."""
         with self._register_lock:
             survey = self._survey_state
-            dropped = (
-                "nothing fused yet"
-                if survey is None or not survey.frames
-                else (f"dropped {survey.frames} fused frames (visibility {survey.visibility:.2f})")
-            )
+            dropped = "nothing fused yet"
+            if survey is not None and survey.frames:
+                dropped = f"dropped {survey.frames} fused frames (visibility {survey.visibility:.2f})"
             if survey is not None:
                 survey.reset()
             self._recording.event("reset_survey")

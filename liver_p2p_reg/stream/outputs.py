@@ -11,12 +11,14 @@ from liver_p2p_reg.cloud_io import implausible_extent
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.confidence import result_warnings
 from liver_p2p_reg.result import RegistrationResult
+from liver_p2p_reg.structures_io import PlacedStructure, structure_bounds
 
 # diagnostic_msgs/DiagnosticStatus levels
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
 DIAG_NAME = "liver_p2p_reg: registration"
 PREOP_DIAG_NAME = "liver_p2p_reg: preop model"
+LOADER_DIAG_NAME = "liver_p2p_reg: preop loader"  # preop_loader_node's status: the files it read, or why not
 HARDWARE_ID = "liver_p2p_reg"
 
 
@@ -62,6 +64,7 @@ class CoreOutput:
     registered_preop_mm: np.ndarray | None = None  # preop cloud moved into the sensor frame
     result: RegistrationResult | None = None
     reason: str = ""  # continuous | once | reregister
+    structures: list[PlacedStructure] = field(default_factory=list)  # moved into the sensor frame by the pose
 
     @property
     def level(self) -> int:
@@ -83,15 +86,25 @@ def units_warning(extent: float, what: str, config: Config) -> str:
 
 
 def registered_diagnostic(
-    result: RegistrationResult, values: dict[str, str], warnings: list[str], config: Config
+    result: RegistrationResult,
+    values: dict[str, str],
+    warnings: list[str],
+    config: Config,
+    structures: list[PlacedStructure] | None = None,
 ) -> Diagnostic:
     """The diagnostic of a frame registered to a valid pose: how (tracked or registered), residual,
-    RMS-TRE, and WARN with every reason (the frame's own `warnings`, then the result's)."""
+    RMS-TRE, and WARN with every reason (the frame's own `warnings`, then the result's, whose
+    error-bound rule follows the structures' bounds when there are structures)."""
     verb = "tracked from the previous pose" if result.method == "track" else "registered"
     message = f"{verb}: residual {result.residual_mm:.2f} mm"
     if result.rms_tre_mm is not None:
         message += f", RMS-TRE {result.rms_tre_mm:.2f} mm"
-    warnings = [*warnings, *result_warnings(result, config).values()]
+    bounds = structure_bounds(structures or [])
+    if bounds:
+        worst = max((float(np.max(b)) for b in bounds.values() if len(b)), default=float("nan"))
+        values["structures"] = str(len(bounds))
+        values["structure_error_bound_max_mm"] = f"{worst:.3f}"
+    warnings = [*warnings, *result_warnings(result, config, structure_bounds_mm=bounds or None).values()]
     level = OK
     if warnings:
         level = WARN
@@ -111,6 +124,11 @@ def result_values(result: RegistrationResult) -> dict[str, str]:
         "ambiguous": str(bool(result.ambiguous)).lower(),
         "uncertainty_mm": f"{result.uncertainty_mm:.3f}",
     }
+    if not np.isnan(result.error_bound_mm):  # inf: unconstrained, and said so
+        values["error_bound_mm"] = f"{result.error_bound_mm:.3f}"
+        values["error_coverage"] = f"{result.error_coverage:g}"
+    if result.error_calibration_note:
+        values["error_calibration_note"] = result.error_calibration_note
     if result.free_space:  # "on", or "off: <why the origin was refused>"; absent without an origin
         values["free_space"] = result.free_space
         values["free_space_violation"] = f"{result.free_space_violation:.3f}"

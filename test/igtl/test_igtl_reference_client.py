@@ -286,6 +286,39 @@ def test_a_mesh_a_utf8_verdict_and_live_updates(client: Path, rng: np.random.Gen
     assert [(m["encoding"], m["text"]) for m in statuses] == [("106", first_text), ("3", second_text)]
 
 
+def test_each_structure_as_the_reference_library_reads_it(client: Path) -> None:
+    """`replay --structures` as Slicer gets it: one POLYDATA per structure, named by its label, sensor frame."""
+    from liver_p2p_reg.structures_io import Structure
+
+    (preop_msg,) = [m for topic, m in _bag_messages("/preop/points")]
+    inside = cloud_to_points_mm(preop_msg).mean(axis=0)
+    tumour = Structure("tumour", inside + np.random.default_rng(2).normal(size=(20, 3)) * 3.0, 0)
+    vessel = Structure("portal vein", inside + np.linspace(-30, 30, 12)[:, None] * [1.0, 0.2, 0.0], 1)
+    config = SlicerConfig(host="127.0.0.1", port=0)
+    endpoint = open_endpoint(config)
+    try:
+        link = SlicerLink(SlicerBridge(config, endpoint))
+        process = start_client(client, endpoint.port, "POLYDATA:tumour", "POLYDATA:portal vein")
+        assert endpoint.wait_for_peers(1, 10.0), "the reference client did not connect"
+        tee = Tee(link)
+        replay_bag(BAG, Config(method="procrustes"), max_frames=1, observer=tee, structures=[tumour, vessel])
+        read = finish_client(process)
+    finally:
+        endpoint.close()
+    assert read.returncode == 0, read.stdout
+    (output,) = [o for o in tee.outputs if o.pose is not None]
+    for placed in output.structures:
+        message = read.one("POLYDATA", placed.label)
+        assert_splatted_cloud(message, placed.position_mm, config.point_size_mm)
+        assert_stamp(message, output.pose.stamp_ns)
+
+
+def _bag_messages(topic: str) -> list:
+    from liver_p2p_reg.bags.io import read_messages
+
+    return [(item.topic, item.msg) for item in read_messages(BAG, [topic])]
+
+
 def test_the_client_fails_on_a_bad_crc(client: Path) -> None:
     good = wire.pack_message("STRING", "RegistrationStatus", wire.string_body("OK: fine"), 5)
     bad = bytearray(wire.pack_message("STRING", "Other", wire.string_body("ERROR: flipped"), 6))

@@ -1,0 +1,168 @@
+"""Subsurface structures (tumours, vessels, a resection plan): `FILE[:LABEL]` files in mm, and where a pose puts them."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.cloud_io import check_point_file, extent_mm, implausible_extent, load_points
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.metrics import transform_points
+
+# A structure is small (a tumour 5-40 mm across) and may be a single point, so the liver's extent
+# rule does not apply. A file in metres is still recognised: every coordinate of a CT in metres lies
+# within 1 of the origin (a CT in mm does not), or several points span less than a millimetre.
+MIN_COORDINATE_MM = 1.0  # every |coordinate| below this: the file holds metres
+MIN_EXTENT_MM = 1.0  # several points spanning less than this: metres (no structure is that small)
+UNITS_HINT = "structure points are read as millimetres in the preop (ct) frame: convert a file in metres"
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: arrays do not compare as one truth value
+class Structure:
+    """One subsurface structure in the preop frame: its label, its points (mm) and where they came from."""
+
+    label: str
+    points_mm: np.ndarray  # (N, 3), preop (ct) frame, all finite
+    label_id: int = 0  # its index in the loader's label list (/preop/structure_labels)
+    path: str = ""  # the file it was read from ("" when it came from a message)
+
+
+@dataclass(eq=False)
+class PlacedStructure:
+    """A structure where one registration puts it, each point with its error bound."""
+
+    label: str
+    label_id: int
+    position_mm: np.ndarray  # (N, 3): the preop points moved rigidly by the pose, T_target_source
+    error_bound_mm: np.ndarray  # (N,): the true position lies within this of position_mm with `coverage`; NaN: no model
+    coverage: float  # result.error_coverage (NaN without an error model)
+    # The non-rigid stage (DESIGN.md "deform", not implemented yet) sets the positions after the
+    # deformation here; None: the registration was rigid only, position_mm is all there is.
+    deformed_position_mm: np.ndarray | None = None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The `structures` entry of a result JSON: label, position_mm (N x 3), error_bound_mm (N; null: no model)."""
+        out: dict[str, Any] = {
+            "label": self.label,
+            "n_points": len(self.position_mm),
+            "position_mm": np.round(self.position_mm, 6).tolist(),
+            "error_bound_mm": [_finite_or_none(b) for b in self.error_bound_mm],
+            "max_error_bound_mm": _finite_or_none(np.max(self.error_bound_mm)) if len(self.error_bound_mm) else None,
+            "error_coverage": _finite_or_none(self.coverage),
+        }
+        if self.deformed_position_mm is not None:
+            out["deformed_position_mm"] = np.round(self.deformed_position_mm, 6).tolist()
+        return out
+
+
+def parse_spec(spec: str) -> tuple[Path, str]:
+    """'FILE[:LABEL]' -> (file, label); the label defaults to the file's stem.
+
+    A spec naming an existing file is that file (its name may hold a ':'); else the text after the
+    last ':' is the label, unless it holds a '/' (then the colon was part of a folder's name).
+    """
+    text = str(spec)
+    path, sep, label = text.rpartition(":")
+    if Path(text).is_file() or not sep or "/" in label:
+        path, label = text, Path(text).stem
+    if not path:
+        raise InputError(f"structure {text!r}: no file before the ':' (expected FILE[:LABEL])")
+    if not label or label != label.strip() or not label.isprintable():
+        raise InputError(f"structure {text!r}: the label must be printable text without surrounding spaces")
+    return Path(path), label
+
+
+def load_structure(
+    path: str | Path,
+    label: str,
+    *,
+    label_id: int = 0,
+    to_mm: float = 1.0,
+    max_extent_mm: float = Config.expected_extent_max_mm,
+) -> Structure:
+    """Read one structure file (a mesh gives its vertices, a cloud its points); `to_mm` scales the
+    file's units into mm. InputError (one line naming the label and the file) when it cannot be used."""
+    where = f"structure '{label}'"
+    try:
+        path = check_point_file(path)
+        points = load_points(path, sample_meshes=False) * float(to_mm)  # a mesh: its vertices, no surface samples
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
+    bad = int((~np.isfinite(points).all(axis=1)).sum())
+    if bad:
+        raise InputError(f"{where}: {path}: {bad} of {len(points)} points are NaN or infinite")
+    _, first = np.unique(points, axis=0, return_index=True)
+    points = points[np.sort(first)]  # an STL repeats each vertex per triangle: once each, in file order
+    problem = ""
+    if np.max(np.abs(points)) < MIN_COORDINATE_MM:
+        problem = f"every coordinate is below {MIN_COORDINATE_MM:g} mm in magnitude: metres?"
+    elif len(points) > 1:
+        problem = implausible_extent(extent_mm(points), "its", MIN_EXTENT_MM, max_extent_mm)
+    if problem:
+        raise InputError(f"{where}: {path}: {problem} ({UNITS_HINT})")
+    return Structure(label, points, int(label_id), str(path))
+
+
+def read_structures(
+    specs: Sequence[str], *, to_mm: float = 1.0, max_extent_mm: float = Config.expected_extent_max_mm
+) -> tuple[list[Structure], list[tuple[str, str]]]:
+    """(the structures that could be read, [(spec, one-line reason)] of those that could not).
+
+    Label ids are the good structures' indices in order; a label given twice is refused the second time.
+    """
+    good: list[Structure] = []
+    bad: list[tuple[str, str]] = []
+    for spec in specs:
+        try:
+            path, label = parse_spec(spec)
+            twin = next((s for s in good if s.label == label), None)
+            if twin is not None:
+                raise InputError(
+                    f"structure label '{label}' given twice ({twin.path} and {path}): name them FILE:LABEL"
+                )
+            good.append(load_structure(path, label, label_id=len(good), to_mm=to_mm, max_extent_mm=max_extent_mm))
+        except InputError as exc:
+            bad.append((str(spec), str(exc)))
+    return good, bad
+
+
+def load_structures(specs: Sequence[str], *, to_mm: float = 1.0) -> list[Structure]:
+    """Every structure of `specs` ('FILE[:LABEL]' each), or the first one's InputError that cannot be used."""
+    good, bad = read_structures(specs, to_mm=to_mm)
+    if bad:
+        raise InputError(bad[0][1])
+    return good
+
+
+def place_structures(
+    result: Any, structures: Sequence[Structure], T_mm: np.ndarray | None = None
+) -> list[PlacedStructure]:
+    """Where a registration puts each structure: its points moved by T (default result.T_target_source)
+    and, per point, `result.error_bound_at` of its preop position (mm)."""
+    T = np.asarray(result.T_target_source if T_mm is None else T_mm, dtype=np.float64)
+    coverage = float(getattr(result, "error_coverage", float("nan")))
+    return [
+        PlacedStructure(
+            s.label,
+            s.label_id,
+            transform_points(T, s.points_mm),
+            np.asarray(result.error_bound_at(s.points_mm), dtype=np.float64).reshape(-1),
+            coverage,
+        )
+        for s in structures
+    ]
+
+
+def structure_bounds(placed: Sequence[PlacedStructure]) -> dict[str, np.ndarray]:
+    """label -> per-point bounds (mm): what `confidence.result_warnings(..., structure_bounds_mm=)` takes."""
+    return {p.label: p.error_bound_mm for p in placed}
+
+
+def _finite_or_none(value: Any) -> float | None:
+    value = float(value)
+    return round(value, 6) if np.isfinite(value) else None
