@@ -15,23 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from liver_p2p_reg.bags.io import read_messages
+from liver_p2p_reg.bags.io import model_and_clouds
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.registrar import Registrar
-from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
-
-
-def bag_inputs(bag: Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The bag's preop points and its intraop clouds, mm."""
-    preop, frames = None, []
-    for item in read_messages(bag, ["/preop/points", "/intraop/points"]):
-        if item.topic == "/preop/points":
-            preop = cloud_to_points_mm(item.msg)
-        else:
-            frames.append(cloud_to_points_mm(item.msg))
-    return preop, frames
 
 
 def main() -> int:
@@ -42,7 +30,7 @@ def main() -> int:
     args = parser.parse_args()
     worst = 0.0
     for bag in sorted(p for p in BAGS.iterdir() if p.is_dir()):
-        preop, frames = bag_inputs(bag)
+        preop, frames = model_and_clouds(bag)
         frames = frames[:: args.stride][: args.frames]
         poses = {}
         for threads in (2, 1):

@@ -19,23 +19,12 @@ REFERENCE_FRAMES = [
 PARAMS = {"track_previous_pose": False, "mode": "on_demand"}
 
 
-def _bag_inputs(bag: Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    from liver_p2p_reg.bags.io import read_messages
-    from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
-
-    preop, frames = None, []
-    for item in read_messages(bag, ["/preop/points", "/intraop/points"]):
-        if item.topic == "/preop/points":
-            preop = cloud_to_points_mm(item.msg)
-        else:
-            frames.append(cloud_to_points_mm(item.msg))
-    return preop, frames
-
-
 def frame_output(core, bag_name: str, index: int) -> dict:
     """One reference frame through `core` (a NodeCore): its pose's bytes (hex) and its diagnostic values
     without the timings (wall-clock, so never equal)."""
-    preop, frames = _bag_inputs(BAGS / bag_name)
+    from liver_p2p_reg.bags.io import model_and_clouds
+
+    preop, frames = model_and_clouds(BAGS / bag_name)
     core.set_preop(preop, "ct")
     core.on_intraop_points(frames[index], "camera", stamp_ns=index + 1)
     output = core.reregister()

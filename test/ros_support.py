@@ -31,16 +31,9 @@ def bag_raw(bag: Path) -> dict[str, list[bytes]]:
 
 def bag_frames_m(bag: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     """The bag's preop points and intraop frames as (N, 3) metres."""
-    from liver_p2p_reg.bags.io import read_messages
-    from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m
+    from liver_p2p_reg.bags.io import model_and_clouds
 
-    preop, frames = None, []
-    for item in read_messages(bag, [TOPIC_PREOP, TOPIC_INTRAOP]):
-        if item.topic == TOPIC_PREOP:
-            preop = cloud_to_points_m(item.msg)
-        else:
-            frames.append(cloud_to_points_m(item.msg))
-    return preop, frames
+    return model_and_clouds(bag, metres=True)
 
 
 def clean_stderr(text: str) -> list[str]:

@@ -121,6 +121,21 @@ def read_messages(path: str | Path, topics: list[str] | None = None) -> Iterator
         raise
 
 
+def model_and_clouds(path: str | Path, *, metres: bool = False) -> tuple[np.ndarray | None, list[np.ndarray]]:
+    """A bag's (last) preop points and its intraop clouds, (N, 3) mm, or metres as the messages hold them."""
+    from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, cloud_to_points_mm
+    from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_PREOP
+
+    convert = cloud_to_points_m if metres else cloud_to_points_mm
+    preop, clouds = None, []
+    for item in read_messages(path, [TOPIC_PREOP, TOPIC_INTRAOP]):
+        if item.topic == TOPIC_PREOP:
+            preop = convert(item.msg)
+        else:
+            clouds.append(convert(item.msg))
+    return preop, clouds
+
+
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
     """topic -> (msgtype, message count) of a bag."""
     from rosbags.highlevel import AnyReader

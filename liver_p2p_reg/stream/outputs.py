@@ -104,7 +104,10 @@ def registered_diagnostic(
         worst = max((float(np.max(b)) for b in bounds.values() if len(b)), default=float("nan"))
         values["structures"] = str(len(bounds))
         values["structure_error_bound_max_mm"] = f"{worst:.3f}"
-    warnings = [*warnings, *result_warnings(result, config, structure_bounds_mm=bounds or None).values()]
+    reasons = result_warnings(result, config, structure_bounds_mm=bounds or None)
+    # machine-readable why (the tracker keeps a pose that only its error bound warns as the next prior)
+    values["warn_reasons"] = ",".join([*(["input"] if warnings else []), *reasons])
+    warnings = [*warnings, *reasons.values()]
     level = OK
     if warnings:
         level = WARN

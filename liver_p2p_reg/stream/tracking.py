@@ -11,7 +11,11 @@ from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.result import RegistrationResult
-from liver_p2p_reg.stream.outputs import OK, CoreOutput
+from liver_p2p_reg.stream.outputs import OK, WARN, CoreOutput
+
+# Reasons of a WARN that do not say the pose is wrong, only that the view cannot certify it within the
+# margin: re-registering the same view would not do better, so such a pose still starts the next ICP.
+UNCERTIFIED_ONLY = {"error_bound", "structures"}
 
 
 @dataclass
@@ -80,12 +84,20 @@ class Tracker:
         return result, None
 
     def remember(self, output: CoreOutput, frame_id: str) -> None:
-        """Keep an OK pose as the next frame's prior; anything else (WARN, ERROR) clears it."""
+        """Keep an OK pose (or one only its error bound warns) as the next frame's prior; anything else clears it."""
         result = output.result
-        if output.pose is None or result is None or output.level != OK:
+        if output.pose is None or result is None or not _prior_worthy(output):
             self.state = None
         elif result.method == "track" and self.state is not None:
             self.state.T_mm = np.asarray(result.T_target_source, dtype=np.float64)
             self.state.frames += 1
         else:
             self.state = TrackState(np.asarray(result.T_target_source, float), result.residual_mm, frame_id)
+
+
+def _prior_worthy(output: CoreOutput) -> bool:
+    """OK, or WARN for UNCERTIFIED_ONLY reasons (the diagnostic's `warn_reasons`)."""
+    if output.level == OK:
+        return True
+    reasons = {r for r in output.diagnostics[0].values.get("warn_reasons", "").split(",") if r}
+    return output.level == WARN and bool(reasons) and reasons <= UNCERTIFIED_ONLY

@@ -398,3 +398,18 @@ def test_a_model_arriving_during_a_registration_becomes_current_after_it():
     finally:
         release.set()
         remove_method("slow-procrustes")
+
+
+@needs_procrustes
+@pytest.mark.parametrize(
+    "limits, tracked", [({"structure_error_warn_mm": 1e-6}, True), ({"uncertainty_warn_mm": 1e-6}, False)]
+)
+def test_a_pose_only_its_error_bound_warns_is_still_tracked_from(limits, tracked):
+    # A bound above the margin says the view cannot certify the pose, not that it is wrong: the next
+    # frame starts ICP from it; any other reason (here the uncertainty) forces the full method.
+    core, preop, fid_ct = tracking_core(**limits)
+    first = send_frame(core, preop, fid_ct, ground_truth(), 1, 0.0)
+    assert first.level == WARN
+    assert first.diagnostics[0].values["warn_reasons"] == ("error_bound" if tracked else "uncertainty")
+    second = send_frame(core, preop, fid_ct, nudged(ground_truth()), 2, 1.0)
+    assert (second.result.method == "track") == tracked
