@@ -28,7 +28,7 @@ STAGES = [
     ("P2P", "K patch-to-partial\ncandidates + twins"),
     ("screen", "short ICP\nper candidate"),
     ("refine", "trimmed point-\nto-plane ICP"),
-    ("confidence", "uncertainty, ambiguity,\nfree space"),
+    ("confidence", "uncertainty, ambiguity,\nfree space, error bound"),
 ]
 COLOURS = {"input": "#eeeeee", "adapter": "#cfe2f3", "stream": "#d9ead3", "core": "#fff2cc", "result": "#f4cccc"}
 
@@ -96,7 +96,7 @@ def draw(out: Path) -> None:
         if i:
             arrow(ax, x - gap, 2.5, x, 2.5)
     arrow(ax, 11.7, 3.9, 0.6 + w / 2, 3.1)
-    box(ax, 0.6, 0.4, 13.0, 0.9, "RegistrationResult: T (source -> target, mm), residual, uncertainty, status OK / WARN, "
+    box(ax, 0.6, 0.4, 13.0, 0.9, "RegistrationResult: T (source -> target, mm), residual, uncertainty, error bound, status OK / WARN, "
         "per-stage runtime, candidates", COLOURS["result"])  # fmt: skip
     last = 0.6 + (len(STAGES) - 1) * (w + gap) + w / 2
     arrow(ax, last, 1.9, last, 1.3)
