@@ -29,10 +29,10 @@ from liver_p2p_reg.bags.recorder import (
     message_points_mm,
     recorder_factory,
     run_environment,
-    weights_sha256,
 )
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.registration.weights_id import weights_sha256
 from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
 from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
 from liver_p2p_reg.stream.core import NodeCore

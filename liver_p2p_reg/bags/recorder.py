@@ -9,7 +9,6 @@ Topics and the exactness of what they carry: msg_docs/flight_recorder.md.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -25,6 +24,7 @@ import numpy as np
 from liver_p2p_reg.bags.io import DIAGNOSTIC_ARRAY, POINTCLOUD2, POSE_STAMPED, _qos, rosbags_output_types, typestore
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.weights_id import weights_sha256
 from liver_p2p_reg.ros.messages import diagnostic_array, pose_stamped
 from liver_p2p_reg.ros.pointcloud2 import FLOAT64, M_PER_MM, cloud_to_points_mm, points_to_cloud
 from liver_p2p_reg.ros.topics import (
@@ -83,39 +83,6 @@ def _exact(array: np.ndarray | None) -> list | None:
 
 
 # ---------------------------------------------------------------- metadata
-_HASHES: dict[tuple[str, int, int], str] = {}
-
-
-def weights_file(config: Config) -> Path | None:
-    """The matcher weights a config's method reads (None: the method uses none)."""
-    if config.weights_path:
-        return Path(config.weights_path)
-    if not config.method.startswith("learned"):
-        return None
-    from liver_p2p_reg.registration.features.learned.weights import BUNDLED_WEIGHTS
-
-    return BUNDLED_WEIGHTS
-
-
-def weights_sha256(config: Config) -> str:
-    """sha256 of the weights file the config's method reads ("" when none; "missing: PATH" if absent)."""
-    path = weights_file(config)
-    if path is None:
-        return ""
-    try:
-        stat = path.stat()
-    except OSError:
-        return f"missing: {path}"
-    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
-    if key not in _HASHES:
-        digest = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                digest.update(block)
-        _HASHES[key] = digest.hexdigest()
-    return _HASHES[key]
-
-
 def run_environment() -> dict[str, Any]:
     """What makes a pose reproducible besides its inputs: versions, weights, threads."""
     from importlib import metadata

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import multiprocessing
-import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,7 @@ from tqdm import tqdm
 
 from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_info, case_seed, list_case_paths, read_case
 from liver_p2p_reg.bench.cases import sensor_origin_mm as case_origin
+from liver_p2p_reg.bench.harness import omp_threads
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import transform_points
@@ -37,16 +37,10 @@ def collect_set(folder: Path, noise_mm: float, config: Config, workers: int, pro
             rows.append(collect_case(info, config_dict))
             bar.update()
     else:
-        saved = os.environ.get("OMP_NUM_THREADS")
-        os.environ["OMP_NUM_THREADS"] = "1"  # W workers use W cores
-        try:
-            ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-                for row in pool.map(collect_case, infos, [config_dict] * len(infos), chunksize=4):
-                    rows.append(row)
-                    bar.update()
-        finally:
-            os.environ.pop("OMP_NUM_THREADS", None) if saved is None else os.environ.update(OMP_NUM_THREADS=saved)
+        with omp_threads(1), ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            for row in pool.map(collect_case, infos, [config_dict] * len(infos), chunksize=4):
+                rows.append(row)
+                bar.update()
     bar.close()
     return stack_rows(rows, folder.name, noise_mm)
 
@@ -111,13 +105,12 @@ def _rms(err: np.ndarray) -> float:
 
 
 def stack_rows(rows: list[dict[str, Any]], name: str, noise_mm: float) -> dict[str, np.ndarray]:
-    """Per-pose arrays plus the markers' features and errors, flattened (`start` indexes each pose's first)."""
+    """Per-pose arrays plus the markers' features and errors, flattened in pose order (`count` per pose)."""
     counts = [len(r["errors"]) for r in rows]
     out: dict[str, np.ndarray] = {
         "set": np.array([name] * len(rows)),
         "case_id": np.array([r["case_id"] for r in rows]),
         "noise_mm": np.full(len(rows), float(noise_mm)),
-        "start": np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64) if rows else np.zeros(0, np.int64),
         "count": np.asarray(counts, np.int64),
         "errors": np.concatenate([r["errors"] for r in rows]) if rows else np.zeros(0),
         "features": np.concatenate([r["features"] for r in rows]) if rows else np.zeros((0, len(FEATURES))),
@@ -128,22 +121,20 @@ def stack_rows(rows: list[dict[str, Any]], name: str, noise_mm: float) -> dict[s
 
 
 def concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Several collections as one (pose offsets shifted)."""
-    if len(parts) == 1:
-        return parts[0]
-    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "start"}
-    counts = out["count"]
-    out["start"] = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-    return out
+    """Several collections as one."""
+    keys = [k for k in parts[0] if k != "start"]  # caches written before `start` was dropped still hold it
+    return {k: np.concatenate([p[k] for p in parts]) for k in keys}
+
+
+def pose_index(data: dict[str, np.ndarray]) -> np.ndarray:
+    """Per marker, the index of its pose."""
+    return np.repeat(np.arange(len(data["count"])), data["count"])
 
 
 def subset(data: dict[str, np.ndarray], poses: np.ndarray) -> dict[str, np.ndarray]:
     """The collection restricted to the poses where `poses` (a boolean mask) is true."""
-    per = np.repeat(np.arange(len(data["count"])), data["count"])
-    marker = poses[per]
-    out = {k: (v[marker] if k in ("errors", "features") else v[poses]) for k, v in data.items() if k != "start"}
-    out["start"] = np.concatenate([[0], np.cumsum(out["count"])[:-1]]).astype(np.int64)
-    return out
+    marker = poses[pose_index(data)]
+    return {k: (v[marker] if k in ("errors", "features") else v[poses]) for k, v in data.items() if k != "start"}
 
 
 def save(path: Path, data: dict[str, np.ndarray]) -> Path:

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from liver_p2p_reg.bench.bound_data import pose_index
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_bound import FEATURES
 from liver_p2p_reg.registration.error_calibration import FORMAT
@@ -37,11 +38,6 @@ def split_livers(liver_ids: np.ndarray, seed: int, sources: np.ndarray | None = 
 def liver_source(set_names: np.ndarray) -> np.ndarray:
     """Where each pose's liver comes from: the first word of its set's name (`insilico`, `real`)."""
     return np.array([str(name).split("-")[0] for name in set_names])
-
-
-def pose_index(data: dict[str, np.ndarray]) -> np.ndarray:
-    """Per marker, the index of its pose."""
-    return np.repeat(np.arange(len(data["count"])), data["count"])
 
 
 def fit_scale(data: dict[str, np.ndarray], poses: np.ndarray) -> np.ndarray:

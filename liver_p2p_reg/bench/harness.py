@@ -7,7 +7,9 @@ import math
 import multiprocessing
 import os
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -177,12 +179,24 @@ def run_benchmark(spec: BenchmarkSpec, progress: bool = True) -> list[dict[str, 
     return read_rows(csv_path)
 
 
-def _run_parallel(spec: BenchmarkSpec, todo: list, config_dict: dict, store: CsvLog, bar: tqdm) -> None:
-    # Spawned workers each get 1 torch / BLAS thread so W workers use W cores, not W x cores.
-    threads = spec.config.num_threads or 1
+@contextmanager
+def omp_threads(threads: int) -> Iterator[None]:
+    """OMP_NUM_THREADS for the spawned workers of this block (W workers use W cores, not W x cores), then as before."""
     saved = os.environ.get("OMP_NUM_THREADS")
     os.environ["OMP_NUM_THREADS"] = str(threads)
     try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
+        else:
+            os.environ["OMP_NUM_THREADS"] = saved
+
+
+def _run_parallel(spec: BenchmarkSpec, todo: list, config_dict: dict, store: CsvLog, bar: tqdm) -> None:
+    # Spawned workers each get 1 torch / BLAS thread so W workers use W cores, not W x cores.
+    threads = spec.config.num_threads or 1
+    with omp_threads(threads):
         ctx = multiprocessing.get_context("spawn")
         pool = ProcessPoolExecutor(spec.workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,))
         try:
@@ -195,8 +209,3 @@ def _run_parallel(spec: BenchmarkSpec, todo: list, config_dict: dict, store: Csv
             pool.shutdown(wait=False, cancel_futures=True)
             raise
         pool.shutdown()
-    finally:
-        if saved is None:
-            os.environ.pop("OMP_NUM_THREADS", None)
-        else:
-            os.environ["OMP_NUM_THREADS"] = saved

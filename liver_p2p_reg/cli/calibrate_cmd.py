@@ -57,11 +57,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from liver_p2p_reg.bench import bound_data
     from liver_p2p_reg.bench.bound_fit import calibrate
-    from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, _weights_sha256, read_calibration
+    from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, read_calibration
+    from liver_p2p_reg.registration.weights_id import weights_sha256
 
     config = (Config.from_yaml(args.config) if args.config else Config()).validate()
     out = Path(args.out) if args.out else BUNDLED_CALIBRATION
-    weights = _weights_sha256(config) if config.method.startswith("learned") else ""
+    weights = weights_sha256(config)  # "" for a method without weights
     val = bound_data.concat([_collected(Path(d), args, config, weights) for d in args.val])
     cal = calibrate(val, args.seed)
     sets = [{"set": Path(d).name, "cases": int((val["set"] == Path(d).name).sum())} for d in args.val]

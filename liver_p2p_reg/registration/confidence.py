@@ -47,7 +47,7 @@ def pose_uncertainty(
     sel = np.flatnonzero(keep)[d_keep <= np.quantile(d_keep, trim_ratio)]
     if len(sel) < MIN_PAIRS:
         return float("inf")
-    p, s, n = q[sel], source[idx[sel]], _normals_at(source, tree, idx[sel])
+    p, s, n = q[sel], source[idx[sel]], pca_normals(source, tree, idx[sel])
     centre = p.mean(axis=0)  # rotations about the view's centre decouple from translations
     J = np.hstack([np.cross(p - centre, n), n])  # d(misfit)/d(omega, v) per pair
     sigma2 = float(np.mean(np.einsum("ij,ij->i", p - s, n) ** 2))
@@ -58,19 +58,23 @@ def pose_uncertainty(
         return float("inf")
     if not np.all(np.isfinite(cov)):
         return float("inf")
-    x = source[:: max(1, len(source) // SPREAD_POINTS)] - centre
-    # A point x moves by omega x x + v = A (omega, v) with A = [-[x]_x | I]; E|dx|^2 = tr(A cov A^T).
-    A = np.zeros((len(x), 3, 6))
-    A[:, 0, 1], A[:, 0, 2], A[:, 1, 2] = x[:, 2], -x[:, 1], x[:, 0]
-    A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = -x[:, 2], x[:, 1], -x[:, 0]
-    A[:, :, 3:] = np.eye(3)
-    spread2 = np.einsum("nij,jk,nik->n", A, cov, A)
+    A = motion_jacobian(source[:: max(1, len(source) // SPREAD_POINTS)] - centre)
+    spread2 = np.einsum("nij,jk,nik->n", A, cov, A)  # E|dx|^2 = tr(A cov A^T)
     gdop = float(np.sqrt(max(float(np.mean(spread2)), 0.0)))
     return float(np.sqrt(sigma2)) * gdop
 
 
-def _normals_at(points: np.ndarray, tree: cKDTree, at: np.ndarray) -> np.ndarray:
-    """Unit normals (sign arbitrary: the uncertainty is quadratic in them) by PCA of neighbours."""
+def motion_jacobian(x: np.ndarray) -> np.ndarray:
+    """(N, 3, 6): how points x (relative to the rotation centre) move per (omega, v): omega x x + v = A (omega, v)."""
+    A = np.zeros((len(x), 3, 6))
+    A[:, 0, 1], A[:, 0, 2], A[:, 1, 2] = x[:, 2], -x[:, 1], x[:, 0]
+    A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = -x[:, 2], x[:, 1], -x[:, 0]
+    A[:, :, 3:] = np.eye(3)
+    return A
+
+
+def pca_normals(points: np.ndarray, tree: cKDTree, at: np.ndarray) -> np.ndarray:
+    """Unit normals at points[at] (sign arbitrary: covariances are quadratic in them) by PCA of neighbours."""
     _, nb = tree.query(points[at], k=min(NORMAL_NEIGHBORS, len(points)))
     local = points[nb] - points[nb].mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))

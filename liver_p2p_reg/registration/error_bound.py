@@ -9,10 +9,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from liver_p2p_reg.metrics import transform_points
+from liver_p2p_reg.registration.confidence import motion_jacobian, pca_normals
 
 MAX_SOURCE = 3000  # preop points the fit's Hessian is built on (a stride sample: ~1 ms tree)
 MAX_VIEW = 2000  # intraop points kept to measure each point's distance from the visible patch
-NORMAL_NEIGHBORS = 10
 MIN_PAIRS = 6
 MAX_PAIRS = 600  # trimmed pairs the Hessian is built from (a stride sample: normals dominate the cost)
 INTERIOR_SHRINK = 0.5  # no fiducials: the surface sample pulled halfway to its centroid stands for the interior
@@ -43,12 +43,8 @@ class PoseEvidence:
         """RMS displacement of each point under the pose's misfit-driven covariance (mm); inf if unconstrained."""
         if not np.all(np.isfinite(self.cov)):
             return np.full(len(points_mm), np.inf)
-        x = np.asarray(points_mm, float) - self.centre_mm
-        # A point x moves by omega x x + v = A (omega, v) with A = [-[x]_x | I]; E|dx|^2 = tr(A cov A^T).
-        A = np.zeros((len(x), 3, 6))
-        A[:, 0, 1], A[:, 0, 2], A[:, 1, 2] = x[:, 2], -x[:, 1], x[:, 0]
-        A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = -x[:, 2], x[:, 1], -x[:, 0]
-        A[:, :, 3:] = np.eye(3)
+        A = motion_jacobian(np.asarray(points_mm, float) - self.centre_mm)
+        # E|dx|^2 = tr(A cov A^T)
         spread2 = np.sum((A @ self.cov) * A, axis=(1, 2))
         return self.sigma_mm * np.sqrt(np.maximum(spread2, 0.0))
 
@@ -118,7 +114,7 @@ def pose_evidence(
     if len(keep) >= MIN_PAIRS:
         p, s = view[keep], source[idx[keep]]
         at, back = np.unique(idx[keep], return_inverse=True)  # one normal per preop point paired
-        n = _normals(source, tree, at)[back]
+        n = pca_normals(source, tree, at)[back]
         J = np.hstack([np.cross(p - centre, n), n])  # d(misfit)/d(omega, v) per pair
         sigma = float(np.sqrt(np.mean(np.einsum("ij,ij->i", p - s, n) ** 2)))
         try:
@@ -159,11 +155,3 @@ def _rival(
         return {}
     r, H = min(rivals, key=lambda item: item[0])
     return {"rival_T": H, "rival_ratio": r / max(best, 1e-6)}
-
-
-def _normals(points: np.ndarray, tree: cKDTree, at: np.ndarray) -> np.ndarray:
-    """Unit normals (sign arbitrary: the covariance is quadratic in them) by PCA of neighbours."""
-    _, nb = tree.query(points[at], k=min(NORMAL_NEIGHBORS, len(points)))
-    local = points[nb] - points[nb].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
-    return vectors[:, :, 0]

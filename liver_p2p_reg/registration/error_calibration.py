@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +12,7 @@ import numpy as np
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_bound import FEATURES, PoseEvidence
+from liver_p2p_reg.registration.weights_id import weights_sha256
 
 BUNDLED_CALIBRATION = Path(__file__).resolve().parents[1] / "weights" / "error_bound_v1.json"
 FORMAT = "liver_p2p_reg error-bound calibration"
@@ -114,16 +114,6 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
         raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
 
 
-@functools.lru_cache(maxsize=8)
-def file_sha256(path: str, _mtime_ns: int = 0) -> str:
-    """SHA-256 of a file (the matcher weights a calibration ran with), cached per path and mtime."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def attach_error_model(
     result: Any, source_mm: np.ndarray, target_mm: np.ndarray, interior_mm: np.ndarray | None, config: Any
 ) -> None:
@@ -159,19 +149,8 @@ def attach_error_model(
         result.error_calibration_note = (
             f"error bound calibrated for {calibration.method}, not {result.method}: its coverage is not known"
         )
-    elif calibration.weights_sha256 and _weights_sha256(config) != calibration.weights_sha256:
+    elif calibration.weights_sha256 and weights_sha256(config) != calibration.weights_sha256:
         result.error_calibration_note = (
             "error bound calibrated with other matcher weights: its coverage is not known "
             "(recalibrate: liver-p2p calibrate-bound)"
         )
-
-
-def _weights_sha256(config: Any) -> str:
-    """SHA-256 of the matcher weights this configuration uses (the bundled ones when none is set)."""
-    from liver_p2p_reg.registration.features.learned.weights import BUNDLED_WEIGHTS
-
-    path = Path(config.weights_path) if config.weights_path else BUNDLED_WEIGHTS
-    try:
-        return file_sha256(str(path.resolve()), path.stat().st_mtime_ns)
-    except OSError:
-        return ""

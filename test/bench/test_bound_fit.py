@@ -35,7 +35,6 @@ def synthetic_collection(seed: int, poses: int = 400, markers: int = 40) -> dict
         "set": np.array(["real-val-v2"] * poses),
         "case_id": np.array([f"c{i}" for i in range(poses)]),
         "noise_mm": np.full(poses, 2.0),
-        "start": np.arange(poses) * markers,
         "count": np.full(poses, markers),
         "errors": errors,
         "features": feats,
