@@ -241,10 +241,9 @@ class RegisterWiring:
         now_s, core = time.monotonic(), self.core
         if core is None or not self.active:
             return
-        stale_after_s = core.config.stale_after_s
-        status = stale_when_silent(core.status(), self.health.silent_for_s(now_s), stale_after_s)
+        status = self._effective_status(now_s)
         self._status_level = status.level
-        stream = self.health.status(now_s, stale_after_s)
+        stream = self.health.status(now_s, core.config.stale_after_s)
         self.diag_pub.publish(diagnostic_array([status, stream], self._now_ns(), RCLPY_TYPES))
 
     def _publish_status_on_change(self) -> None:
@@ -253,9 +252,12 @@ class RegisterWiring:
         core = self.core
         if core is None or not self.active:
             return
-        silent_s = self.health.silent_for_s(time.monotonic())
-        if stale_when_silent(core.status(), silent_s, core.config.stale_after_s).level != self._status_level:
+        if self._effective_status(time.monotonic()).level != self._status_level:
             self._publish_status()
+
+    def _effective_status(self, now_s: float) -> Diagnostic:
+        """The registration status as published: STALE after stale_after_s without a cloud."""
+        return stale_when_silent(self.core.status(), self.health.silent_for_s(now_s), self.core.config.stale_after_s)
 
     def _on_parameters(self, params: list[Any]) -> SetParametersResult:
         known = {f.name for f in dataclasses.fields(Config)}
