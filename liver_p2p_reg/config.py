@@ -48,6 +48,13 @@ MINIMUMS: dict[str, float] = {
     "free_space_warn": 0,
     "record_max_mb": 0,
     "stale_after_s": 0.1,
+    "deform_modes": 1,
+    "deform_target_tets": 60,
+    "deform_regularization": 0,
+    "deform_iterations": 1,
+    "deform_min_points": 3,
+    "deform_max_residual_mm": 0,
+    "deform_max_displacement_mm": 0,
     "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
 }
 
@@ -173,6 +180,21 @@ class VerdictSection:
 
 
 @dataclass
+class DeformSection:
+    """The non-rigid stage after the rigid pose (deform.py): the preop model's elastic modes pulled onto the view."""
+
+    deform: bool = False  # run the stage after every registration (the rigid pose is published first)
+    deform_modes: int = 24  # lowest non-rigid elastic modes of the preop model kept as the deformation basis
+    deform_target_tets: int = 6000  # tetrahedra of the preop model's mesh (built once per model)
+    deform_regularization: float = 1.0  # strain-energy weight: mm^2 of mean squared residual per mm^2 of mode 1
+    deform_iterations: int = 15  # Gauss-Newton steps (the pairs are recomputed each step)
+    deform_min_points: int = 200  # fewer view points than this: no deformation ("too little overlap")
+    deform_max_residual_mm: float = 5.0  # rigid residual above this: a gross pose is not deformed
+    deform_min_gain: float = 0.05  # the residual must fall by this share, else the rigid result stands
+    deform_max_displacement_mm: float = 25.0  # a larger displacement anywhere is implausible: rigid result
+
+
+@dataclass
 class StreamSection:
     """The node logic (register_node, bag replay): mode, rate, tracking, survey."""
 
@@ -206,6 +228,7 @@ def _view(config: Config, section: type[S]) -> S:
 @dataclass
 class Config(
     StreamSection,
+    DeformSection,
     VerdictSection,
     FreeSpaceSection,
     IcpSection,
@@ -250,6 +273,10 @@ class Config(
         return _view(self, VerdictSection)
 
     @property
+    def deformation(self) -> DeformSection:
+        return _view(self, DeformSection)
+
+    @property
     def stream(self) -> StreamSection:
         return _view(self, StreamSection)
 
@@ -284,6 +311,8 @@ class Config(
                 "need 0 < refit_radius_end_norm <= refit_radius_start_norm, got "
                 f"{self.refit_radius_end_norm} and {self.refit_radius_start_norm}"
             )
+        if not 0 <= self.deform_min_gain < 1:
+            raise InputError(f"deform_min_gain must be in [0, 1), got {self.deform_min_gain}")
         for name in ("icp_trim_ratio", "error_coverage"):
             if not 0 < getattr(self, name) <= 1:
                 raise InputError(f"{name} must be in (0, 1], got {getattr(self, name)}")
@@ -327,74 +356,3 @@ class Config(
         )
         body = yaml.safe_dump({"/**": {"ros__parameters": self.to_dict()}}, sort_keys=False)
         return header + body
-
-
-# --- the OpenIGTLink link to 3D Slicer (slicer_bridge_node, `register --slicer`, `replay --slicer`) ---
-SLICER_ROLES = ("server", "client")
-CT_CONVENTIONS = ("LPS", "RAS")
-IGTL_DEVICE_NAME_BYTES = 20  # OpenIGTLink header field
-
-
-@dataclass
-class SlicerConfig:
-    """Settings of the OpenIGTLink link to 3D Slicer, with defaults (msg_docs/parameters_slicer_bridge.md)."""
-
-    # server: Slicer's OpenIGTLinkIF connector connects to us (its type "Client");
-    # client: we connect to a connector of type "Server" and reconnect when it goes away
-    role: str = "server"
-    host: str = "0.0.0.0"  # server: the address to listen on (all interfaces); client: Slicer's host
-    port: int = 18944  # OpenIGTLink's registered port; 0 (server only) picks a free one
-    # anatomical convention of the ct frame's coordinates: LPS (DICOM, and Slicer's own model
-    # files) or RAS; Slicer's scene is RAS, so LPS coordinates get x and y negated on the way
-    ct_convention: str = "LPS"
-    transform_device: str = "CTToSensor"  # TRANSFORM: Slicer RAS of the CT -> sensor frame (mm)
-    model_device: str = "PreopModel"  # POLYDATA: the preop model in Slicer RAS of the CT (mm)
-    cloud_device: str = "IntraopCloud"  # POLYDATA: the registered intraop cloud, sensor frame (mm)
-    status_device: str = "RegistrationStatus"  # STRING: "LEVEL: message" of each registration
-    max_model_points: int = 20000  # a preop model without mesh is decimated to at most this many points
-    max_cloud_points: int = 5000  # the intraop cloud is decimated to at most this many points
-    # the intraop cloud is sent at most this often (the transform always); 0: no cloud (the bridge
-    # then does not even subscribe to the clouds, which costs a copy of each one)
-    cloud_rate_hz: float = 5.0
-    point_size_mm: float = 1.5  # each point is drawn as a triangle of this leg length
-    max_queue_messages: int = 16  # per client: older unsent messages beyond this are dropped
-    max_queue_mb: float = 64.0  # per client: ... and beyond this many megabytes
-    reconnect_period_s: float = 1.0  # client role: time between connection attempts
-
-    def validate(self) -> SlicerConfig:
-        """Check ranges and choices; raise InputError with a one-line message if bad."""
-        if self.role not in SLICER_ROLES:
-            raise InputError(f"role must be one of {SLICER_ROLES}, got {self.role!r}")
-        if self.ct_convention not in CT_CONVENTIONS:
-            raise InputError(f"ct_convention must be one of {CT_CONVENTIONS}, got {self.ct_convention!r}")
-        lowest_port = 0 if self.role == "server" else 1
-        if not lowest_port <= self.port <= 65535:
-            raise InputError(f"port must be in {lowest_port}..65535 for role {self.role}, got {self.port}")
-        if not self.host:
-            raise InputError("host must not be empty")
-        devices = [self.transform_device, self.model_device, self.cloud_device, self.status_device]
-        for name in devices:
-            if not name or not name.isascii() or not name.isprintable() or len(name) > IGTL_DEVICE_NAME_BYTES:
-                raise InputError(f"device name {name!r} must be 1-{IGTL_DEVICE_NAME_BYTES} printable ASCII characters")
-        if len(set(devices)) != len(devices):
-            raise InputError(f"device names must differ, got {devices}")
-        for name in ("max_model_points", "max_cloud_points", "max_queue_messages"):
-            if not getattr(self, name) >= 1:
-                raise InputError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not self.cloud_rate_hz >= 0:
-            raise InputError(f"cloud_rate_hz must be >= 0 (0: no cloud), got {self.cloud_rate_hz}")
-        for name in ("point_size_mm", "max_queue_mb", "reconnect_period_s"):
-            if not getattr(self, name) > 0:  # `not >` also catches NaN
-                raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
-        return self
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    def replace(self, **changes: Any) -> SlicerConfig:
-        return SlicerConfig.from_dict({**self.to_dict(), **changes})
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> SlicerConfig:
-        """Build from a mapping (ROS parameters, CLI options) with the same coercion as Config; validate."""
-        return from_mapping(cls, values, "Slicer link setting")

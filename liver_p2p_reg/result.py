@@ -70,6 +70,9 @@ class RegistrationResult:
     error_coverage: float = float("nan")
     error_model: Any = None  # evaluates per-point bounds (registration/error_calibration.ErrorModel)
     error_calibration_note: str = ""  # why the bound's coverage is not known here (another method, other weights)
+    # the non-rigid stage (registration/deform.py), when it ran: applied or why not, the displacement of any point
+    deformation: Any = None
+    deformed_rms_tre_mm: float | None = None  # fiducial RMS error of the deformed positions (ground truth given)
 
     def error_bound_at(self, points_mm: np.ndarray) -> np.ndarray:
         """Per preop point (mm): the distance within which its true position lies with `error_coverage`."""
@@ -114,6 +117,10 @@ class RegistrationResult:
         if self.rms_tre_mm is not None:
             out["rms_tre_mm"] = _finite_or_none(self.rms_tre_mm)
             out["max_tre_mm"] = _finite_or_none(self.max_tre_mm)
+        if self.deformation is not None:
+            out["deformation"] = self.deformation.to_json_dict()
+        if self.deformed_rms_tre_mm is not None:
+            out["deformed_rms_tre_mm"] = _finite_or_none(self.deformed_rms_tre_mm)
         return out
 
     def __repr__(self) -> str:

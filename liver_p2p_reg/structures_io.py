@@ -41,8 +41,8 @@ class PlacedStructure:
     position_mm: np.ndarray  # (N, 3): the preop points moved rigidly by the pose, T_target_source
     error_bound_mm: np.ndarray  # (N,): the true position lies within this of position_mm with `coverage`; NaN: no model
     coverage: float  # result.error_coverage (NaN without an error model)
-    # The non-rigid stage (DESIGN.md "deform", not implemented yet) sets the positions after the
-    # deformation here; None: the registration was rigid only, position_mm is all there is.
+    # Where the non-rigid stage (registration/deform.py) puts the points, sensor frame; None: it did not run or
+    # was not applied (its reason is in the result's `deformation`), position_mm is all there is.
     deformed_position_mm: np.ndarray | None = None
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -146,6 +146,8 @@ def place_structures(
     and, per point, `result.error_bound_at` of its preop position (mm)."""
     T = np.asarray(result.T_target_source if T_mm is None else T_mm, dtype=np.float64)
     coverage = float(getattr(result, "error_coverage", float("nan")))
+    deformation = getattr(result, "deformation", None)
+    applied = deformation is not None and deformation.applied and T_mm is None
     return [
         PlacedStructure(
             s.label,
@@ -153,6 +155,7 @@ def place_structures(
             transform_points(T, s.points_mm),
             np.asarray(result.error_bound_at(s.points_mm), dtype=np.float64).reshape(-1),
             coverage,
+            deformation.deformed_position_mm(s.points_mm) if applied else None,
         )
         for s in structures
     ]

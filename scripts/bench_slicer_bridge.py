@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from liver_p2p_reg.bags.io import read_messages
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
 from liver_p2p_reg.igtl.link import SlicerLink
 from liver_p2p_reg.igtl.wire import StreamReader
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m
+from liver_p2p_reg.slicer_config import SlicerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,11 +9,12 @@ from pathlib import Path
 
 from liver_p2p_reg.bags.replay import replay_bags
 from liver_p2p_reg.cli.slicer import finish_replay
-from liver_p2p_reg.config import Config, SlicerConfig
+from liver_p2p_reg.config import Config
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
 from liver_p2p_reg.igtl.link import SlicerLink
 from liver_p2p_reg.igtl.picture import collect, draw
 from liver_p2p_reg.igtl.wire import Message, StreamReader
+from liver_p2p_reg.slicer_config import SlicerConfig
 
 
 def receive(port: int, into: list[Message]) -> threading.Thread:

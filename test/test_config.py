@@ -33,6 +33,7 @@ VIEWS = {
     "icp": config_module.IcpSection,
     "free_space": config_module.FreeSpaceSection,
     "verdict": config_module.VerdictSection,
+    "deformation": config_module.DeformSection,
     "stream": config_module.StreamSection,
 }
 

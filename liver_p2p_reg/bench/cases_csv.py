@@ -41,6 +41,9 @@ TAIL_COLUMNS = (
     "error_bound_mm",
     "bound_coverage",
     "seed",
+    "rigid_rms_tre_mm",
+    "deform_applied",
+    "deform_reason",
 )
 FLOAT_COLUMNS = {
     "visibility",
@@ -57,9 +60,10 @@ FLOAT_COLUMNS = {
     "free_space_violation",
     "error_bound_mm",
     "bound_coverage",
+    "rigid_rms_tre_mm",
 }
 INT_COLUMNS = {"n_candidates", "n_matches", "seed"}
-BOOL_COLUMNS = {"failed", "ambiguous"}
+BOOL_COLUMNS = {"failed", "ambiguous", "deform_applied"}
 
 
 def _format(value: Any) -> str:

@@ -17,7 +17,15 @@ from tqdm import tqdm
 
 from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_seed, read_case, sensor_origin_mm
 from liver_p2p_reg.bench.cases_csv import CASES_CSV, CsvLog, read_rows, write_rows
-from liver_p2p_reg.bench.jobs import BOUND, BenchmarkSpec, Variant, benchmark_methods, build_jobs, check_settings
+from liver_p2p_reg.bench.jobs import (
+    BOUND,
+    DEFORM_SUFFIX,
+    BenchmarkSpec,
+    Variant,
+    benchmark_methods,
+    build_jobs,
+    check_settings,
+)
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm, tre_mm
@@ -72,6 +80,7 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
             target_fiducials_mm=tgt_marker,
             sensor_origin_mm=origin,
             initial_T_mm=initial,
+            source_triangles=data.get("src_triangles"),  # the preop mesh, for the non-rigid stage
         )
     except LiverP2PError as exc:
         return {**row, **_failed(initial_rms, initial_max, f"{type(exc).__name__}: {exc}", start)}
@@ -102,6 +111,17 @@ def run_one(case: CaseInfo, variant: Variant, config_dict: dict[str, Any]) -> di
         # the share of interior markers within their per-point bound (error_bound.py)
         bound_coverage=float(np.mean(tre_mm(T, src_marker, tgt_marker) <= result.error_bound_at(src_marker))),
     )
+    if result.deformation is not None:  # `METHOD+deform`: the error where the deformed model puts the markers
+        moved = result.deformation.deformed_position_mm(src_marker)
+        errors = np.linalg.norm(moved - tgt_marker, axis=1)
+        row.update(
+            rigid_rms_tre_mm=row["rms_tre_mm"],
+            rms_tre_mm=float(result.deformed_rms_tre_mm),
+            max_tre_mm=float(errors.max()),
+            deform_applied=bool(result.deformation.applied),
+            deform_reason=result.deformation.reason,
+            bound_coverage=float(np.mean(errors <= result.error_bound_at(src_marker))),
+        )
     for stage, ms in result.runtime_ms.items():
         if stage != "total":
             row[f"runtime_{stage}_ms"] = float(ms)
@@ -151,7 +171,7 @@ def _init_worker(num_threads: int) -> None:
 def run_benchmark(spec: BenchmarkSpec, progress: bool = True) -> list[dict[str, Any]]:
     """Run every (case, variant) not yet in OUT/cases.csv; return all rows of OUT (old and new)."""
     known = set(benchmark_methods())
-    unknown = [m for m in spec.methods if m not in known]
+    unknown = [m for m in spec.methods if m.removesuffix(DEFORM_SUFFIX) not in known]
     if unknown:
         raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(sorted(known))}")
     if spec.workers < 1:

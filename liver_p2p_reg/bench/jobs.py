@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,8 @@ ABLATION_K = tuple(range(1, 9))  # the paper's Fig. 8: K = 1 ... 8
 ABLATION_CASES_PER_BIN = 10
 # Settings that may differ between runs into one OUT: they add rows and never change existing ones.
 ADDITIVE_SETTINGS = ("noise_levels_mm", "ablation_cases_per_bin", "sensor_aware")
+# `METHOD+deform`: the method with the non-rigid stage after it (rows of their own, TRE at the deformed positions)
+DEFORM_SUFFIX = "+deform"
 SENSOR_AWARE_TAG = "[fs]"  # label suffix of the rows registered with the case's sensor origin (free space)
 
 
@@ -40,6 +42,8 @@ class Variant:
     @property
     def label(self) -> str:
         base = self.method + SENSOR_AWARE_TAG if self.sensor_aware else self.method
+        if self.tag == DEFORM_SUFFIX:
+            return base + DEFORM_SUFFIX
         if self.tag:
             return f"{base}[{self.tag}]"
         if not self.overrides:
@@ -73,6 +77,7 @@ class BenchmarkSpec:
     prepared: dict[str, str] = field(default_factory=dict)
     prepare_minutes: float = 0.0
     sensor_aware: bool = False  # also run every method with the case's sensor origin (`method[fs]` rows)
+    visibility_range: tuple[float, float] | None = None  # only cases with visibility in [lo, hi)
 
     def settings(self) -> dict[str, Any]:
         """The settings recorded in OUT/settings.json; a rerun must match them."""
@@ -91,6 +96,7 @@ class BenchmarkSpec:
             "prepare_minutes": self.prepare_minutes,
             "sensor_aware": self.sensor_aware,
             "config": self.config.to_dict(),
+            **({"visibility_range": list(self.visibility_range)} if self.visibility_range else {}),
         }
 
 
@@ -106,12 +112,19 @@ def is_p2p(method: str) -> bool:
     return method.endswith("-p2p")
 
 
+def main_variant(name: str) -> Variant:
+    """The variant a `--methods` name runs: the method itself, or `METHOD+deform` with the non-rigid stage."""
+    if name.endswith(DEFORM_SUFFIX):
+        return Variant(name.removesuffix(DEFORM_SUFFIX), (("deform", True),), tag=DEFORM_SUFFIX)
+    return Variant(name)
+
+
 def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
     """All (case, variant) pairs of the run, cases outermost so partial runs cover whole cases."""
-    main = [Variant(m) for m in spec.methods]
+    main = [main_variant(m) for m in spec.methods]
     if spec.sensor_aware:  # the same cases with the sensor origin, next to each method's plain run
         # the oracle and the bound start from the truth: a sensor origin changes nothing of theirs
-        main += [Variant(m, sensor_aware=True) for m in spec.methods if m not in (ORACLE, BOUND)]
+        main += [replace(main_variant(m), sensor_aware=True) for m in spec.methods if m not in (ORACLE, BOUND)]
     ablation: list[Variant] = []
     if spec.ablations:
         cfg = spec.config

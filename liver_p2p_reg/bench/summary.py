@@ -106,6 +106,7 @@ class Summary(Tables):
                 *noise,
                 "",
             ]
+        lines += _deform_section("## ", self.rows)
         deformation = self.table_deformation()
         if deformation:
             lines += ["## Deformation range (fiducial RMS after rigid removal; Table III form), RMS-TRE mm", ""]
@@ -156,6 +157,7 @@ class Summary(Tables):
         density = self.table_density()
         if density:
             lines += ["Target density (the same crops and poses sampled three ways):", "", *density, ""]
+        lines += _deform_section("", self.rows)
         lines += ["Runtime per case:", "", *self.table_runtime(), ""]
         cpu = self.machine.get("cpu", "")
         lines += [
@@ -163,6 +165,20 @@ class Summary(Tables):
             f"device {self.machine.get('device', '?')}. Full report with curves, statistics and ablations: [{summary_link}]({summary_link}).",
         ]
         return "\n".join(lines)
+
+
+def _deform_section(heading: str, rows: list) -> list[str]:
+    """The non-rigid stage against its own rigid poses (bench/deform_table.py), when the run has `+deform` rows."""
+    from liver_p2p_reg.bench.deform_table import table_deform
+
+    table = table_deform(rows)
+    if table is None:
+        return []
+    title = "The non-rigid stage: interior RMS-TRE of each `+deform` row against its own rigid pose"
+    note = (
+        "(rows with the benchmark's added noise when the run has them; harm: a pose within 10 mm made worse by > 1 mm)"
+    )
+    return [f"{heading}{title}" + ("" if heading else ":"), "", note, "", *table, ""]
 
 
 def write_summary(

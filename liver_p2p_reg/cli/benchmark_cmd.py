@@ -46,6 +46,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="which cases get the --noise-levels copies: the lowest visibility bin (default) or all",
     )
     p.add_argument(
+        "--visibility",
+        metavar="LO,HI",
+        help="only the cases whose visibility lies in [LO, HI), e.g. 0.1,0.3 (where a laparoscope looks)",
+    )
+    p.add_argument(
         "--prepare-minutes",
         type=float,
         default=0.0,
@@ -72,6 +77,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _visibility_range(text: str | None) -> tuple[float, float] | None:
+    """`LO,HI` -> (LO, HI) with 0 <= LO < HI; a bad value is one InputError line."""
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--visibility must be LO,HI (two numbers, e.g. 0.1,0.3), got {text!r}") from None
+    if not 0 <= lo < hi:
+        raise InputError(f"--visibility needs 0 <= LO < HI, got {text!r}")
+    return lo, hi
+
+
 def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
     """The canonical command that reproduces this run (shown in the summary and the README)."""
     parts = ["liver-p2p", "benchmark", "--dataset", args.dataset, "--methods", ",".join(methods), "--out", args.out]
@@ -85,6 +103,7 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
         ("--threads", args.threads),
         ("--noise-levels", args.noise_levels),
         ("--noise-bins", args.noise_bins if args.noise_bins != "lowest" else None),
+        ("--visibility", args.visibility),
         ("--prepare-minutes", args.prepare_minutes or None),
     ):
         if value is not None:
@@ -131,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from liver_p2p_reg.bench.harness import run_benchmark
     from liver_p2p_reg.bench.jobs import (
+        DEFORM_SUFFIX,
         BenchmarkSpec,
         benchmark_methods,  # the table and `bound`: no torch or Open3D
         check_settings,
@@ -147,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else benchmark_methods()
     if not methods:
         raise InputError("no methods to run (--methods is empty)")
-    unknown = [m for m in methods if m not in benchmark_methods()]
+    unknown = [m for m in methods if m.removesuffix(DEFORM_SUFFIX) not in benchmark_methods()]
     if unknown:  # before a named test set is generated, which can take minutes
         raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(benchmark_methods())}")
     if config.device == "cuda" and not _cuda_available():
@@ -166,6 +186,11 @@ def run(args: argparse.Namespace) -> int:
     folder, dataset_id = resolve_dataset(args.dataset, root, livers=plan[0] if plan else None)
     paths = list_case_paths(folder) if plan is None else [folder / n for n in plan[1] if (folder / n).is_file()]
     cases = select_cases([case_info(p) for p in paths], args.preset, args.limit)
+    visibility_range = _visibility_range(args.visibility)
+    if visibility_range is not None:
+        cases = [c for c in cases if visibility_range[0] <= c.visibility < visibility_range[1]]
+        if not cases:
+            raise InputError(f"no case of {args.dataset} has a visibility in [{args.visibility})")
     cases = with_noise(cases, noise_levels, args.noise_bins)
     if args.sensor_aware:
         lacking = [c.case_id for c in cases if not c.has_sensor_origin]
@@ -203,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
         prepared=prepared,
         prepare_minutes=args.prepare_minutes,
         sensor_aware=args.sensor_aware,
+        visibility_range=visibility_range,
     )
     check_settings(out, spec.settings())  # refuse a mismatching OUT before touching it
     machine = machine_info(config.device)

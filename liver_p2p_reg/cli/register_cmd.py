@@ -80,6 +80,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="PATH",
         help="write the JSON result to PATH; with several targets PATH is a folder (PATH/<target name>.json)",
     )
+    p.add_argument(
+        "--deform",
+        action="store_true",
+        help="also run the non-rigid stage after the rigid pose (config `deform`): the JSON gets a `deformation` "
+        "block, structures their `deformed_position_mm`, --moved the deformed surface; SOURCE's triangles "
+        "(a mesh file) give its closed surface, else it is rebuilt from the points",
+    )
     p.add_argument("--json", action="store_true", help="also print the JSON result on stdout when --output is given")
     p.add_argument(
         "--plot",
@@ -122,6 +129,8 @@ def _config(args: argparse.Namespace):
         for name in ("method", "k", "selection", "seed", "device", "weights_path")
         if getattr(args, name, None) is not None
     }
+    if getattr(args, "deform", False):
+        overrides["deform"] = True
     return config.replace(**overrides) if overrides else config
 
 
@@ -183,6 +192,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--method track refines a prior pose: give it with --initial-transform FILE")
     if args.initial_transform is not None and config.method != "track":
         raise InputError("--initial-transform is used by --method track only")
+    from liver_p2p_reg.cli.register_outputs import source_mesh
     from liver_p2p_reg.cloud_io import check_point_file, load_points
 
     source_path = check_point_file(args.source)
@@ -194,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
 
     args.structure_list = load_structures(args.structures or [])  # InputError: one line, exit 2
     source = load_points(source_path, seed=config.seed)
+    args.source_mesh = source_mesh(source_path) if config.deform else None  # the stage's closed surface
     views = [load_points(t, seed=config.seed) for t in targets]  # every file is read before any work
     fiducials = (None, None)
     if args.source_fiducials is not None:  # the Registrar refuses NaN/inf pairs
@@ -267,6 +278,7 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
 
 def _register_each(args, config, registrar, source_path, source, views, fiducials, initial_T, paths, slicer, recorder):
     """The registrations of _register_all, each recorded when --record is given."""
+    from liver_p2p_reg.cli.register_outputs import summary_line, write_extras
     from liver_p2p_reg.structures_io import place_structures
 
     quiet = bool(getattr(args, "quiet", False))
@@ -286,6 +298,8 @@ def _register_each(args, config, registrar, source_path, source, views, fiducial
                 target_fiducials_mm=fid_t,
                 initial_T_mm=initial_T,
                 sensor_origin_mm=args.sensor_origin_mm,
+                source_triangles=args.source_mesh[1] if args.source_mesh else None,
+                mesh_vertices_mm=args.source_mesh[0] if args.source_mesh else None,
             )
         except LiverP2PError as exc:
             _record(recorder, i, target_path, target, fiducials, initial_T, args, exc, config, source)
@@ -311,9 +325,9 @@ def _register_each(args, config, registrar, source_path, source, views, fiducial
             from liver_p2p_reg.cli.slicer import send_registration
 
             send_registration(slicer, source_path, source, target, result, warnings, placed)
-        written = _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved[i], plots[i])
+        written = write_extras(source, target, result, config, warnings, fid_s, fid_t, moved[i], plots[i])
         if not quiet:
-            print(_summary(target_path, payload, outputs[i], written), file=summary_stream, flush=True)
+            print(summary_line(target_path, payload, outputs[i], written), file=summary_stream, flush=True)
     return 2 if failed else 0
 
 
@@ -337,51 +351,3 @@ def _warnings(result, config, placed) -> list[str]:
     if result.free_space.startswith("off"):  # an origin was given but cannot be the target's sensor
         warnings.append(f"--sensor-origin ignored: {result.free_space.removeprefix('off: ')}")
     return warnings
-
-
-def _write_extras(source, target, result, config, warnings, fid_s, fid_t, moved: Path | None, plot: Path | None):
-    written = []
-    if moved is not None:
-        from liver_p2p_reg.cloud_io import save_points
-        from liver_p2p_reg.metrics import transform_points
-
-        save_points(moved, transform_points(result.T_target_source, source))
-        written.append(moved)
-    if plot is not None:
-        from liver_p2p_reg.overlay import plot_registration
-
-        plot_registration(
-            source,
-            target,
-            result,
-            plot,
-            warnings=warnings,
-            residual_warn_mm=config.residual_warn_mm,
-            source_fiducials_mm=fid_s,
-            target_fiducials_mm=fid_t,
-        )
-        written.append(plot)
-    return written
-
-
-def _summary(target: Path, payload: dict, output: Path | None, written: list[Path]) -> str:
-    """One line a person reads: status, fit, confidence, time and where the results went."""
-    parts = [f"residual {payload['residual_mm']:.2f} mm"]
-    if payload.get("uncertainty_mm") is not None:
-        parts.append(f"uncertainty {payload['uncertainty_mm']:.1f} mm")
-    if payload.get("rms_tre_mm") is not None:
-        parts.append(f"RMS-TRE {payload['rms_tre_mm']:.2f} mm")
-    if payload.get("visibility") is not None:
-        parts.append(f"visibility {payload['visibility']:.2f}")
-    if payload.get("structures"):
-        n, bounds = len(payload["structures"]), [s["max_error_bound_mm"] for s in payload["structures"]]
-        known = [b for b in bounds if b is not None]  # none without an error model
-        parts.append(
-            f"{n} structure{'s' if n > 1 else ''}" + (f", error bound <= {max(known):.1f} mm" if known else "")
-        )
-    parts.append(f"{payload['runtime_ms']['total']:.0f} ms")
-    where = [f"JSON -> {output}" if output is not None else "JSON on stdout", *(str(p) for p in written)]
-    line = f"{target.name}: {payload['status']} {payload['method']}: {', '.join(parts)}; {', '.join(where)}"
-    if payload["warnings"]:
-        line += f" ({len(payload['warnings'])} warning{'s' if len(payload['warnings']) > 1 else ''} on stderr)"
-    return line

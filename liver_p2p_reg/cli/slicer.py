@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
+from liver_p2p_reg.slicer_config import SlicerConfig
 
 LOG = logging.getLogger("liver_p2p_reg")
 CONNECT_TIMEOUT_S = 5.0

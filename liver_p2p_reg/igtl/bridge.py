@@ -6,10 +6,10 @@ import time
 
 import numpy as np
 
-from liver_p2p_reg.config import IGTL_DEVICE_NAME_BYTES, SlicerConfig
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl import scene, wire
 from liver_p2p_reg.igtl.endpoint import Endpoint, IgtlClient, IgtlServer, LogFn
+from liver_p2p_reg.slicer_config import IGTL_DEVICE_NAME_BYTES, SlicerConfig
 
 
 def open_endpoint(config: SlicerConfig, log: LogFn | None = None) -> Endpoint:

@@ -33,6 +33,8 @@ CASE_KEYS = (
 # Optional keys: camera crops also store where the camera stood (the eye), in the target frame.
 # Case files made before it existed lack it: their sensor origin is unknown.
 SENSOR_ORIGIN_KEY = "sensor_origin_mm"
+# Optional: the preop surface's triangles (indices into src_pcd), for the non-rigid stage's closed solid.
+TRIANGLES_KEY = "src_triangles"
 
 
 def sensor_origin_mm(case: dict) -> np.ndarray | None:
@@ -42,6 +44,16 @@ def sensor_origin_mm(case: dict) -> np.ndarray | None:
         return None
     origin = np.asarray(value, dtype=np.float64).reshape(-1)
     return origin if origin.shape == (3,) and np.isfinite(origin).all() else None
+
+
+def source_triangles(case: dict) -> np.ndarray | None:
+    """The preop triangles of a case (F, 3) int64, or None when it stores points only (older files, P2P's)."""
+    value = case.get(TRIANGLES_KEY)
+    if value is None:
+        return None
+    tris = np.asarray(value, dtype=np.int64)
+    n = len(case["src_pcd"])
+    return tris if tris.ndim == 2 and tris.shape[1] == 3 and len(tris) and 0 <= tris.min() and tris.max() < n else None
 
 
 def write_case(path: str | Path, case: dict) -> Path:

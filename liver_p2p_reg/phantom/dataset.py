@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from liver_p2p_reg.errors import InputError, LiverP2PError
-from liver_p2p_reg.phantom.casefile import SENSOR_ORIGIN_KEY, read_case, write_case
+from liver_p2p_reg.phantom.casefile import SENSOR_ORIGIN_KEY, TRIANGLES_KEY, read_case, write_case
 from liver_p2p_reg.phantom.crop import CROP_MODES, make_target
 from liver_p2p_reg.phantom.manifest import manifest_row, read_manifest, write_manifest
 from liver_p2p_reg.phantom.simulate import DEFORMATION_FAMILIES, SimulatedLiver, simulate_liver
@@ -82,6 +82,7 @@ def make_case(
     R, t = target["R_gt"], target["t_gt"]
     case = {
         "src_pcd": np.asarray(sim.vertices_mm, dtype=np.float64),
+        TRIANGLES_KEY: np.asarray(sim.triangles, dtype=np.int32),
         "tgt_pcd": target["tgt_pcd"],
         "src_marker": np.asarray(sim.fiducials_mm, dtype=np.float64),
         "tgt_marker": deformation.fiducials_mm @ R.T + t,

@@ -55,8 +55,13 @@ class Registrar:
         target_fiducials_mm: np.ndarray | None = None,
         initial_T_mm: np.ndarray | None = None,
         sensor_origin_mm: np.ndarray | None = None,
+        source_triangles: np.ndarray | None = None,
+        mesh_vertices_mm: np.ndarray | None = None,
     ) -> RegistrationResult:
         """Estimate T_target_source (4x4, mm). Raises InputError / RegistrationError.
+
+        With `deform` in the config the non-rigid stage runs after the rigid pose (`self.deform`, which
+        says what `source_triangles` and `mesh_vertices_mm` are).
 
         `initial_T_mm` is a prior pose, used by the `track` method (ICP from the prior).
         `sensor_origin_mm` is where the target's depth sensor stood (3 numbers, mm, target frame):
@@ -95,10 +100,55 @@ class Registrar:
         if fid_s is not None and fid_t is not None:
             result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
             result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
+        if cfg.deform:
+            self.deform(result, source, target, source_triangles, fid_s, fid_t, mesh_vertices_mm=mesh_vertices_mm)
         result.runtime_ms["total"] = (time.perf_counter() - start) * 1e3
         return result
 
-    def warm_up(self, source_mm: np.ndarray, method: str | None = None) -> float:
+    def deform(
+        self,
+        result: RegistrationResult,
+        source_mm: np.ndarray,
+        target_mm: np.ndarray,
+        source_triangles: np.ndarray | None = None,
+        source_fiducials_mm: np.ndarray | None = None,
+        target_fiducials_mm: np.ndarray | None = None,
+        *,
+        mesh_vertices_mm: np.ndarray | None = None,
+    ) -> RegistrationResult:
+        """The non-rigid stage from `result`'s rigid pose: sets `result.deformation` (applied or why not) and,
+        with fiducials, `deformed_rms_tre_mm`. The rigid pose in `result` is left as it is. The node calls
+        this after publishing the rigid pose; `register` calls it when `deform` is on.
+
+        The closed preop surface is `source_triangles` over the source points, or over `mesh_vertices_mm`
+        when those are given (a CT mesh beside a sampled cloud); without triangles it is rebuilt from the points.
+        """
+        from liver_p2p_reg.registration.deform import deform_result
+
+        start = time.perf_counter()
+        source = clean_points(source_mm, "source", min_points=self.config.min_points)
+        target = clean_points(target_mm, "target", min_points=1)
+        surface, n_given = source, len(np.asarray(source_mm).reshape(-1, 3))
+        if mesh_vertices_mm is not None:
+            surface = clean_points(mesh_vertices_mm, "preop mesh", min_points=4)
+            n_given = len(np.asarray(mesh_vertices_mm).reshape(-1, 3))
+        tris = _check_triangles(source_triangles, len(surface), n_given)
+        result.deformation = deform_result(result, surface, target, self.config, self.cache, tris)
+        result.runtime_ms["deform"] = (time.perf_counter() - start) * 1e3
+        fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
+        if fid_s is not None and fid_t is not None:
+            moved = result.deformation.deformed_position_mm(fid_s)
+            result.deformed_rms_tre_mm = float(np.sqrt(np.mean(np.sum((moved - fid_t) ** 2, axis=1))))
+        return result
+
+    def warm_up(
+        self,
+        source_mm: np.ndarray,
+        method: str | None = None,
+        *,
+        source_triangles: np.ndarray | None = None,
+        mesh_vertices_mm: np.ndarray | None = None,
+    ) -> float:
         """Compute everything the method caches about a new source (its preprocessing, source
         features, model weights, ICP index) before the first real target arrives; returns ms.
 
@@ -112,9 +162,29 @@ class Registrar:
             centre = source[np.argmax(source[:, 0])]  # a deterministic cap of the surface
             near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(len(source) // 3, 3)]
             self.register(source, source[near], method=method)
+            if self.config.deform:  # the elastic model (seconds) is built here, not on the first frame
+                self.prepare_deformation(source, source_triangles, mesh_vertices_mm=mesh_vertices_mm)
         except LiverP2PError:
             pass
         return (time.perf_counter() - start) * 1e3
+
+    def prepare_deformation(
+        self,
+        source_mm: np.ndarray,
+        source_triangles: np.ndarray | None = None,
+        *,
+        mesh_vertices_mm: np.ndarray | None = None,
+    ) -> str:
+        """Build (and cache) the preop model's elastic model; "" when ready, else why the stage cannot run."""
+        from liver_p2p_reg.registration.deform import elastic_model
+
+        surface = clean_points(source_mm if mesh_vertices_mm is None else mesh_vertices_mm, "preop model", min_points=4)
+        tris = _check_triangles(source_triangles, len(surface), len(surface))
+        try:
+            elastic_model(self.cache, surface, tris, self.config)
+        except LiverP2PError as exc:
+            return f"no elastic model: {exc}"
+        return ""
 
 
 def register(
@@ -123,6 +193,22 @@ def register(
     """One-call convenience: `register(source_mm, target_mm, method="fpfh-p2p", k=5)`."""
     fiducials = {k: kwargs.pop(k) for k in ("source_fiducials_mm", "target_fiducials_mm") if k in kwargs}
     return Registrar(**kwargs).register(source_mm, target_mm, method=method, **fiducials)
+
+
+def _check_triangles(triangles: np.ndarray | None, n_clean: int, n_given: int) -> np.ndarray | None:
+    """Preop triangles as (F, 3) int64 indices into the source, or None; refused when they cannot be."""
+    if triangles is None:
+        return None
+    tris = np.asarray(triangles)
+    if tris.size == 0:
+        return None
+    if tris.ndim != 2 or tris.shape[1] != 3 or tris.dtype.kind not in "iu":
+        raise InputError(f"source triangles must be an (F, 3) integer array, got shape {tris.shape} {tris.dtype}")
+    if n_clean != n_given:  # cleaning dropped points: the indices no longer match
+        raise InputError("source triangles given, but the source has non-finite points: the indices no longer match")
+    if tris.min() < 0 or tris.max() >= n_clean:
+        raise InputError(f"source triangles index {int(tris.max())}, but the source has {n_clean} points")
+    return tris.astype(np.int64)
 
 
 def _check_pose(T: np.ndarray | None) -> np.ndarray | None:

@@ -11,7 +11,6 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker
 
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
 from liver_p2p_reg.igtl.link import SlicerLink
 from liver_p2p_reg.ros.node_main import log_at, parameters_from, run_node
@@ -25,6 +24,7 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_STRUCTURES,
     rclpy_qos,
 )
+from liver_p2p_reg.slicer_config import SlicerConfig
 
 STATUS_NAME = "liver_p2p_reg: slicer bridge"
 STATUS_PERIOD_S = 1.0

@@ -20,10 +20,10 @@ from igtl_support import (
     pyigtl,
 )
 
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
 from liver_p2p_reg.igtl.endpoint import IgtlClient, IgtlServer
+from liver_p2p_reg.slicer_config import SlicerConfig
 
 
 @pytest.fixture

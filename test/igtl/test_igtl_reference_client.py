@@ -56,11 +56,12 @@ if LIBRARY is None:
 from igtl_support import assert_wire_equal, expected_transform  # noqa: E402 (after the skip: pyigtl may skip too)
 
 from liver_p2p_reg.bags.replay import replay_bag  # noqa: E402
-from liver_p2p_reg.config import Config, SlicerConfig  # noqa: E402
+from liver_p2p_reg.config import Config  # noqa: E402
 from liver_p2p_reg.igtl import wire  # noqa: E402
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint  # noqa: E402
 from liver_p2p_reg.igtl.link import SlicerLink  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns  # noqa: E402
+from liver_p2p_reg.slicer_config import SlicerConfig  # noqa: E402
 from liver_p2p_reg.stream.outputs import DIAG_NAME  # noqa: E402
 
 BAG = HERE.parents[1] / "bags" / "insilico_L9000001_D00_T007_random"

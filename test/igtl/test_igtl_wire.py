@@ -9,9 +9,9 @@ import pytest
 from igtl_support import CRC64, MessageBase, assert_wire_equal, expected_transform, parse_polydata, pyigtl
 from scipy.spatial.transform import Rotation
 
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl import scene, wire
+from liver_p2p_reg.slicer_config import SlicerConfig
 
 
 def unpack(data: bytes) -> tuple[dict, bytes]:

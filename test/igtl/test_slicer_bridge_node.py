@@ -36,11 +36,12 @@ from visualization_msgs.msg import Marker  # noqa: E402
 
 from liver_p2p_reg.bags.io import typestore  # noqa: E402
 from liver_p2p_reg.bags.replay import replay_bag  # noqa: E402
-from liver_p2p_reg.config import Config, SlicerConfig  # noqa: E402
+from liver_p2p_reg.config import Config  # noqa: E402
 from liver_p2p_reg.igtl.link import level_of, pose_to_T_mm  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns  # noqa: E402
 from liver_p2p_reg.ros.slicer_bridge_node import STATUS_NAME  # noqa: E402
 from liver_p2p_reg.ros.topics import rclpy_qos  # noqa: E402
+from liver_p2p_reg.slicer_config import SlicerConfig  # noqa: E402
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME  # noqa: E402
 
 BAG = Path(__file__).resolve().parents[2] / "bags" / "insilico_L9000001_D00_T007_random"

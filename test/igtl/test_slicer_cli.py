@@ -16,11 +16,11 @@ from igtl_support import Recorder, SlicerServerStandIn, assert_wire_equal, expec
 from liver_p2p_reg.bags.io import read_messages
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.cloud_io import load_mesh, load_points, sample_mesh_surface, save_points
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.igtl import scene
 from liver_p2p_reg.igtl.link import level_of, pose_to_T_mm
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
+from liver_p2p_reg.slicer_config import SlicerConfig
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES
 
 BAG = Path(__file__).resolve().parents[2] / "bags" / "insilico_L9000001_D00_T007_random"  # visibility 0.9, OK

@@ -6,7 +6,7 @@ import ast
 import dataclasses
 from pathlib import Path
 
-from liver_p2p_reg.config import SlicerConfig
+from liver_p2p_reg.slicer_config import SlicerConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 

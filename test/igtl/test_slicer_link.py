@@ -7,11 +7,11 @@ import pytest
 from igtl_support import Recorder, assert_wire_equal, expected_transform
 
 from liver_p2p_reg.bags.io import rosbags_output_types, rosbags_types, typestore
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
 from liver_p2p_reg.igtl.link import SlicerLink, decimated_points_mm
 from liver_p2p_reg.ros.messages import diagnostic_array, pose_stamped
 from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
+from liver_p2p_reg.slicer_config import SlicerConfig
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, Diagnostic, PoseOutput
 

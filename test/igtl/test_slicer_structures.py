@@ -7,10 +7,10 @@ import pytest
 from igtl_support import Recorder
 
 from liver_p2p_reg.bags.io import rosbags_types, typestore
-from liver_p2p_reg.config import SlicerConfig
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
 from liver_p2p_reg.igtl.link import SlicerLink
 from liver_p2p_reg.ros.messages import registered_structures_cloud, structure_labels_json
+from liver_p2p_reg.slicer_config import SlicerConfig
 from liver_p2p_reg.stream.outputs import OK, CoreOutput, Diagnostic, PoseOutput
 from liver_p2p_reg.structures_io import PlacedStructure, Structure
 

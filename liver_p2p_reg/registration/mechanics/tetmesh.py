@@ -91,7 +91,8 @@ def build_tetmesh(liver: SurfaceMesh, target_tets: int = 10_000, margin_mm: floa
     if target_tets < 60:
         raise InputError(f"target_tets must be >= 60, got {target_tets}")
     verts = liver.vertices_mm
-    volume = abs(mesh_volume_mm3(verts, liver.triangles))
+    # A voxelized solid (solid.py) knows its volume; a closed triangle surface gives it exactly.
+    volume = getattr(liver, "volume_mm3", None) or abs(mesh_volume_mm3(verts, liver.triangles))
     # Boundary cubes add roughly a shell's worth; 0.8 compensates so the count lands near target.
     h = float((volume / (0.8 * target_tets / 6.0)) ** (1.0 / 3.0))
     origin = verts.min(axis=0) - 1.5 * h

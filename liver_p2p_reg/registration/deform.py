@@ -1,0 +1,160 @@
+"""The non-rigid stage after the rigid pose: build (once) and fit the preop liver's elastic model, or say why not.
+
+It never makes a result worse silently: when the view cannot support a deformation (too few points, a gross
+rigid pose, no closed preop solid, a fit that does not lower the residual, an implausible displacement) the
+deformation is not applied, the rigid pose stands, and `reason` says why in one line.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.context import remember_latest
+
+if TYPE_CHECKING:
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.registration.mechanics.modes import ElasticModel
+    from liver_p2p_reg.result import RegistrationResult
+
+
+@dataclass
+class Deformation:
+    """The non-rigid stage's outcome: the refined pose and the displacement of any preop point."""
+
+    applied: bool
+    reason: str  # "" when applied, else why the rigid result stands (one line)
+    T_target_source: np.ndarray  # (4, 4) the rigid pose refined with the deformation (the rigid pose if not applied)
+    coefficients_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rms_displacement_mm: float = 0.0  # over the model's mesh nodes (the volume)
+    max_displacement_mm: float = 0.0
+    strain_energy_mj: float = 0.0  # at modes.YOUNGS_MODULUS_KPA
+    iterations: int = 0
+    residual_before_mm: float = float("nan")  # robust mean closest-point distance at the rigid pose
+    residual_after_mm: float = float("nan")
+    runtime_ms: float = 0.0  # the fit (the model's build is `model_build_ms`, once per preop model)
+    model_build_ms: float = 0.0
+    n_modes: int = 0
+    n_nodes: int = 0
+    model: ElasticModel | None = field(default=None, repr=False)
+
+    def displacement_at(self, points_mm: np.ndarray) -> np.ndarray:
+        """Displacement (P, 3) of preop points in the preop frame (zero when not applied)."""
+        points_mm = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        if not self.applied or self.model is None:
+            return np.zeros_like(points_mm)
+        return self.model.displacement_at(points_mm, self.coefficients_mm)
+
+    def deformed_position_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """Where preop points are now, in the target (sensor) frame: T (p + u(p))."""
+        p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) + self.displacement_at(points_mm)
+        return p @ self.T_target_source[:3, :3].T + self.T_target_source[:3, 3]
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The `deformation` block of the result JSON."""
+
+        def num(x: float) -> float | None:
+            return round(float(x), 4) if np.isfinite(x) else None
+
+        return {
+            "applied": bool(self.applied),
+            "reason": self.reason,
+            "transform": np.asarray(self.T_target_source).tolist(),
+            "rms_displacement_mm": num(self.rms_displacement_mm),
+            "max_displacement_mm": num(self.max_displacement_mm),
+            "strain_energy_mj": num(self.strain_energy_mj),
+            "iterations": int(self.iterations),
+            "residual_before_mm": num(self.residual_before_mm),
+            "residual_after_mm": num(self.residual_after_mm),
+            "runtime_ms": num(self.runtime_ms),
+            "model_build_ms": num(self.model_build_ms),
+            "n_modes": int(self.n_modes),
+            "n_nodes": int(self.n_nodes),
+        }
+
+
+def elastic_model(
+    cache: dict[str, Any], source_mm: np.ndarray, triangles: np.ndarray | None, config: Config
+) -> ElasticModel:
+    """The preop model's elastic model, built once per (source, triangles, settings) and kept in the cache."""
+    from liver_p2p_reg.registration.features.fpfh import outward_normals
+    from liver_p2p_reg.registration.mechanics.modes import build_elastic_model
+
+    tris = None if triangles is None else np.ascontiguousarray(triangles, dtype=np.int64)
+    key_points = source_mm if tris is None else np.concatenate([source_mm.ravel(), tris.ravel().astype(np.float64)])
+    params = (config.deform_modes, config.deform_target_tets, tris is not None)
+
+    def build() -> ElasticModel:
+        extent = float(np.max(np.ptp(source_mm, axis=0)))
+        normals = outward_normals(source_mm / extent, 0.05)  # the radius is relative to the extent
+        return build_elastic_model(
+            source_mm, normals, tris, n_modes=config.deform_modes, target_tets=config.deform_target_tets
+        )
+
+    return remember_latest(cache, "elastic", key_points, params, build)
+
+
+def not_applied(T: np.ndarray, reason: str, **known: Any) -> Deformation:
+    """The rigid result standing, with the reason."""
+    return Deformation(applied=False, reason=reason, T_target_source=np.asarray(T, dtype=np.float64).copy(), **known)
+
+
+def deform_result(
+    result: RegistrationResult,
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    config: Config,
+    cache: dict[str, Any],
+    triangles: np.ndarray | None = None,
+) -> Deformation:
+    """Run the non-rigid stage from `result`'s rigid pose (never raises for data it cannot use)."""
+    from liver_p2p_reg.registration.deform_fit import fit_deformation
+
+    T = np.asarray(result.T_target_source, dtype=np.float64)
+    cfg = config.deformation
+    if not result.ok:
+        return not_applied(T, f"the rigid registration failed ({result.message or 'no pose'})")
+    if len(target_mm) < cfg.deform_min_points:
+        return not_applied(T, f"too little overlap: {len(target_mm)} view points < deform_min_points")
+    if not result.residual_mm <= cfg.deform_max_residual_mm:
+        return not_applied(
+            T, f"rigid residual {result.residual_mm:.1f} mm > {cfg.deform_max_residual_mm:g} mm: a gross pose"
+        )
+    try:
+        model = elastic_model(cache, source_mm, triangles, config)
+    except InputError as exc:
+        return not_applied(T, f"no elastic model: {exc}")
+    known = dict(model_build_ms=model.build_ms, n_modes=model.n_modes, n_nodes=len(model.mesh.nodes_mm), model=model)
+    start = time.perf_counter()
+    fit = fit_deformation(
+        model, target_mm, T, regularization=cfg.deform_regularization, iterations=cfg.deform_iterations
+    )
+    disp = model.nodal_displacement_mm(fit.coefficients_mm)
+    norms = np.linalg.norm(disp, axis=1)
+    stats = dict(
+        coefficients_mm=fit.coefficients_mm,
+        rms_displacement_mm=float(np.sqrt(np.mean(norms**2))),
+        max_displacement_mm=float(norms.max()),
+        strain_energy_mj=float(model.energy_mj_per_mm2 * np.sum(model.stiffness_ratio * fit.coefficients_mm**2)),
+        iterations=fit.iterations,
+        residual_before_mm=fit.residual_before_mm,
+        residual_after_mm=fit.residual_after_mm,
+        runtime_ms=(time.perf_counter() - start) * 1e3,
+        **known,
+    )
+    before, after = fit.residual_before_mm, fit.residual_after_mm
+    if not np.all(np.isfinite(fit.T_target_source)) or not np.all(np.isfinite(fit.coefficients_mm)):
+        return not_applied(T, "the fit diverged (non-finite values)", **stats)
+    if stats["max_displacement_mm"] > cfg.deform_max_displacement_mm:
+        return not_applied(
+            T,
+            f"implausible deformation: {stats['max_displacement_mm']:.1f} mm > {cfg.deform_max_displacement_mm:g} mm",
+            **stats,
+        )
+    if not after <= (1.0 - cfg.deform_min_gain) * before:
+        return not_applied(T, f"the residual did not improve enough ({before:.2f} -> {after:.2f} mm)", **stats)
+    return Deformation(applied=True, reason="", T_target_source=fit.T_target_source, **stats)

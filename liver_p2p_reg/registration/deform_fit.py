@@ -1,0 +1,111 @@
+"""The non-rigid fit: elastic mode coefficients and a rigid correction that pull the preop surface onto the view.
+
+Energy (preop frame, target moved there by the rigid pose):
+    E(q, xi) = sum_i w_i (n_i . (x_j(q) - G_xi y_i))^2 / sum_i w_i  +  alpha * sum_k (lambda_k / lambda_1) q_k^2
+x_j(q) = x_j + B_j q is the deformed preop point closest to target point y_i (pairs go from the partial view to
+the complete model, so the unobserved side has no data term and is held only by the strain energy), n_j its
+normal, G_xi a small rigid motion of the view, w_i a Geman-McClure weight of the residual (outliers and
+mis-paired points fade out). Gauss-Newton on (q, xi) with the pairs recomputed each iteration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from liver_p2p_reg.registration.mechanics.modes import ElasticModel
+
+MIN_SCALE_MM = 1.0  # the robust kernel's scale never drops below this (2 mm sensor noise is normal)
+
+
+@dataclass
+class FitOutcome:
+    """What the non-rigid fit found (coefficients in mm of each mode's volume-RMS displacement)."""
+
+    coefficients_mm: np.ndarray  # (m,)
+    T_target_source: np.ndarray  # (4, 4) the rigid pose refined with the deformation
+    iterations: int
+    residual_before_mm: float  # robust mean closest-point distance at the rigid pose, no deformation
+    residual_after_mm: float  # the same measure after the fit
+    pairs: int  # target points used
+
+
+def _rodrigues(omega: np.ndarray) -> np.ndarray:
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = omega / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
+def robust_residual_mm(points_mm: np.ndarray, view_mm: np.ndarray) -> float:
+    """Mean distance of the view's points to their closest surface point, the worst 10 % left out."""
+    d = np.sort(cKDTree(points_mm).query(view_mm)[0])
+    return float(d[: max(int(0.9 * len(d)), 1)].mean())
+
+
+def fit_deformation(
+    model: ElasticModel,
+    target_mm: np.ndarray,
+    T_init: np.ndarray,
+    *,
+    regularization: float,
+    iterations: int,
+    max_model_points: int = 6000,
+    max_target_points: int = 2500,
+) -> FitOutcome:
+    """Minimize the energy above from the rigid pose `T_init` (source -> target, mm)."""
+    sub = np.arange(0, len(model.source_mm), max(int(np.ceil(len(model.source_mm) / max_model_points)), 1))
+    x0 = model.source_mm[sub]
+    normals = model.source_normals[sub]
+    basis = model.basis_at(model.source_ids[sub], model.source_weights[sub])  # (P, 3, m)
+    target = np.asarray(target_mm, dtype=np.float64)
+    target = target[:: max(int(np.ceil(len(target) / max_target_points)), 1)]
+    T = np.asarray(T_init, dtype=np.float64).copy()
+    m = model.n_modes
+    q = np.zeros(m)
+    prior = regularization * np.concatenate([model.stiffness_ratio, np.zeros(6)])
+    view = (target - T[:3, 3]) @ T[:3, :3]  # the view in the preop frame
+    before = robust_residual_mm(x0, view)
+    done = 0
+    while done < iterations:
+        done += 1
+        view = (target - T[:3, 3]) @ T[:3, :3]
+        x = x0 + basis @ q
+        dist, j = cKDTree(x).query(view)
+        n = normals[j]
+        r = np.einsum("ij,ij->i", n, x[j] - view)
+        scale = max(1.4826 * float(np.median(np.abs(r))), MIN_SCALE_MM)
+        w = 1.0 / (1.0 + (r / scale) ** 2) ** 2
+        w *= dist < max(5.0 * float(np.median(dist)), 5.0)  # far pairs are not the same surface
+        centre = view.mean(axis=0)
+        J = np.empty((len(view), m + 6))
+        J[:, :m] = np.einsum("id,idm->im", n, basis[j])
+        J[:, m : m + 3] = -np.cross(view - centre, n)  # d r / d omega of the view's rotation about its centre
+        J[:, m + 3 :] = -n
+        sw = float(w.sum()) + 1e-12
+        A = (J * w[:, None]).T @ J / sw + np.diag(prior) + 1e-9 * np.eye(m + 6)
+        g = (J * w[:, None]).T @ r / sw + prior * np.concatenate([q, np.zeros(6)])
+        step = -np.linalg.solve(A, g)
+        q = q + step[:m]
+        # The view moves by G (rotation about its centre, then translation); the pose becomes T G^-1.
+        Rg = _rodrigues(step[m : m + 3])
+        G = np.eye(4)
+        G[:3, :3] = Rg
+        G[:3, 3] = centre - Rg @ centre + step[m + 3 :]
+        T = T @ np.linalg.inv(G)
+        if np.max(np.abs(step[:m])) < 0.01 and np.linalg.norm(step[m:]) < 1e-4:
+            break
+    view = (target - T[:3, 3]) @ T[:3, :3]
+    after = robust_residual_mm(x0 + basis @ q, view)
+    return FitOutcome(
+        coefficients_mm=q,
+        T_target_source=T,
+        iterations=done,
+        residual_before_mm=before,
+        residual_after_mm=after,
+        pairs=len(target),
+    )
