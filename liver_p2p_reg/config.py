@@ -184,13 +184,14 @@ class DeformSection:
     """The non-rigid stage after the rigid pose (deform.py): the preop model's elastic modes pulled onto the view."""
 
     deform: bool = False  # run the stage after every registration (the rigid pose is published first)
+    # modes, regularization and gain chosen on validation sets of both deformation families (docs/deform/choice.md)
     deform_modes: int = 24  # lowest non-rigid elastic modes of the preop model kept as the deformation basis
     deform_target_tets: int = 6000  # tetrahedra of the preop model's mesh (built once per model)
-    deform_regularization: float = 1.0  # strain-energy weight: mm^2 of mean squared residual per mm^2 of mode 1
+    deform_regularization: float = 0.01  # strain-energy weight: mm^2 of mean squared residual per mm^2 of mode 1
     deform_iterations: int = 15  # Gauss-Newton steps (the pairs are recomputed each step)
     deform_min_points: int = 200  # fewer view points than this: no deformation ("too little overlap")
     deform_max_residual_mm: float = 5.0  # rigid residual above this: a gross pose is not deformed
-    deform_min_gain: float = 0.05  # the residual must fall by this share, else the rigid result stands
+    deform_min_gain: float = 0.1  # the residual must fall by this share, else the rigid result stands
     deform_max_displacement_mm: float = 25.0  # a larger displacement anywhere is implausible: rigid result
 
 
