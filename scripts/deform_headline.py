@@ -27,7 +27,7 @@ def main() -> None:
     lines: list[str] = []
     for out in map(Path, args.outs):
         dataset = json.loads((out / "settings.json").read_text())["dataset"]
-        rows = [r for r in read_rows(out / "cases.csv") if r["method"] == METHOD]
+        rows = [r for r in read_rows(out / "cases.csv") if r["method"] == METHOD and 0.1 <= r["visibility"] < 0.3]
         table = table_deform(rows) or []
         body = [line.replace(f"| {METHOD} |", f"| `{dataset}` |", 1) for line in table]
         if not body:

@@ -10,8 +10,8 @@ from liver_p2p_reg.bench.jobs import DEFORM_SUFFIX
 from liver_p2p_reg.bench.markdown import fmt, md_table, pct
 from liver_p2p_reg.bench.stats import SAFETY_TAU_MM, Row
 
-# The ranges the non-rigid stage is judged in (issue targets): where a laparoscope looks, and above.
-RANGES = ((0.05, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 1.0001))
+# The ranges the non-rigid stage is judged in: where a laparoscope looks ([0.1, 0.2) as one), then each bin above.
+RANGES = ((0.05, 0.1), (0.1, 0.2), *((lo / 10, (lo + 1) / 10) for lo in range(2, 9)), (0.9, 1.0001))
 HARM_MM = 1.0  # a pose within SAFETY_TAU_MM made worse by more than this counts as harm
 
 

@@ -67,5 +67,5 @@ def test_benchmark_deform_rows_keep_their_rigid_error(case: dict, tmp_path: Path
     assert deformed["deform_applied"] or deformed["deform_reason"]
     assert np.isnan(rigid["rigid_rms_tre_mm"]) and not rigid["deform_applied"]
     summary = (tmp_path / "b" / "summary.md").read_text()
-    assert "The non-rigid stage" in summary and "| fpfh-ransac-icp+deform | [0.30,1.00] | 1 |" in summary
+    assert "The non-rigid stage" in summary and "| fpfh-ransac-icp+deform | [0.30,0.40) | 1 |" in summary
     assert main(["-q", *args, "--methods", "fpfh-ransac-icp+nothing"]) == 2
