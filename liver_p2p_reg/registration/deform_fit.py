@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from liver_p2p_reg.registration.mechanics.modes import ElasticModel
+from liver_p2p_reg.registration.refine import axis_angle_rotation
 
 MIN_SCALE_MM = 1.0  # the robust kernel's scale never drops below this (2 mm sensor noise is normal)
 
@@ -30,15 +31,6 @@ class FitOutcome:
     residual_before_mm: float  # robust mean closest-point distance at the rigid pose, no deformation
     residual_after_mm: float  # the same measure after the fit
     pairs: int  # target points used
-
-
-def _rodrigues(omega: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(omega))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = omega / angle
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 def robust_residual_mm(points_mm: np.ndarray, view_mm: np.ndarray) -> float:
@@ -92,7 +84,7 @@ def fit_deformation(
         step = -np.linalg.solve(A, g)
         q = q + step[:m]
         # The view moves by G (rotation about its centre, then translation); the pose becomes T G^-1.
-        Rg = _rodrigues(step[m : m + 3])
+        Rg = axis_angle_rotation(step[m : m + 3])
         G = np.eye(4)
         G[:3, :3] = Rg
         G[:3, 3] = centre - Rg @ centre + step[m + 3 :]

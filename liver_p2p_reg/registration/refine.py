@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from liver_p2p_reg.registration.preprocess import PreprocessedPair
 
 
-def _rotation(omega: np.ndarray) -> np.ndarray:
+def axis_angle_rotation(omega: np.ndarray) -> np.ndarray:
     """Rotation matrix of the axis-angle vector omega (Rodrigues)."""
     angle = float(np.linalg.norm(omega))
     if angle < 1e-12:
@@ -76,7 +76,7 @@ def trimmed_icp(
         b = -np.einsum("ij,ij->i", p - s, n)
         x, *_ = np.linalg.lstsq(A.T @ A, A.T @ b, rcond=None)
         step = np.eye(4)
-        step[:3, :3] = _rotation(x[:3])
+        step[:3, :3] = axis_angle_rotation(x[:3])
         step[:3, 3] = x[3:]
         T_inv = step @ T_inv
         if np.linalg.norm(x) < tol:
