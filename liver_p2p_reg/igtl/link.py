@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from liver_p2p_reg.bags.io import POINTCLOUD2, typestore
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.igtl.bridge import SlicerBridge
-from liver_p2p_reg.ros.messages import parse_structure_labels
+from liver_p2p_reg.ros.messages import mesh_marker_mm, parse_structure_labels
 from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_points_mm, cloud_to_structures, stamp_to_ns
 from liver_p2p_reg.ros.topics import (
     TOPIC_INTRAOP,
@@ -38,7 +38,6 @@ LOG = logging.getLogger("liver_p2p_reg.slicer")
 # (1 Hz) summary; a status carrying them repeats a registration already forwarded.
 PERIODIC_STATUS_KEY = "received_clouds"
 KEPT_CLOUDS = 64  # decimated intraop clouds kept to pair with the pose of the same stamp (2 s at 30 Hz)
-MARKER_TRIANGLE_LIST = 11  # visualization_msgs/Marker.TRIANGLE_LIST
 
 
 def decimated_points_mm(msg: Any, max_points: int) -> np.ndarray:
@@ -124,14 +123,9 @@ class SlicerLink:
         """/preop/mesh (visualization_msgs/Marker TRIANGLE_LIST, metres): the model as a mesh."""
 
         def send() -> None:
-            if int(msg.type) != MARKER_TRIANGLE_LIST:
-                raise InputError(f"/preop/mesh marker type {msg.type} is not TRIANGLE_LIST ({MARKER_TRIANGLE_LIST})")
-            corners = np.array([(p.x, p.y, p.z) for p in msg.points], dtype=np.float64).reshape(-1, 3) * MM_PER_M
-            if len(corners) == 0 or len(corners) % 3:
-                raise InputError(f"/preop/mesh has {len(corners)} points (a positive multiple of 3 needed)")
-            vertices, corner_vertex = np.unique(corners, axis=0, return_inverse=True)
+            vertices, triangles = mesh_marker_mm(msg)  # welded; InputError when it is not a TRIANGLE_LIST mesh
             stamp = stamp_to_ns(msg.header.stamp)
-            self._send_model(vertices, corner_vertex.reshape(-1, 3), stamp)
+            self._send_model(vertices, triangles, stamp)
             self._mesh_stamp = stamp
 
         self._guard(TOPIC_PREOP_MESH, send)
@@ -203,11 +197,11 @@ class SlicerLink:
         if output.pose is not None:
             self._guard("pose", lambda: self.send_pose(output.pose.T_sensor_ct_mm, stamp))
             placed = output.structures
-            if placed:
-                self._guard(
-                    "structures",
-                    lambda: self.send_structures([s.label for s in placed], [s.position_mm for s in placed], stamp),
-                )
+            if placed:  # where the non-rigid stage put them when it was applied
+                positions = [
+                    s.position_mm if s.deformed_position_mm is None else s.deformed_position_mm for s in placed
+                ]
+                self._guard("structures", lambda: self.send_structures([s.label for s in placed], positions, stamp))
         for diag in output.diagnostics:
             if diag.name == DIAG_NAME:
                 self.bridge.send_status(diag.level_name, diag.message, stamp)

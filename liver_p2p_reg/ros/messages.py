@@ -20,10 +20,12 @@ from liver_p2p_reg.ros.pointcloud2 import (
     stamp_to_ns,
     structures_to_cloud,
 )
-from liver_p2p_reg.ros.topics import TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS
+from liver_p2p_reg.ros.topics import TOPIC_PREOP_MESH, TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, PREOP_DIAG_NAME, WARN, Diagnostic, PoseOutput
 from liver_p2p_reg.structures_io import PlacedStructure, Structure
+
+MARKER_TRIANGLE_LIST = 11  # visualization_msgs/Marker.TRIANGLE_LIST
 
 
 def feed_preop_msg(core: NodeCore, msg: Any, *, warm_up: bool = True) -> Diagnostic:
@@ -33,6 +35,30 @@ def feed_preop_msg(core: NodeCore, msg: Any, *, warm_up: bool = True) -> Diagnos
     except InputError as exc:
         return Diagnostic(ERROR, PREOP_DIAG_NAME, f"bad /preop/points: {exc}")
     return core.set_preop(points, msg.header.frame_id, stamp_to_ns(msg.header.stamp), warm_up=warm_up)
+
+
+def mesh_marker_mm(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(welded vertices (V, 3) mm, triangles (F, 3) int64) of a /preop/mesh Marker TRIANGLE_LIST (three `points`
+    per triangle, metres, in its header's frame; pose and scale are not applied: the loader's are identity and 1).
+    Equal corners become one vertex. InputError (one line) when the marker is not such a mesh."""
+    if int(msg.type) != MARKER_TRIANGLE_LIST:
+        raise InputError(f"marker type {msg.type} is not TRIANGLE_LIST ({MARKER_TRIANGLE_LIST})")
+    corners = np.array([(p.x, p.y, p.z) for p in msg.points], dtype=np.float64).reshape(-1, 3) * MM_PER_M
+    if len(corners) == 0 or len(corners) % 3:
+        raise InputError(f"{len(corners)} points (a positive multiple of 3 needed)")
+    if not np.isfinite(corners).all():
+        raise InputError("non-finite point coordinates")
+    vertices, corner_vertex = np.unique(corners, axis=0, return_inverse=True)
+    return vertices, corner_vertex.reshape(-1, 3).astype(np.int64)
+
+
+def feed_preop_mesh_msg(core: NodeCore, msg: Any) -> Diagnostic:
+    """A /preop/mesh Marker into the core (the non-rigid stage's surface); an ERROR diagnostic when it is not a mesh."""
+    try:
+        vertices, triangles = mesh_marker_mm(msg)
+        return core.set_preop_mesh(vertices, triangles, msg.header.frame_id, stamp_to_ns(msg.header.stamp))
+    except InputError as exc:
+        return Diagnostic(ERROR, PREOP_DIAG_NAME, f"bad {TOPIC_PREOP_MESH}: {exc}; ignored")
 
 
 def _feed_fiducials(
@@ -114,8 +140,10 @@ def preop_structures_cloud(structures: Sequence[Structure], types: MessageTypes,
 def registered_structures_cloud(
     structures: Sequence[PlacedStructure], types: MessageTypes, frame_id: str, stamp_ns: int
 ) -> Any:
-    """/registration/structures: the structures moved into the sensor frame (metres), label_id and error_bound (m)."""
-    points = np.concatenate([s.position_mm for s in structures]) if structures else np.zeros((0, 3))
+    """/registration/structures: the structures moved into the sensor frame (metres; their deformed positions
+    when the non-rigid stage was applied), label_id and error_bound (m)."""
+    positions = [s.position_mm if s.deformed_position_mm is None else s.deformed_position_mm for s in structures]
+    points = np.concatenate(positions) if structures else np.zeros((0, 3))
     ids = np.concatenate([np.full(len(s.position_mm), s.label_id) for s in structures]) if structures else []
     bounds = np.concatenate([s.error_bound_mm for s in structures]) if structures else np.zeros(0)
     return structures_to_cloud(

@@ -23,33 +23,34 @@ from rclpy.timer import Timer
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker
 
 from liver_p2p_reg.bags.recorder import recording_path
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.registration.methods import check_method_name
 from liver_p2p_reg.ros.messages import (
-    diagnostic_array,
     feed_intraop_fiducials_msg,
     feed_intraop_msg,
     feed_preop_fiducials_msg,
+    feed_preop_mesh_msg,
     feed_preop_msg,
     feed_structure_labels_msg,
     feed_structures_msg,
-    pose_stamped,
-    registered_structures_cloud,
-    transform_stamped,
 )
-from liver_p2p_reg.ros.node_main import RclpyLogHandler, declare_from, log_at, read_from, run_node
-from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, points_to_cloud, stamp_to_ns
-from liver_p2p_reg.ros.rclpy_types import RCLPY_TYPES  # also imported from here (tests, scripts)
+from liver_p2p_reg.ros.node_main import RclpyLogHandler, declare_from, read_from, run_node
+from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
+from liver_p2p_reg.ros.rclpy_types import RCLPY_TYPES  # noqa: F401  (also imported from here: tests, scripts)
+from liver_p2p_reg.ros.register_outputs import RegisterOutputs
 from liver_p2p_reg.ros.topics import (
+    TOPIC_DEFORMED_PREOP,
     TOPIC_DIAGNOSTICS,
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
     TOPIC_PREOP_STRUCTURES,
     TOPIC_REGISTERED,
     TOPIC_STRUCTURE_LABELS,
@@ -58,14 +59,14 @@ from liver_p2p_reg.ros.topics import (
     rclpy_qos,
 )
 from liver_p2p_reg.stream.core import NodeCore
-from liver_p2p_reg.stream.health import StreamHealth, stale_when_silent
-from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, WARN, CoreOutput, Diagnostic
+from liver_p2p_reg.stream.health import StreamHealth
+from liver_p2p_reg.stream.outputs import DIAG_NAME, OK, WARN, Diagnostic
 
 DIAGNOSTICS_PERIOD_S = 1.0
 JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
 
 
-class RegisterWiring:
+class RegisterWiring(RegisterOutputs):
     """register_node's wiring in the phases of a managed node (mixed into an rclpy Node or LifecycleNode).
 
     Callbacks only hand work over; one worker thread does every heavy step (start-up preload,
@@ -104,9 +105,12 @@ class RegisterWiring:
         self.transform_pub = self.create_publisher(TransformStamped, TOPIC_TRANSFORM, rclpy_qos(TOPIC_TRANSFORM))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_REGISTERED, rclpy_qos(TOPIC_REGISTERED))
         self.structures_pub = self.create_publisher(PointCloud2, TOPIC_STRUCTURES, rclpy_qos(TOPIC_STRUCTURES))
+        self.deformed_pub = self.create_publisher(PointCloud2, TOPIC_DEFORMED_PREOP, rclpy_qos(TOPIC_DEFORMED_PREOP))
         self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, rclpy_qos(TOPIC_DIAGNOSTICS))
-        self._kept = [self.pose_pub, self.transform_pub, self.cloud_pub, self.structures_pub, self.diag_pub]
+        self._kept = [self.pose_pub, self.transform_pub, self.cloud_pub, self.structures_pub, self.deformed_pub]
+        self._kept.append(self.diag_pub)
         self._kept.append(self._subscribe(TOPIC_PREOP, self._on_preop))
+        self._kept.append(self._subscribe(TOPIC_PREOP_MESH, self._on_mesh, Marker))  # the non-rigid stage's surface
         self._kept.append(self._subscribe(TOPIC_PREOP_FIDUCIALS, self._on_preop_fiducials))
         # the structures: moved with every pose (stream/structures.py says which set is kept)
         on_labels = lambda msg: self._report_any(feed_structure_labels_msg(self.core, msg.data))  # noqa: E731
@@ -190,6 +194,12 @@ class RegisterWiring:
         else:
             self._report([diag])
 
+    def _on_mesh(self, msg: Marker) -> None:
+        diag = feed_preop_mesh_msg(self.core, msg)  # ERROR for a malformed marker (ignored); else kept for its model
+        self._report([diag])
+        if diag.level == OK:  # a mesh of the current model: its elastic model is built again (deform on)
+            self._submit(lambda: self._report_any(self.core.prepare_deformation()))
+
     def _on_preop_fiducials(self, msg: PointCloud2) -> None:
         self._report_any(feed_preop_fiducials_msg(self.core, msg))
 
@@ -216,7 +226,7 @@ class RegisterWiring:
         done.add_done_callback(lambda _: None)  # makes set_result wake the executor
 
         def job() -> None:
-            output = self.core.reregister(time.monotonic())
+            output = self.core.reregister(time.monotonic(), on_pose=self._publish_pose)
             self._publish(output)
             done.set_result(output)
 
@@ -236,29 +246,6 @@ class RegisterWiring:
         self.get_logger().info(response.message)
         return response
 
-    def _publish_status(self) -> None:
-        """The periodic status (registration, then the intraop stream), as diagnostic_updater publishes it."""
-        now_s, core = time.monotonic(), self.core
-        if core is None or not self.active:
-            return
-        status = self._effective_status(now_s)
-        self._status_level = status.level
-        stream = self.health.status(now_s, core.config.stale_after_s)
-        self.diag_pub.publish(diagnostic_array([status, stream], self._now_ns(), RCLPY_TYPES))
-
-    def _publish_status_on_change(self) -> None:
-        """A level change is published at once, not at the next period (diagnostic_updater's force_update):
-        a registration's new level, or the end of a silence (STALE -> the last result's level) on a cloud."""
-        core = self.core
-        if core is None or not self.active:
-            return
-        if self._effective_status(time.monotonic()).level != self._status_level:
-            self._publish_status()
-
-    def _effective_status(self, now_s: float) -> Diagnostic:
-        """The registration status as published: STALE after stale_after_s without a cloud."""
-        return stale_when_silent(self.core.status(), self.health.silent_for_s(now_s), self.core.config.stale_after_s)
-
     def _on_parameters(self, params: list[Any]) -> SetParametersResult:
         known = {f.name for f in dataclasses.fields(Config)}
         changes = {p.name: p.value for p in params if p.name in known}  # rclpy handles its own (use_sim_time)
@@ -273,8 +260,12 @@ class RegisterWiring:
             return SetParametersResult(successful=False, reason=str(exc))
         # ... and apply on the worker, between registrations, without blocking this callback
         self._accepted = config
-        self._submit(lambda: self.core.reconfigure(config.to_dict()))
+        self._submit(lambda: self._reconfigure(config))
         return SetParametersResult(successful=True)
+
+    def _reconfigure(self, config: Config) -> None:
+        self.core.reconfigure(config.to_dict())
+        self._report_any(self.core.prepare_deformation())  # deform turned on, or its model's settings changed
 
     # ---------------------------------------------------------------- worker thread
     def _submit(self, job: Callable[[], None] | None = None) -> None:
@@ -298,7 +289,7 @@ class RegisterWiring:
             try:
                 for job in jobs:
                     job()
-                output = self.core.process_pending(time.monotonic())
+                output = self.core.process_pending(time.monotonic(), on_pose=self._publish_pose)
                 if output is not None:
                     self._publish(output)
             except Exception as exc:  # the worker must outlive anything; at shutdown, stay silent
@@ -328,51 +319,6 @@ class RegisterWiring:
     def destroy_node(self) -> None:
         self.stop()  # first: the worker must not publish through a destroyed node
         super().destroy_node()
-
-    # ---------------------------------------------------------------- outputs
-    def _publish(self, output: CoreOutput) -> None:
-        if self._stopping or not self.active:  # inactive (managed node): no output, the state is kept
-            return
-        stamp_ns = output.pose.stamp_ns if output.pose is not None else self._now_ns()
-        if output.pose is not None:
-            self.pose_pub.publish(pose_stamped(output.pose, RCLPY_TYPES))
-            transform = transform_stamped(output.pose, RCLPY_TYPES)
-            self.transform_pub.publish(transform)
-            if self.tf_broadcaster is not None:
-                self.tf_broadcaster.sendTransform(transform)
-            cloud = points_to_cloud(
-                output.registered_preop_mm * M_PER_MM,
-                RCLPY_TYPES.cloud,
-                frame_id=output.pose.frame_id,
-                stamp_ns=stamp_ns,
-            )
-            self.cloud_pub.publish(cloud)
-            structures = registered_structures_cloud(
-                output.structures, RCLPY_TYPES.cloud, cloud.header.frame_id, stamp_ns
-            )
-            self.structures_pub.publish(structures)  # with every pose (empty without structures)
-        self._report(output.diagnostics, stamp_ns)
-        self._publish_status_on_change()
-
-    def _report(self, diags: list[Diagnostic], stamp_ns: int | None = None) -> None:
-        """Log each diagnostic at its own severity and publish them on /diagnostics."""
-        severity = {OK: logging.INFO, WARN: logging.WARNING, ERROR: logging.ERROR}
-        for diag in diags:
-            self._log(severity.get(diag.level, logging.WARNING), f"{diag.level_name}: {diag.message}")
-        if not self._stopping and self.active:
-            self.diag_pub.publish(
-                diagnostic_array(diags, self._now_ns() if stamp_ns is None else stamp_ns, RCLPY_TYPES)
-            )
-
-    def _report_any(self, diag: Diagnostic | None) -> None:
-        if diag is not None:
-            self._report([diag])
-
-    def _log(self, level: int, text: str) -> None:
-        log_at(self.get_logger(), level, text)
-
-    def _now_ns(self) -> int:
-        return self.get_clock().now().nanoseconds
 
 
 class RegisterNode(RegisterWiring, Node):

@@ -16,6 +16,7 @@ TOPIC_POSE = "/registration/pose"
 TOPIC_TRANSFORM = "/registration/transform"
 TOPIC_REGISTERED = "/registration/registered_preop"
 TOPIC_STRUCTURES = "/registration/structures"  # sensor_msgs/PointCloud2: x y z, label_id, error_bound
+TOPIC_DEFORMED_PREOP = "/registration/deformed_preop"  # sensor_msgs/PointCloud2: preop after the non-rigid stage
 TOPIC_DIAGNOSTICS = "/diagnostics"
 # register_node's inputs, the topics a recorded case carries
 INPUT_TOPICS = (TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS)
@@ -59,6 +60,7 @@ QOS_OF_TOPIC = {
     TOPIC_TRANSFORM: RELIABLE,
     TOPIC_REGISTERED: NEWEST_ONLY,
     TOPIC_STRUCTURES: RELIABLE,  # every pose's structures (a few hundred points): none lost
+    TOPIC_DEFORMED_PREOP: NEWEST_ONLY,  # like the registered cloud: a viewer wants the newest
     TOPIC_DIAGNOSTICS: RELIABLE,
 }
 

@@ -3,7 +3,7 @@
 The rclpy register_node and bag replay drive this same object (ROS messages reach it through
 `ros.messages`). Inputs are millimetre arrays, or clouds whose decoding waits until they are
 registered; outputs are `CoreOutput`s holding a pose (T_sensor_ct, mm), the moved preop cloud
-(mm) and `Diagnostic`s.
+(mm) and `Diagnostic`s. With `deform` on, the non-rigid stage (deformation.py) follows each pose.
 """
 
 from __future__ import annotations
@@ -18,12 +18,19 @@ import numpy as np
 
 from liver_p2p_reg.cloud_io import extent_mm
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.methods import check_method_name
 from liver_p2p_reg.registration.registrar import Registrar
-from liver_p2p_reg.result import RegistrationResult
 from liver_p2p_reg.stream.checks import Refused, checked_points, same_model
+from liver_p2p_reg.stream.deformation import (
+    ElasticPreparation,
+    MeshStore,
+    PreparedStage,
+    checked_mesh,
+    mesh_diagnostic,
+    rigid_registrar,
+    run_stage,
+)
 from liver_p2p_reg.stream.fiducials import FiducialStore
 from liver_p2p_reg.stream.intake import Decoder, Intake, IntraopCloud, finite_rows, points_decoder
 from liver_p2p_reg.stream.outputs import (
@@ -41,18 +48,21 @@ from liver_p2p_reg.stream.outputs import (
     units_warning,
 )
 from liver_p2p_reg.stream.record_hooks import RecorderFactory, Recording
+from liver_p2p_reg.stream.solve import Frame, solve_frame
 from liver_p2p_reg.stream.structures import StructureStore
 from liver_p2p_reg.stream.survey import Survey
 from liver_p2p_reg.stream.tracking import Tracker
 from liver_p2p_reg.structures_io import place_structures
 
 LOG = logging.getLogger("liver_p2p_reg.node")
+PoseHook = Callable[[CoreOutput], None]  # gets the rigid pose before the non-rigid stage runs (the node publishes it)
 
 
 class NodeCore:
     """State machine of register_node; thread-safe (callbacks vs. one registration worker).
 
-    recorder_factory: opens the flight recorder when `config.record_path` is set (bags/recorder.py)."""
+    recorder_factory: opens the flight recorder when `config.record_path` is set (bags/recorder.py).
+    The registrar runs the rigid pipeline only (`rigid_registrar`): the core runs the non-rigid stage itself."""
 
     def __init__(
         self,
@@ -62,13 +72,15 @@ class NodeCore:
     ) -> None:
         self.config = (config or Config()).validate()
         check_method_name(self.config.method)  # an unknown method is refused now, not with an ERROR per frame
-        self.registrar = registrar or Registrar(self.config)
+        self.registrar = rigid_registrar(self.config, registrar)
         self._lock = threading.Lock()  # guards the model state below (cheap, callbacks)
         self._register_lock = threading.Lock()  # one registration at a time
         self.preop_mm: np.ndarray | None = None
         self.preop_frame, self.preop_stamp_ns = "ct", 0
         self.fiducials = FiducialStore()
         self.structures = StructureStore()  # moved with every pose (structures.py: the latest set received)
+        self.mesh = MeshStore()  # the non-rigid stage's surface, for the model of its stamp (deformation.py)
+        self._elastic = ElasticPreparation()  # what the elastic model was last prepared for
         self._preop_scale_mm: float | None = None
         self._preop_problem = ""  # why the current model cannot be registered against (wrong units)
         self._intake = Intake(self.fiducials)
@@ -105,7 +117,7 @@ class NodeCore:
         """
         config = self.config.replace(**changes)
         check_method_name(config.method)
-        registrar = Registrar(config)
+        registrar = rigid_registrar(config)
         registrar.cache = self.registrar.cache
         with self._register_lock, self._lock:  # never swap under a running registration
             self._recording.follow(config)  # InputError (record_path cannot be written): nothing changed
@@ -173,14 +185,41 @@ class NodeCore:
             points = self.preop_mm
             if points is None:
                 return Diagnostic(ERROR, PREOP_DIAG_NAME, "no preop model to warm up")
-            ms = self.registrar.warm_up(points)
+            start = time.perf_counter()
+            self.registrar.warm_up(points)
+            stage = self._prepare_stage_locked(force=True)  # the elastic model too (seconds), when deform is on
+            ms = (time.perf_counter() - start) * 1e3
         values = {
             "points": str(len(points)),
             "extent_mm": f"{extent_mm(points):.1f}",
             "frame_id": self.preop_frame,
             "warm_up_ms": f"{ms:.1f}",
         }
-        return Diagnostic(OK, PREOP_DIAG_NAME, f"preop model received ({len(points)} points)", values)
+        diag = Diagnostic(OK, PREOP_DIAG_NAME, f"preop model received ({len(points)} points)", values)
+        return diag if stage is None else stage.diagnostic(diag)
+
+    def set_preop_mesh(
+        self, vertices_mm: np.ndarray, triangles: np.ndarray, frame_id: str, stamp_ns: int
+    ) -> Diagnostic:
+        """The preop model's mesh (/preop/mesh: welded vertices in mm, triangles): the non-rigid stage's surface
+        for the model of the same frame and stamp. InputError when it is not a mesh; then `prepare_deformation()`."""
+        mesh = checked_mesh(vertices_mm, triangles, frame_id, stamp_ns)
+        self.mesh.set(mesh)
+        with self._lock:
+            current = self.preop_mm is not None and self.mesh.for_model(self.preop_frame, self.preop_stamp_ns) is mesh
+        return mesh_diagnostic(mesh, current)
+
+    def prepare_deformation(self) -> Diagnostic | None:
+        """Build the current model's elastic model now if `deform` is on and it is not built for this model, mesh and
+        settings yet (after a mesh or a parameter change); its diagnostic, None when there was nothing to do."""
+        with self._register_lock:
+            stage = self._prepare_stage_locked(force=False)
+        return None if stage is None else stage.diagnostic()
+
+    def _prepare_stage_locked(self, force: bool) -> PreparedStage | None:
+        with self._lock:
+            points, mesh = self.preop_mm, self.mesh.for_model(self.preop_frame, self.preop_stamp_ns)
+        return self._elastic.prepare(self.registrar, self.config, points, mesh, force)
 
     def set_preop_fiducials(self, points_mm: np.ndarray | None, stamp_ns: int | None = None) -> None:
         """Ordered fiducials inside the preop model stamped `stamp_ns` (None: the current model), mm."""
@@ -221,24 +260,27 @@ class NodeCore:
         """Whether `process_pending` would register now (mode, rate limit, inputs present)."""
         return self._intake.due(self.config, time.monotonic() if now_s is None else now_s)
 
-    def process_pending(self, now_s: float | None = None) -> CoreOutput | None:
-        """Register the latest pending cloud if due (continuous/once modes); else None."""
+    def process_pending(self, now_s: float | None = None, on_pose: PoseHook | None = None) -> CoreOutput | None:
+        """Register the latest pending cloud if due (continuous/once modes); else None.
+
+        on_pose(output) gets a pose as soon as it is known, before the non-rigid stage (`deform`) runs; the
+        returned output is the final one (the same pose, with the stage's values and deformed surface)."""
         cloud = self._intake.take_due(self.config, time.monotonic() if now_s is None else now_s)
         if cloud is None:
             return None
-        output = self._register(cloud, self.config.mode)
+        output = self._register(cloud, self.config.mode, on_pose)
         if self.config.mode == "once" and output.pose is not None:
             self._intake.mark_once_done()
         return output
 
-    def reregister(self, now_s: float | None = None) -> CoreOutput:
-        """Register the latest intraop cloud now, whatever the mode (the ~/reregister service)."""
+    def reregister(self, now_s: float | None = None, on_pose: PoseHook | None = None) -> CoreOutput:
+        """Register the latest intraop cloud now, whatever the mode (the ~/reregister service); on_pose as above."""
         cloud = self._intake.take_latest(time.monotonic() if now_s is None else now_s)
         if cloud is None:
             diag = Diagnostic(ERROR, DIAG_NAME, "no intraop cloud received yet (/intraop/points)")
             self.last_output = CoreOutput([diag], reason="reregister")
             return self.last_output
-        return self._register(cloud, "reregister")
+        return self._register(cloud, "reregister", on_pose)
 
     def register_now(self, frame_id: str, stamp_ns: int, decode: Decoder, reason: str) -> CoreOutput:
         """Register this cloud now as `reason` says, past the mode and the rate limit (a recording's replay)."""
@@ -262,11 +304,11 @@ class NodeCore:
         return Diagnostic(diag.level, diag.name, diag.message, {**diag.values, **self._counters()})
 
     # ---------------------------------------------------------------- registration
-    def _register(self, cloud: IntraopCloud, reason: str) -> CoreOutput:
+    def _register(self, cloud: IntraopCloud, reason: str, on_pose: PoseHook | None = None) -> CoreOutput:
         with self._register_lock:
             cloud = self._recording.begin(cloud)
             try:
-                output = self._register_locked(cloud, reason)
+                output = self._register_locked(cloud, reason, on_pose)
                 self._tracker.remember(output, cloud.frame_id)
                 self._recording.registration(cloud, reason, output)
             finally:
@@ -279,12 +321,12 @@ class NodeCore:
             self.processed += 1
         return output
 
-    def _register_locked(self, cloud: IntraopCloud, reason: str) -> CoreOutput:
+    def _register_locked(self, cloud: IntraopCloud, reason: str, on_pose: PoseHook | None) -> CoreOutput:
         start = time.perf_counter()
         values: dict[str, str] = {"frame_id": cloud.frame_id, "stamp_ns": str(cloud.stamp_ns), "mode": self.config.mode}
         with self._lock:
             self._registering = True
-            preop, preop_frame = self.preop_mm, self.preop_frame
+            preop, preop_frame, preop_stamp = self.preop_mm, self.preop_frame, self.preop_stamp_ns
             scale_mm, preop_problem = self._preop_scale_mm, self._preop_problem
         fid_s, fid_t = self.fiducials.pair(cloud.stamp_ns)
         self._recording.paired(fid_s, fid_t)
@@ -297,7 +339,8 @@ class NodeCore:
             self._intake.keep_latest(IntraopCloud(cloud.frame_id, cloud.stamp_ns, points_decoder(points, n_raw)))
             prep_ms = (time.perf_counter() - start) * 1e3
             cached = set(self.registrar.cache)
-            result = self._solve(preop, points, fid_s, fid_t, cloud.frame_id, reason, values, warnings)
+            frame = Frame(preop, points, fid_s, fid_t, cloud.frame_id, reason, self._origin())
+            result = solve_frame(frame, self.registrar, self.config, self._tracker, self._survey, values, warnings)
         except Refused as refused:
             return CoreOutput([Diagnostic(refused.level, DIAG_NAME, refused.message, values)], reason=reason)
         result.runtime_ms.setdefault("node_prepare", prep_ms)
@@ -309,61 +352,19 @@ class NodeCore:
             message = f"registration failed: {result.message or 'no valid transform'}"
             return CoreOutput([Diagnostic(ERROR, DIAG_NAME, message, values)], result=result, reason=reason)
         T = np.asarray(result.T_target_source, dtype=np.float64)
-        placed = place_structures(result, self.structures.current(), T)
+        structures = self.structures.current()
+        placed = place_structures(result, structures, T)
         diag = registered_diagnostic(result, values, warnings, self.config, placed)
         pose = PoseOutput(cloud.stamp_ns, cloud.frame_id, preop_frame, T)
-        return CoreOutput([diag], pose, transform_points(T, preop), result, reason, placed)
-
-    def _solve(
-        self,
-        preop: np.ndarray,
-        points: np.ndarray,
-        fid_s: np.ndarray | None,
-        fid_t: np.ndarray | None,
-        frame_id: str,
-        reason: str,
-        values: dict[str, str],
-        warnings: list[str],
-    ) -> RegistrationResult:
-        """The frame's result: a survey step, a tracked pose, or else the full method (Refused when it raises)."""
-
-        def guarded(what: str, call: Callable[[], Any]) -> Any:
-            """call(), or Refused with the frame's ERROR: the node must survive anything a method raises."""
-            try:
-                return call()
-            except LiverP2PError as exc:
-                raise Refused(ERROR, f"registration failed: {exc}") from None
-            except Exception as exc:
-                LOG.exception("%s raised", what)
-                raise Refused(ERROR, f"registration crashed: {type(exc).__name__}: {exc}") from None
-
-        origin = self._origin()
-        if self.config.mode == "survey" and reason != "reregister":  # ---- survey mode (survey.py)
-            step = guarded(
-                "survey registration",
-                lambda: self._survey().step(
-                    preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=origin
-                ),
-            )
-            result, track_ms = step.result, None
-            values.update(step.values)
-            warnings += step.warnings
-        else:
-            result, track_ms = self._tracker.attempt(
-                self.registrar, self.config, preop, points, fid_s, fid_t, frame_id, reason, origin
-            )
-        values["tracked"] = str(result is not None and result.method == "track").lower()
-        if result is None:
-            result = guarded(
-                "registration",
-                lambda: self.registrar.register(
-                    preop, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=origin
-                ),
-            )
-            if track_ms is not None:  # a rejected tracking attempt is part of this frame's latency
-                result.runtime_ms["track_rejected"] = track_ms
-                result.runtime_ms["total"] = result.runtime_ms.get("total", 0.0) + track_ms
-        return result
+        output = CoreOutput([diag], pose, transform_points(T, preop), result, reason, placed)
+        if on_pose is not None:
+            try:  # the rigid pose goes out first, whatever the stage then does
+                on_pose(output)
+            except Exception:
+                LOG.exception("the pose hook raised")
+        if not self.config.deform:
+            return output
+        return run_stage(self.registrar, output, frame, structures, self.mesh.for_model(preop_frame, preop_stamp))
 
     # ---------------------------------------------------------------- survey mode
     def _survey(self) -> Survey:

@@ -65,6 +65,8 @@ class CoreOutput:
     result: RegistrationResult | None = None
     reason: str = ""  # continuous | once | reregister
     structures: list[PlacedStructure] = field(default_factory=list)  # moved into the sensor frame by the pose
+    # the preop cloud after the non-rigid stage (sensor frame, mm); None: the stage was off or not applied
+    deformed_preop_mm: np.ndarray | None = None
 
     @property
     def level(self) -> int:

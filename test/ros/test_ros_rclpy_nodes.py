@@ -21,11 +21,13 @@ from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud  # 
 from liver_p2p_reg.ros.preop_loader_node import PreopLoaderNode  # noqa: E402
 from liver_p2p_reg.ros.register_node import RCLPY_TYPES, RegisterNode  # noqa: E402
 from liver_p2p_reg.ros.topics import (  # noqa: E402
+    TOPIC_DEFORMED_PREOP,
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
     TOPIC_REGISTERED,
     rclpy_qos,
 )
@@ -50,7 +52,8 @@ def test_topic_qos_is_what_msg_docs_say_in_rclpy_terms():
     assert rclpy_qos(TOPIC_PREOP) == rclpy_qos(TOPIC_PREOP_FIDUCIALS) == latched
     assert rclpy_qos(TOPIC_INTRAOP) == qos_profile_sensor_data  # rclpy's own preset
     assert rclpy_qos(TOPIC_INTRAOP_FIDUCIALS) == rclpy_qos(TOPIC_POSE) == QoSProfile(depth=10)  # reliable, volatile
-    assert rclpy_qos(TOPIC_REGISTERED) == QoSProfile(depth=1)
+    assert rclpy_qos(TOPIC_REGISTERED) == rclpy_qos(TOPIC_DEFORMED_PREOP) == QoSProfile(depth=1)
+    assert rclpy_qos(TOPIC_PREOP_MESH) == latched  # register_node's subscription matches the loader's latched mesh
 
 
 def test_rclpy_pointcloud2_round_trip():

@@ -1,0 +1,210 @@
+"""The node core's non-rigid stage: the preop mesh it is built on, the elastic model's warm-up, the stage after each pose.
+
+The stage runs after the rigid pose has gone out, on the same model and frame, and never changes the
+pose or the verdict: a stage that is not applied only says why (`deform_reason`). Its surface is the
+/preop/mesh of the current model (same frame and stamp as its /preop/points) when one arrived, else
+the surface rebuilt from the points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError, LiverP2PError
+from liver_p2p_reg.registration.deform import Deformation, not_applied
+from liver_p2p_reg.registration.registrar import Registrar
+from liver_p2p_reg.stream.outputs import OK, PREOP_DIAG_NAME, WARN, CoreOutput, Diagnostic
+from liver_p2p_reg.stream.solve import Frame
+from liver_p2p_reg.structures_io import Structure, place_structures
+
+LOG = logging.getLogger("liver_p2p_reg.node")
+
+
+@dataclass(frozen=True)
+class PreopMesh:
+    """A closed preop mesh: welded vertices (mm, preop frame) and triangles indexing them, of the model stamped so."""
+
+    vertices_mm: np.ndarray  # (V, 3)
+    triangles: np.ndarray  # (F, 3) int64
+    frame_id: str
+    stamp_ns: int
+
+    @property
+    def stage_kwargs(self) -> dict[str, np.ndarray]:
+        """The Registrar's arguments for this surface."""
+        return {"source_triangles": self.triangles, "mesh_vertices_mm": self.vertices_mm}
+
+
+def checked_mesh(vertices_mm: np.ndarray, triangles: np.ndarray, frame_id: str, stamp_ns: int) -> PreopMesh:
+    """A PreopMesh of finite vertices and triangles that index them; InputError (one line) when it is not one."""
+    vertices = np.asarray(vertices_mm, dtype=np.float64)
+    tris = np.asarray(triangles)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 4:
+        raise InputError(f"a mesh needs (V >= 4, 3) vertices, got shape {vertices.shape}")
+    if not np.isfinite(vertices).all():
+        raise InputError("mesh vertices must all be finite")
+    if tris.ndim != 2 or tris.shape[1] != 3 or len(tris) == 0 or tris.dtype.kind not in "iu":
+        raise InputError(f"mesh triangles must be a non-empty (F, 3) integer array, got shape {tris.shape}")
+    if tris.min() < 0 or tris.max() >= len(vertices):
+        raise InputError(f"mesh triangles index vertex {int(tris.max())} of {len(vertices)}")
+    return PreopMesh(vertices, tris.astype(np.int64), frame_id or "ct", int(stamp_ns))
+
+
+class MeshStore:
+    """The latest preop mesh received; it serves the model of its own frame and stamp only."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._mesh: PreopMesh | None = None
+
+    def set(self, mesh: PreopMesh) -> None:
+        with self._lock:
+            self._mesh = mesh
+
+    def for_model(self, frame_id: str, stamp_ns: int) -> PreopMesh | None:
+        """The mesh of the model with this frame and stamp, or None (the surface is then rebuilt from its points)."""
+        with self._lock:
+            mesh = self._mesh
+        return mesh if mesh is not None and (mesh.frame_id, mesh.stamp_ns) == (frame_id, int(stamp_ns)) else None
+
+
+def rigid_registrar(config: Config, registrar: Registrar | None = None) -> Registrar:
+    """The registrar of the rigid pose: `registrar` (or one of `config`) without the non-rigid stage, which the
+    core runs itself once the pose is out; a replacement shares the given registrar's cache."""
+    if registrar is not None and not registrar.config.deform:
+        return registrar
+    rigid = Registrar((registrar.config if registrar is not None else config).replace(deform=False))
+    if registrar is not None:
+        rigid.cache = registrar.cache
+    return rigid
+
+
+def surface_name(mesh: PreopMesh | None) -> str:
+    """Which surface the elastic model is built on: `mesh` or `points` (rebuilt from /preop/points)."""
+    return "points" if mesh is None else "mesh"
+
+
+def prepare_stage(registrar: Registrar, preop_mm: np.ndarray, mesh: PreopMesh | None) -> dict[str, str]:
+    """Build (and cache) the model's elastic model now; the preop diagnostic's `deform_*` values ("" problem: ready)."""
+    start = time.perf_counter()
+    try:
+        problem = registrar.prepare_deformation(preop_mm, **({} if mesh is None else mesh.stage_kwargs))
+    except LiverP2PError as exc:
+        problem = f"no elastic model: {exc}"
+    except Exception as exc:  # the node must outlive it; the stage then says why on every frame
+        LOG.exception("building the elastic model raised")
+        problem = f"no elastic model: {type(exc).__name__}: {exc}"
+    return {
+        "deform_model": problem or "ready",
+        "deform_surface": surface_name(mesh),
+        "deform_model_ms": f"{(time.perf_counter() - start) * 1e3:.1f}",
+    }
+
+
+@dataclass(frozen=True)
+class PreparedStage:
+    """The outcome of preparing the elastic model: the preop diagnostic's `deform_*` values, on which surface."""
+
+    values: dict[str, str]
+    mesh: PreopMesh | None
+
+    def diagnostic(self, base: Diagnostic | None = None) -> Diagnostic:
+        """The preop model's diagnostic (`base`: the model's warm-up, its values added); WARN when the stage cannot run."""
+        values, mesh = self.values, self.mesh
+        problem = "" if values["deform_model"] == "ready" else values["deform_model"]
+        if base is not None:
+            message = base.message + (f"; non-rigid stage unavailable: {problem}" if problem else "")
+            return Diagnostic(WARN if problem else base.level, base.name, message, {**base.values, **values})
+        built = (
+            f"its mesh ({len(mesh.triangles)} triangles)" if mesh is not None else "the surface rebuilt from its points"
+        )
+        message = f"non-rigid stage unavailable: {problem}" if problem else f"elastic model built on {built}"
+        return Diagnostic(WARN if problem else OK, PREOP_DIAG_NAME, message, values)
+
+
+class ElasticPreparation:
+    """What the elastic model was last prepared for (model points, mesh, settings), so that a repeat is skipped."""
+
+    def __init__(self) -> None:
+        self._for: tuple[Any, ...] | None = None
+
+    def prepare(
+        self, registrar: Registrar, config: Config, points: np.ndarray | None, mesh: PreopMesh | None, force: bool
+    ) -> PreparedStage | None:
+        """Prepare it when `deform` is on and (or `force`) it was not prepared for these; None when nothing was done."""
+        if not config.deform or points is None:
+            return None
+        key = (points, mesh, config.deform_modes, config.deform_target_tets)
+        if not force and self._for is not None and all(a is b for a, b in zip(key, self._for, strict=True)):
+            return None
+        self._for = key
+        return PreparedStage(prepare_stage(registrar, points, mesh), mesh)
+
+
+def mesh_diagnostic(mesh: PreopMesh, for_current_model: bool) -> Diagnostic:
+    """What register_node says when a /preop/mesh arrives (OK: kept for the model of its stamp)."""
+    waits = "" if for_current_model else "; kept for the model of its stamp"
+    values = {
+        "mesh_vertices": str(len(mesh.vertices_mm)),
+        "mesh_triangles": str(len(mesh.triangles)),
+        "frame_id": mesh.frame_id,
+        "stamp_ns": str(mesh.stamp_ns),
+    }
+    message = f"preop mesh received ({len(mesh.triangles)} triangles, {len(mesh.vertices_mm)} vertices){waits}"
+    return Diagnostic(OK, PREOP_DIAG_NAME, message, values)
+
+
+def stage_values(deformation: Deformation, mesh: PreopMesh | None, ms: float, tre_mm: float | None) -> dict[str, str]:
+    """The registration diagnostic's `deform_*` key/values."""
+    values = {
+        "deform_applied": str(bool(deformation.applied)).lower(),
+        "deform_reason": deformation.reason,
+        "deform_surface": surface_name(mesh),
+        "deform_rms_displacement_mm": f"{deformation.rms_displacement_mm:.3f}",
+        "deform_max_displacement_mm": f"{deformation.max_displacement_mm:.3f}",
+        "deform_residual_before_mm": f"{deformation.residual_before_mm:.3f}",
+        "deform_residual_after_mm": f"{deformation.residual_after_mm:.3f}",
+        "deform_ms": f"{ms:.1f}",
+    }
+    if tre_mm is not None and deformation.applied:
+        values["deformed_rms_tre_mm"] = f"{tre_mm:.3f}"
+    return values
+
+
+def run_stage(
+    registrar: Registrar, rigid: CoreOutput, frame: Frame, structures: list[Structure], mesh: PreopMesh | None
+) -> CoreOutput:
+    """The non-rigid stage on a registered frame (its pose already out): the same output with the `deform_*`
+    values and, when applied, the deformed preop surface and structures. Never raises; pose and verdict stand."""
+    result, start = rigid.result, time.perf_counter()
+    T = np.asarray(result.T_target_source, dtype=np.float64).copy()
+    kwargs: dict[str, Any] = {"source_fiducials_mm": frame.fid_s, "target_fiducials_mm": frame.fid_t}
+    kwargs.update({} if mesh is None else mesh.stage_kwargs)
+    deformed, placed = None, rigid.structures
+    try:
+        registrar.deform(result, frame.preop_mm, frame.points_mm, **kwargs)
+        if result.deformation.applied:
+            deformed = result.deformation.deformed_position_mm(frame.preop_mm)
+            placed = place_structures(result, structures)  # the rigid positions and bounds, the deformed positions
+    except LiverP2PError as exc:
+        result.deformation, result.deformed_rms_tre_mm = not_applied(T, f"not run: {exc}"), None
+        deformed, placed = None, rigid.structures
+    except Exception as exc:  # the node must outlive anything the stage raises
+        LOG.exception("the non-rigid stage raised")
+        result.deformation, result.deformed_rms_tre_mm = not_applied(T, f"crashed: {type(exc).__name__}: {exc}"), None
+        deformed, placed = None, rigid.structures
+    deformation: Deformation = result.deformation
+    result.T_target_source = T  # the rigid pose is the published one, whatever happened
+    ms = (time.perf_counter() - start) * 1e3
+    diag = rigid.diagnostics[0]
+    values = {**diag.values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm)}
+    diagnostics = [Diagnostic(diag.level, diag.name, diag.message, values, diag.hardware_id), *rigid.diagnostics[1:]]
+    return dataclasses.replace(rigid, diagnostics=diagnostics, structures=placed, deformed_preop_mm=deformed)
