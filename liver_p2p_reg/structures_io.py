@@ -45,6 +45,11 @@ class PlacedStructure:
     # was not applied (its reason is in the result's `deformation`), position_mm is all there is.
     deformed_position_mm: np.ndarray | None = None
 
+    @property
+    def current_position_mm(self) -> np.ndarray:
+        """Where the structure is now: its deformed positions when the non-rigid stage was applied, else rigid."""
+        return self.position_mm if self.deformed_position_mm is None else self.deformed_position_mm
+
     def to_json_dict(self) -> dict[str, Any]:
         """The `structures` entry of a result JSON: label, position_mm (N x 3), error_bound_mm (N; null: no model)."""
         out: dict[str, Any] = {

@@ -198,9 +198,7 @@ class SlicerLink:
             self._guard("pose", lambda: self.send_pose(output.pose.T_sensor_ct_mm, stamp))
             placed = output.structures
             if placed:  # where the non-rigid stage put them when it was applied
-                positions = [
-                    s.position_mm if s.deformed_position_mm is None else s.deformed_position_mm for s in placed
-                ]
+                positions = [s.current_position_mm for s in placed]
                 self._guard("structures", lambda: self.send_structures([s.label for s in placed], positions, stamp))
         for diag in output.diagnostics:
             if diag.name == DIAG_NAME:

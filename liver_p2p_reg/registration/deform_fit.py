@@ -50,10 +50,10 @@ def fit_deformation(
     max_target_points: int = 2500,
 ) -> FitOutcome:
     """Minimize the energy above from the rigid pose `T_init` (source -> target, mm)."""
-    sub = np.arange(0, len(model.source_mm), max(int(np.ceil(len(model.source_mm) / max_model_points)), 1))
-    x0 = model.source_mm[sub]
-    normals = model.source_normals[sub]
-    basis = model.basis_at(model.source_ids[sub], model.source_weights[sub])  # (P, 3, m)
+    stride = max(int(np.ceil(len(model.source_mm) / max_model_points)), 1)
+    x0 = model.source_mm[::stride]
+    normals = model.source_normals[::stride]
+    basis = model.source_basis(stride)  # (P, 3, m), kept with the model
     target = np.asarray(target_mm, dtype=np.float64)
     target = target[:: max(int(np.ceil(len(target) / max_target_points)), 1)]
     T = np.asarray(T_init, dtype=np.float64).copy()

@@ -142,8 +142,7 @@ def registered_structures_cloud(
 ) -> Any:
     """/registration/structures: the structures moved into the sensor frame (metres; their deformed positions
     when the non-rigid stage was applied), label_id and error_bound (m)."""
-    positions = [s.position_mm if s.deformed_position_mm is None else s.deformed_position_mm for s in structures]
-    points = np.concatenate(positions) if structures else np.zeros((0, 3))
+    points = np.concatenate([s.current_position_mm for s in structures]) if structures else np.zeros((0, 3))
     ids = np.concatenate([np.full(len(s.position_mm), s.label_id) for s in structures]) if structures else []
     bounds = np.concatenate([s.error_bound_mm for s in structures]) if structures else np.zeros(0)
     return structures_to_cloud(

@@ -51,6 +51,12 @@ class ElasticModel:
         """(P, 3, m): each point's displacement per unit coefficient of each mode."""
         return np.einsum("pk,mpkd->pdm", weights, self.modes_mm[:, ids, :])
 
+    def source_basis(self, stride: int) -> np.ndarray:
+        """basis_at of every `stride`-th source point, computed once per model and stride (the fit's per-frame need)."""
+        if stride not in self._basis_cache:
+            self._basis_cache[stride] = self.basis_at(self.source_ids[::stride], self.source_weights[::stride])
+        return self._basis_cache[stride]
+
     def displacement_at(self, points_mm: np.ndarray, coefficients_mm: np.ndarray) -> np.ndarray:
         """Displacement (P, 3) at any preop points; a point outside the mesh takes its nearest node's."""
         ids, weights = self.embed(points_mm)
