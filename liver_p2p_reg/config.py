@@ -193,6 +193,8 @@ class DeformSection:
     deform_max_residual_mm: float = 5.0  # rigid residual above this: a gross pose is not deformed
     deform_min_gain: float = 0.1  # the residual must fall by this share, else the rigid result stands
     deform_max_displacement_mm: float = 25.0  # a larger displacement anywhere is implausible: rigid result
+    # the error bound of the deformed positions (`liver-p2p calibrate-bound --deformed`); empty: the bundled one
+    deform_error_calibration_path: str = ""
 
 
 @dataclass

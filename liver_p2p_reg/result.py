@@ -73,6 +73,10 @@ class RegistrationResult:
     # the non-rigid stage (registration/deform.py), when it ran: applied or why not, the displacement of any point
     deformation: Any = None
     deformed_rms_tre_mm: float | None = None  # fiducial RMS error of the deformed positions (ground truth given)
+    # the bound of the deformed positions when the stage was applied (calibrated on validation poses where it was)
+    deformed_error_model: Any = None
+    deformed_error_bound_mm: float = float("nan")
+    deformed_error_calibration_note: str = ""
 
     def error_bound_at(self, points_mm: np.ndarray) -> np.ndarray:
         """Per preop point (mm): the distance within which its true position lies with `error_coverage`."""
@@ -80,6 +84,12 @@ class RegistrationResult:
         if self.error_model is None:
             return np.full(len(points_mm), np.nan)
         return self.error_model.bounds_mm(points_mm)
+
+    def deformed_error_bound_at(self, points_mm: np.ndarray) -> np.ndarray | None:
+        """Per preop point (mm): the bound of its deformed position; None when the stage was not applied."""
+        if self.deformed_error_model is None:
+            return None
+        return self.deformed_error_model.bounds_mm(np.asarray(points_mm, float).reshape(-1, 3))
 
     @property
     def rotation(self) -> np.ndarray:
@@ -121,6 +131,10 @@ class RegistrationResult:
             out["deformation"] = self.deformation.to_json_dict()
         if self.deformed_rms_tre_mm is not None:
             out["deformed_rms_tre_mm"] = _finite_or_none(self.deformed_rms_tre_mm)
+        if self.deformed_error_model is not None:
+            out["deformed_error_bound_mm"] = _finite_or_none(self.deformed_error_bound_mm)
+        if self.deformed_error_model is not None or self.deformed_error_calibration_note:
+            out["deformed_error_calibration_note"] = self.deformed_error_calibration_note
         return out
 
     def __repr__(self) -> str:

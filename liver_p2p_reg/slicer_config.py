@@ -28,6 +28,8 @@ class SlicerConfig:
     ct_convention: str = "LPS"
     transform_device: str = "CTToSensor"  # TRANSFORM: Slicer RAS of the CT -> sensor frame (mm)
     model_device: str = "PreopModel"  # POLYDATA: the preop model in Slicer RAS of the CT (mm)
+    # POLYDATA: the preop model after the non-rigid stage, sensor frame (mm): the mesh's triangles when it came on one
+    deformed_model_device: str = "DeformedModel"
     cloud_device: str = "IntraopCloud"  # POLYDATA: the registered intraop cloud, sensor frame (mm)
     status_device: str = "RegistrationStatus"  # STRING: "LEVEL: message" of each registration
     max_model_points: int = 20000  # a preop model without mesh is decimated to at most this many points
@@ -51,7 +53,7 @@ class SlicerConfig:
             raise InputError(f"port must be in {lowest_port}..65535 for role {self.role}, got {self.port}")
         if not self.host:
             raise InputError("host must not be empty")
-        devices = [self.transform_device, self.model_device, self.cloud_device, self.status_device]
+        devices = self.devices()
         for name in devices:
             if not name or not name.isascii() or not name.isprintable() or len(name) > IGTL_DEVICE_NAME_BYTES:
                 raise InputError(f"device name {name!r} must be 1-{IGTL_DEVICE_NAME_BYTES} printable ASCII characters")
@@ -66,6 +68,16 @@ class SlicerConfig:
             if not getattr(self, name) > 0:  # `not >` also catches NaN
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
         return self
+
+    def devices(self) -> list[str]:
+        """The bridge's own device names (structures get theirs from their labels, never one of these)."""
+        return [
+            self.transform_device,
+            self.model_device,
+            self.deformed_model_device,
+            self.cloud_device,
+            self.status_device,
+        ]
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -44,11 +44,22 @@ class PlacedStructure:
     # Where the non-rigid stage (registration/deform.py) puts the points, sensor frame; None: it did not run or
     # was not applied (its reason is in the result's `deformation`), position_mm is all there is.
     deformed_position_mm: np.ndarray | None = None
+    # (N,) the bound of each deformed position (the deformed-position calibration); None with the positions
+    deformed_error_bound_mm: np.ndarray | None = None
 
     @property
     def current_position_mm(self) -> np.ndarray:
         """Where the structure is now: its deformed positions when the non-rigid stage was applied, else rigid."""
         return self.position_mm if self.deformed_position_mm is None else self.deformed_position_mm
+
+    @property
+    def current_error_bound_mm(self) -> np.ndarray:
+        """The bound of current_position_mm: the deformed positions' when they are given, else the rigid one's."""
+        if self.deformed_position_mm is None:
+            return self.error_bound_mm
+        if self.deformed_error_bound_mm is None:  # no calibration of deformed positions: no bound (NaN)
+            return np.full(len(self.deformed_position_mm), np.nan)
+        return self.deformed_error_bound_mm
 
     def to_json_dict(self) -> dict[str, Any]:
         """The `structures` entry of a result JSON: label, position_mm (N x 3), error_bound_mm (N; null: no model)."""
@@ -62,6 +73,8 @@ class PlacedStructure:
         }
         if self.deformed_position_mm is not None:
             out["deformed_position_mm"] = np.round(self.deformed_position_mm, 6).tolist()
+        if self.deformed_error_bound_mm is not None:
+            out["deformed_error_bound_mm"] = [_finite_or_none(b) for b in self.deformed_error_bound_mm]
         return out
 
 
@@ -148,19 +161,26 @@ def place_structures(
     result: Any, structures: Sequence[Structure], T_mm: np.ndarray | None = None
 ) -> list[PlacedStructure]:
     """Where a registration puts each structure: its points moved by T (default result.T_target_source)
-    and, per point, `result.error_bound_at` of its preop position (mm)."""
+    and, per point, `result.error_bound_at` of its preop position (mm); where the non-rigid stage was applied,
+    also the deformed positions and their bounds (`result.deformed_error_bound_at`)."""
     T = np.asarray(result.T_target_source if T_mm is None else T_mm, dtype=np.float64)
     coverage = float(getattr(result, "error_coverage", float("nan")))
     deformation = getattr(result, "deformation", None)
     applied = deformation is not None and deformation.applied and T_mm is None
+    deformed_bound = getattr(result, "deformed_error_bound_at", lambda _: None) if applied else (lambda _: None)
+
+    def floats(values: Any) -> np.ndarray | None:
+        return None if values is None else np.asarray(values, dtype=np.float64).reshape(-1)
+
     return [
         PlacedStructure(
             s.label,
             s.label_id,
             transform_points(T, s.points_mm),
-            np.asarray(result.error_bound_at(s.points_mm), dtype=np.float64).reshape(-1),
+            floats(result.error_bound_at(s.points_mm)),
             coverage,
             deformation.deformed_position_mm(s.points_mm) if applied else None,
+            floats(deformed_bound(s.points_mm)),
         )
         for s in structures
     ]

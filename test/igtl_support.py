@@ -204,3 +204,85 @@ def expected_transform(T_sensor_ct_mm: np.ndarray, ct_convention: str = "LPS") -
 def assert_wire_equal(received: np.ndarray, expected: np.ndarray) -> None:
     """TRANSFORM carries float32 (the protocol): equal to the float32 of the expected matrix within 1e-6."""
     np.testing.assert_allclose(received, expected.astype(np.float32).astype(np.float64), rtol=0, atol=1e-6)
+
+
+def mesh_marker_msg(vertices_mm: np.ndarray, triangles: np.ndarray, stamp_ns: int, frame_id: str = "ct") -> Any:
+    """A /preop/mesh visualization_msgs/Marker TRIANGLE_LIST (rosbags classes), as preop_loader_node makes it:
+    three corners per triangle, metres, identity pose and scale."""
+    from liver_p2p_reg.bags.io import typestore
+    from liver_p2p_reg.ros.messages import MARKER_TRIANGLE_LIST
+
+    t = typestore().types
+    sec, nanosec = divmod(int(stamp_ns), 10**9)
+    header = t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
+    corners_m = np.asarray(vertices_mm, dtype=np.float64)[np.asarray(triangles).reshape(-1)] * 1e-3
+    return t["visualization_msgs/msg/Marker"](
+        header=header,
+        ns="preop",
+        id=0,
+        type=MARKER_TRIANGLE_LIST,
+        action=0,
+        pose=t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+            orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        ),
+        scale=t["geometry_msgs/msg/Vector3"](x=1.0, y=1.0, z=1.0),
+        color=t["std_msgs/msg/ColorRGBA"](r=0.8, g=0.45, b=0.35, a=1.0),
+        lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+        frame_locked=True,
+        points=[t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=float(z)) for x, y, z in corners_m],
+        colors=[],
+        texture_resource="",
+        texture=t["sensor_msgs/msg/CompressedImage"](header=header, format="", data=np.zeros(0, np.uint8)),
+        uv_coordinates=[],
+        text="",
+        mesh_resource="",
+        mesh_file=t["visualization_msgs/msg/MeshFile"](filename="", data=np.zeros(0, np.uint8)),
+        mesh_use_embedded_materials=False,
+    )
+
+
+@dataclass
+class DeformedStage:
+    """One registration of a procedural liver with the non-rigid stage applied on its /preop/mesh."""
+
+    marker: Any  # the /preop/mesh message the core (and a Slicer link) got
+    vertices_mm: np.ndarray  # its welded vertices (ct frame), the order of output.deformed_preop_mm
+    triangles: np.ndarray
+    points_mm: np.ndarray  # the model's /preop/points (sampled from the mesh)
+    output: Any  # the CoreOutput: rigid pose, deformed surface
+
+
+STAGE_STAMP_NS = 1_700_000_000_500_000_000  # the intraop view's (and so the pose's) stamp
+
+
+def deformed_stage() -> DeformedStage:
+    """A small procedural liver (an elastic model built in about a second) registered by NodeCore as register_node
+    runs it, /preop/mesh marker in, exact rigid pose from the fiducials, then the non-rigid stage on the mesh."""
+    from liver_p2p_reg.cloud_io import sample_mesh_surface
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.phantom.anatomy import make_liver
+    from liver_p2p_reg.phantom.dataset import make_case
+    from liver_p2p_reg.phantom.simulate import simulate_liver
+    from liver_p2p_reg.ros.messages import feed_preop_mesh_msg, mesh_marker_mm
+    from liver_p2p_reg.stream.core import NodeCore
+    from liver_p2p_reg.stream.outputs import OK
+
+    sim = simulate_liver(7, 1, target_tets=1500, liver=make_liver(7, spacing_mm=5.0))
+    case = make_case(sim, 0, 0.35, seed=1)
+    marker = mesh_marker_msg(case["src_pcd"], case["src_triangles"], stamp_ns=5)
+    vertices, triangles = mesh_marker_mm(marker)
+    points = sample_mesh_surface(case["src_pcd"], case["src_triangles"], seed=0)
+    config = Config(method="procrustes", mode="on_demand", deform=True, deform_modes=12, deform_target_tets=1500)
+    core = NodeCore(config)
+    assert feed_preop_mesh_msg(core, marker).level == OK
+    assert core.set_preop(points, "ct", 5).level == OK  # the mesh's stamp: the stage runs on the mesh
+    core.set_preop_fiducials(case["src_marker"], 5)
+    core.set_intraop_fiducials(case["tgt_marker"], STAGE_STAMP_NS)
+    core.on_intraop_points(case["tgt_pcd"], "camera", STAGE_STAMP_NS)
+    output = core.reregister()
+    values = output.diagnostics[0].values
+    assert values.get("deform_applied") == "true" and values["deform_surface"] == "mesh", values
+    return DeformedStage(marker, vertices, triangles, points, output)

@@ -4,7 +4,8 @@ The re-run drives a NodeCore with the recorded parameters, models and survey res
 recorded order and registers exactly the recorded clouds with their recorded reasons (no intake,
 no rate limit, no drop), with the fiducial pair each one used; `liver-p2p register` recordings
 (reason `register`) go through the Registrar as the command did. Every pose is compared bit for
-bit with the recorded one.
+bit with the recorded one, and where the non-rigid stage was applied the deformed preop surface (by its
+recorded digest); a recorded /preop/mesh is given to the core as register_node gets it.
 """
 
 from __future__ import annotations
@@ -27,14 +28,22 @@ from liver_p2p_reg.bags.recorder import (
     TOPIC_REGISTRATION,
     continuation,
     message_points_mm,
+    points_sha256,
     recorder_factory,
     run_environment,
 )
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.registration.weights_id import weights_sha256
+from liver_p2p_reg.ros.messages import mesh_marker_mm
 from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
-from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
+from liver_p2p_reg.ros.topics import (
+    TOPIC_INTRAOP,
+    TOPIC_INTRAOP_FIDUCIALS,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
+)
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.record_hooks import restore_tracker
 
@@ -154,6 +163,8 @@ class Rerun:
     poses: int = 0  # of them, those that recorded a pose
     identical: int = 0  # of those, poses re-run bit for bit
     no_pose: int = 0  # recorded without a pose and re-run without one
+    deformed: int = 0  # registrations with a recorded deformed surface (the non-rigid stage applied) ...
+    deformed_identical: int = 0  # ... re-run to bitwise the same surface
     differences: list[str] = field(default_factory=list)  # one line per registration that differs
     truncated: bool = False  # the last file ends without its footer (its writer was killed)
     notes: list[str] = field(default_factory=list)  # how this run's environment differs from the recording's
@@ -167,6 +178,8 @@ class Rerun:
             f"{self.registrations} registrations re-run from {len(self.files)} file(s): {self.identical} of "
             f"{self.poses} poses bitwise identical to the recorded ones, {self.no_pose} without a pose as recorded"
         )
+        if self.deformed:
+            line += f"; {self.deformed_identical} of {self.deformed} deformed preop surfaces bitwise identical"
         if self.truncated:
             line += "; the recording ends without its footer (writer killed): read up to its last complete registration"
         return line
@@ -207,6 +220,10 @@ class _Rerunner:
         if topic == TOPIC_PREOP:
             self.source = message_points_mm(msg)
             core.set_preop(self.source, msg.header.frame_id, stamp_to_ns(msg.header.stamp))
+        elif topic == TOPIC_PREOP_MESH:  # as register_node: kept for its model, the elastic model prepared
+            vertices, triangles = mesh_marker_mm(msg)
+            core.set_preop_mesh(vertices, triangles, msg.header.frame_id, stamp_to_ns(msg.header.stamp))
+            core.prepare_deformation()
         elif topic == TOPIC_PREOP_FIDUCIALS:
             points = message_points_mm(msg)
             self.preop_fiducials = points if len(points) else None
@@ -235,10 +252,11 @@ class _Rerunner:
             raise InputError(f"flight recording: registration {values['seq']} lacks its fiducials")
         if values["decoded"] and points is None:
             raise InputError(f"flight recording: registration {values['seq']} lacks its {TOPIC_INTRAOP} cloud")
-        T = self._run(values, points, fiducials)
+        T, deformed = self._run(values, points, fiducials)
         report, recorded = self.report, values["pose"]
         report.registrations += 1
         where = f"registration {values['seq']} (stamp {values['stamp_ns']}, {values['reason']})"
+        self._compare_deformed(values, deformed, where)
         if recorded is None:
             if T is None:
                 report.no_pose += 1
@@ -255,8 +273,25 @@ class _Rerunner:
             delta = float(np.max(np.abs(np.asarray(T, dtype=np.float64) - want)))
             report.differences.append(f"{where}: pose differs (max |dT| {delta:.3g}, mm in its translation)")
 
-    def _run(self, values: dict[str, Any], points: np.ndarray | None, fiducials: tuple | None) -> np.ndarray | None:
-        """The re-run registration's pose, T_sensor_ct (mm), or None."""
+    def _compare_deformed(self, values: dict[str, Any], deformed: np.ndarray | None, where: str) -> None:
+        """The re-run's deformed preop surface against the recorded digest (recordings that keep one)."""
+        if "deformed_preop_sha256" not in values:  # recorded before the digest existed
+            return
+        want, got = values["deformed_preop_sha256"], points_sha256(deformed)
+        if want is not None:
+            self.report.deformed += 1
+            self.report.deformed_identical += got == want
+        if got != want:
+            shown = {True: "one", False: "none"}
+            detail = (
+                "not bitwise the same" if want and got else f"recorded {shown[bool(want)]}, re-run {shown[bool(got)]}"
+            )
+            self.report.differences.append(f"{where}: deformed preop surface differs ({detail})")
+
+    def _run(
+        self, values: dict[str, Any], points: np.ndarray | None, fiducials: tuple | None
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The re-run registration's pose, T_sensor_ct (mm), or None, and its deformed preop surface (mm) or None."""
         core = self._core()
         fid_s, fid_t = fiducials or (None, None)
         if values["reason"] == "register":  # `liver-p2p register`: the Registrar call the command made
@@ -272,8 +307,9 @@ class _Rerunner:
                     sensor_origin_mm=extras.get("sensor_origin_mm"),
                 )
             except LiverP2PError:
-                return None
-            return result.T_target_source if result.ok and np.isfinite(result.T_target_source).all() else None
+                return None, None
+            ok = result.ok and np.isfinite(result.T_target_source).all()
+            return (result.T_target_source if ok else None), None  # the command publishes no deformed surface
         core.fiducials.set_preop(fid_s, None)  # the pair the recorded registration used, whatever came when
         if fid_t is not None:
             core.fiducials.set_intraop(fid_t, values["stamp_ns"])
@@ -285,7 +321,9 @@ class _Rerunner:
             return points, n_raw
 
         output = core.register_now(values["frame_id"], values["stamp_ns"], decode, values["reason"])
-        return None if output.pose is None else output.pose.T_sensor_ct_mm
+        if output.pose is None:
+            return None, None
+        return output.pose.T_sensor_ct_mm, output.deformed_preop_mm
 
 
 def rerun_recording(path: str | Path, *, record_path: str | None = None, overwrite: bool = False) -> Rerun:

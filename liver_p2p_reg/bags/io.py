@@ -13,10 +13,10 @@ import numpy as np
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.ros.pointcloud2 import MessageTypes
-from liver_p2p_reg.ros.topics import INPUT_TOPICS, STRUCTURE_INPUT_TOPICS, qos_of
+from liver_p2p_reg.ros.topics import INPUT_TOPICS, LOADER_INPUT_TOPICS, qos_of
 
 if TYPE_CHECKING:
-    from liver_p2p_reg.ros.messages import OutputTypes
+    from liver_p2p_reg.ros.messages import MarkerTypes, OutputTypes
 
 # rosbag2 metadata version 9 is what Jazzy's rosbag2 (0.26) writes: QoS profiles as a YAML list.
 BAG_VERSION = 9
@@ -24,6 +24,7 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+MARKER = "visualization_msgs/msg/Marker"
 
 
 @lru_cache(maxsize=1)
@@ -65,6 +66,25 @@ def rosbags_output_types() -> OutputTypes:
         DiagnosticStatus=t["diagnostic_msgs/msg/DiagnosticStatus"],
         KeyValue=t["diagnostic_msgs/msg/KeyValue"],
         level=int,
+    )
+
+
+def rosbags_marker_types() -> MarkerTypes:
+    """visualization_msgs/Marker and its parts from the rosbags Jazzy typestore (/preop/mesh)."""
+    from liver_p2p_reg.ros.messages import MarkerTypes
+
+    t = typestore().types
+    return MarkerTypes(
+        cloud=rosbags_types(),
+        Marker=t[MARKER],
+        Point=t["geometry_msgs/msg/Point"],
+        Pose=t["geometry_msgs/msg/Pose"],
+        Quaternion=t["geometry_msgs/msg/Quaternion"],
+        Vector3=t["geometry_msgs/msg/Vector3"],
+        ColorRGBA=t["std_msgs/msg/ColorRGBA"],
+        Duration=t["builtin_interfaces/msg/Duration"],
+        CompressedImage=t["sensor_msgs/msg/CompressedImage"],
+        MeshFile=t["visualization_msgs/msg/MeshFile"],
     )
 
 
@@ -164,7 +184,7 @@ def _qos(*, latched: bool, best_effort: bool = False, depth: int = 1) -> Any:
 
 # Offered QoS recorded per topic so `ros2 bag play` republishes latched topics as latched
 # (the inputs' documented profiles, ros.topics; every other recorded QoS: reliable, volatile, depth 1).
-LATCHED_TOPICS = tuple(topic for topic in INPUT_TOPICS + STRUCTURE_INPUT_TOPICS if qos_of(topic).latched)
+LATCHED_TOPICS = tuple(topic for topic in INPUT_TOPICS + LOADER_INPUT_TOPICS if qos_of(topic).latched)
 
 
 class BagWriter:

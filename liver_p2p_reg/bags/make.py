@@ -9,16 +9,24 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from liver_p2p_reg.bags.io import POINTCLOUD2, BagWriter, rosbags_types
+from liver_p2p_reg.bags.io import MARKER, POINTCLOUD2, BagWriter, rosbags_types
+from liver_p2p_reg.bags.mesh import MAX_MESH_TRIANGLES, decimated_mesh, preop_mesh_marker
 from liver_p2p_reg.cloud_io import as_float_array, clean_points, require_plausible_extent
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, points_to_cloud
-from liver_p2p_reg.ros.topics import TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS, TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS
+from liver_p2p_reg.ros.topics import (
+    TOPIC_INTRAOP,
+    TOPIC_INTRAOP_FIDUCIALS,
+    TOPIC_PREOP,
+    TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
+)
 
 CASE_KEY = "liver_p2p_reg.case"  # metadata.yaml custom_data key holding the case description (JSON)
 START_NS = 1_700_000_000 * 1_000_000_000  # fixed start time: identical bags for identical inputs
+Mesh = tuple[np.ndarray, np.ndarray]  # (vertices mm, triangles)
 
 
 def subsample(points: np.ndarray, max_points: int, rng: np.random.Generator) -> np.ndarray:
@@ -49,6 +57,8 @@ def make_case_bag(
     *,
     source_fiducials_mm: np.ndarray | None = None,
     target_fiducials_mm: np.ndarray | None = None,
+    source_triangles: np.ndarray | None = None,
+    max_mesh_triangles: int = MAX_MESH_TRIANGLES,
     n_frames: int = 5,
     frame_id: str = "camera",
     preop_frame: str = "ct",
@@ -65,8 +75,10 @@ def make_case_bag(
 
     The intraop cloud of frame k is the target moved by a small sensor motion T_k and freshly
     subsampled; the ground-truth fiducials of that frame are moved by the same T_k and carry
-    the cloud's header stamp.
+    the cloud's header stamp. source_triangles (indices into source_mm as given): the preop mesh,
+    written on /preop/mesh decimated to at most max_mesh_triangles.
     """
+    mesh = _mesh(source_mm, source_triangles, max_mesh_triangles)
     source_mm = _points(source_mm, "source")
     target_mm = _points(target_mm, "target")
     if (source_fiducials_mm is None) != (target_fiducials_mm is None):
@@ -121,6 +133,7 @@ def make_case_bag(
         frames,
         source_fiducials_mm=source_fiducials_mm,
         frame_fiducials_mm=frame_fiducials if target_fiducials_mm is not None else None,
+        mesh=mesh,
         frame_period_s=frame_period_s,
         frame_id=frame_id,
         preop_frame=preop_frame,
@@ -136,6 +149,8 @@ def make_sweep_bag(
     *,
     source_fiducials_mm: np.ndarray | None = None,
     frame_fiducials_mm: list[np.ndarray] | None = None,
+    source_triangles: np.ndarray | None = None,
+    max_mesh_triangles: int = MAX_MESH_TRIANGLES,
     frame_period_s: float = 0.2,
     frame_id: str = "camera",
     preop_frame: str = "ct",
@@ -147,7 +162,9 @@ def make_sweep_bag(
     """Write a moving sensor's frames (each in the sensor's frame at that moment, mm) as a rosbag2 directory.
 
     Frame k is stamped START_NS + (k + 1) x period; its ground-truth fiducials (same frame) carry its stamp.
+    source_triangles: the preop mesh, as in make_case_bag.
     """
+    mesh = _mesh(source_mm, source_triangles, max_mesh_triangles)
     source_mm = _points(source_mm, "source")
     frames = [_points(f, f"frame {k}") for k, f in enumerate(frames_mm)]
     if not frames:
@@ -171,6 +188,7 @@ def make_sweep_bag(
         frames,
         source_fiducials_mm=source_fiducials_mm,
         frame_fiducials_mm=frame_fiducials_mm,
+        mesh=mesh,
         frame_period_s=frame_period_s,
         frame_id=frame_id,
         preop_frame=preop_frame,
@@ -191,11 +209,19 @@ def write_frames(
     preop_frame: str,
     description: dict[str, Any],
     overwrite: bool,
+    mesh: Mesh | None = None,
 ) -> Path:
-    """The bag itself: preop model and fiducials (latched), then each frame's fiducials and cloud, in metres."""
+    """The bag itself: preop mesh, model and fiducials (latched), then each frame's fiducials and cloud, in metres.
+
+    The mesh carries the model's frame and stamp (the node pairs them by it) and is logged just before the
+    model, so the model's warm-up builds the elastic model on it."""
     types = rosbags_types()
     period_ns = int(frame_period_s * 1e9)
+    if mesh is not None:
+        description = {**description, "preop_mesh_triangles": len(mesh[1])}
     with BagWriter(out, overwrite=overwrite, custom_data={CASE_KEY: json.dumps(description, sort_keys=True)}) as bag:
+        if mesh is not None:
+            bag.write(TOPIC_PREOP_MESH, MARKER, START_NS - 1000, preop_mesh_marker(*mesh, preop_frame, START_NS))
         bag.write(
             TOPIC_PREOP,
             POINTCLOUD2,
@@ -222,13 +248,16 @@ def write_frames(
 
 def load_case_npz(path: str | Path) -> dict[str, Any]:
     """A case NPZ (ours or the public P2P layout: src_pcd, tgt_pcd, src_marker|src_vol, tgt_marker|tgt_vol), mm."""
-    from liver_p2p_reg.phantom.casefile import read_case  # the one reader of case files (both layouts)
+    from liver_p2p_reg.phantom.casefile import read_case, source_triangles  # the one reader of case files
 
     path = Path(path)
     if not path.is_file():
         raise InputError(f"case file not found: {path}")
     raw = read_case(path)
     case: dict[str, Any] = {"source_mm": raw["src_pcd"], "target_mm": raw["tgt_pcd"], "info": {"case": path.stem}}
+    triangles = source_triangles(raw)
+    if triangles is not None:  # a generated case's preop mesh
+        case["source_triangles"] = triangles
     if "src_marker" in raw and "tgt_marker" in raw:
         case["source_fiducials_mm"] = raw["src_marker"]
         case["target_fiducials_mm"] = raw["tgt_marker"]
@@ -236,6 +265,13 @@ def load_case_npz(path: str | Path) -> dict[str, Any]:
         if key in raw and isinstance(raw[key], (int, float, str)):
             case["info"][key] = raw[key]
     return case
+
+
+def _mesh(source_mm: np.ndarray, triangles: np.ndarray | None, max_triangles: int) -> Mesh | None:
+    """The bag's preop mesh: the source (as given) and its triangles, decimated; None without triangles."""
+    if triangles is None:
+        return None
+    return decimated_mesh(as_float_array(source_mm, "source")[:, :3], triangles, max_triangles)
 
 
 def _points(points: np.ndarray, what: str, *, paired: bool = False) -> np.ndarray:

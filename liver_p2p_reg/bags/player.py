@@ -14,14 +14,14 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.ros.topics import INPUT_TOPICS, RELIABLE, STRUCTURE_INPUT_TOPICS, Qos, qos_of
+from liver_p2p_reg.ros.topics import INPUT_TOPICS, LOADER_INPUT_TOPICS, RELIABLE, Qos, qos_of
 
 CLOCK_QOS = 10  # /clock as ros2 bag play offers it: reliable, volatile
 
 
 def played_qos(topic: str) -> Qos:
     """The QoS a topic is played with: an input topic's as msg_docs/ documents it, any other reliable, depth 10."""
-    return qos_of(topic) if topic in INPUT_TOPICS + STRUCTURE_INPUT_TOPICS else RELIABLE
+    return qos_of(topic) if topic in INPUT_TOPICS + LOADER_INPUT_TOPICS else RELIABLE
 
 
 @dataclass

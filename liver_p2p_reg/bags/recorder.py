@@ -9,6 +9,7 @@ Topics and the exactness of what they carry: msg_docs/flight_recorder.md.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -17,26 +18,40 @@ import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from liver_p2p_reg.bags.io import DIAGNOSTIC_ARRAY, POINTCLOUD2, POSE_STAMPED, _qos, rosbags_output_types, typestore
+from liver_p2p_reg.bags.io import (
+    DIAGNOSTIC_ARRAY,
+    MARKER,
+    POINTCLOUD2,
+    POSE_STAMPED,
+    _qos,
+    rosbags_marker_types,
+    rosbags_output_types,
+    typestore,
+)
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.weights_id import weights_sha256
-from liver_p2p_reg.ros.messages import diagnostic_array, pose_stamped
-from liver_p2p_reg.ros.pointcloud2 import FLOAT64, M_PER_MM, cloud_to_points_mm, points_to_cloud
+from liver_p2p_reg.ros.messages import diagnostic_array, pose_stamped, triangle_list_marker
+from liver_p2p_reg.ros.pointcloud2 import FLOAT64, M_PER_MM, MM_PER_M, cloud_to_points_mm, points_to_cloud
 from liver_p2p_reg.ros.topics import (
+    TOPIC_DEFORMED_PREOP,
     TOPIC_DIAGNOSTICS,
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
     qos_of,
 )
 from liver_p2p_reg.stream.record_hooks import Recorder, RegistrationRecord
+
+if TYPE_CHECKING:
+    from liver_p2p_reg.stream.deformation import PreopMesh
 
 FORMAT = "liver_p2p_reg.flight_recorder/1"
 STRING = "std_msgs/msg/String"
@@ -75,6 +90,30 @@ def message_points_mm(msg: Any) -> np.ndarray:
     rec = np.frombuffer(raw, dtype=np.dtype({"names": list(MM_FIELDS), "formats": ["<f8"] * 3,
                         "offsets": [int(fields[k].offset) for k in MM_FIELDS], "itemsize": step}), count=n)  # fmt: skip
     return np.stack([rec[k] for k in MM_FIELDS], axis=1).astype(np.float64)
+
+
+def exact_metres(points_mm: np.ndarray) -> np.ndarray:
+    """Float64 metres that decode (x 1000, as /preop/mesh is read) to exactly these millimetres wherever a value
+    within 3 ulps of mm / 1000 does: always for millimetres that came as metres (a mesh received as a Marker)."""
+    mm = np.asarray(points_mm, dtype=np.float64)
+    flat_mm, metres = mm.reshape(-1), (mm * M_PER_MM).reshape(-1)
+    for step in (1, -1, 2, -2, 3, -3):
+        wrong = np.flatnonzero(metres * MM_PER_M != flat_mm)
+        if not len(wrong):
+            break
+        candidate = flat_mm[wrong] * M_PER_MM
+        for _ in range(abs(step)):
+            candidate = np.nextafter(candidate, np.inf if step > 0 else -np.inf)
+        hit = candidate * MM_PER_M == flat_mm[wrong]
+        metres[wrong[hit]] = candidate[hit]
+    return metres.reshape(mm.shape)
+
+
+def points_sha256(points_mm: np.ndarray | None) -> str | None:
+    """The digest a recording keeps of a float64 cloud (the deformed preop surface), to compare re-runs bit for bit."""
+    if points_mm is None:
+        return None
+    return hashlib.sha256(np.ascontiguousarray(points_mm, dtype="<f8").tobytes()).hexdigest()
 
 
 def _exact(array: np.ndarray | None) -> list | None:
@@ -210,6 +249,13 @@ class McapRecorder(Recorder):
         self._fiducials_key = points.tobytes()  # none (0 points): the model's markers removed
         self._write(TOPIC_PREOP_FIDUCIALS, POINTCLOUD2, points_message(points, "ct", stamp_ns))
 
+    def preop_mesh(self, mesh: PreopMesh, snapshot: bool = False) -> None:
+        """The non-rigid stage's surface as the node got it (/preop/mesh), in metres that decode to its exact mm."""
+        metres = exact_metres(mesh.vertices_mm)
+        marker = triangle_list_marker(metres, mesh.triangles, rosbags_marker_types(), mesh.frame_id, mesh.stamp_ns)
+        self._write(TOPIC_PREOP_MESH, MARKER, marker)
+        self._writer.flush()
+
     def event(self, name: str, values: dict[str, Any] | None = None) -> None:
         self._json(TOPIC_EVENT, {"event": name, **(values or {})})
         self._writer.flush()
@@ -226,6 +272,11 @@ class McapRecorder(Recorder):
             self._write(TOPIC_INTRAOP_FIDUCIALS, POINTCLOUD2, points_message(fid_t, record.frame_id, record.stamp_ns))
         if out.pose is not None:
             self._write(TOPIC_POSE, POSE_STAMPED, pose_stamped(out.pose, types))
+        deformed = out.deformed_preop_mm if out.pose is not None else None
+        if deformed is not None:  # as published (float32 metres); its exact digest goes in the record
+            metres = np.asarray(deformed, dtype=np.float64) * M_PER_MM
+            cloud = points_to_cloud(metres, types.cloud, frame_id=out.pose.frame_id, stamp_ns=out.pose.stamp_ns)
+            self._write(TOPIC_DEFORMED_PREOP, POINTCLOUD2, cloud)
         self._write(TOPIC_DIAGNOSTICS, DIAGNOSTIC_ARRAY, diagnostic_array(out.diagnostics, record.stamp_ns, types))
         pose = out.pose
         values = {
@@ -249,6 +300,11 @@ class McapRecorder(Recorder):
             "message": out.summary,
             "method": None if out.result is None else out.result.method,
             "extras": record.extras,
+            # the non-rigid stage (deform on): its diagnostic values and the digest of the deformed surface
+            "deformation": {k: v for k, v in out.diagnostics[0].values.items() if k.startswith("deform")}
+            if out.diagnostics
+            else {},
+            "deformed_preop_sha256": points_sha256(deformed),
         }
         self._json(TOPIC_REGISTRATION, values)
         self.registrations += 1

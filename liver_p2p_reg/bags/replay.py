@@ -10,60 +10,39 @@ from pathlib import Path
 
 import numpy as np
 
-from liver_p2p_reg.bags.io import (
-    DIAGNOSTIC_ARRAY,
-    POINTCLOUD2,
-    POSE_STAMPED,
-    TRANSFORM_STAMPED,
-    BagWriter,
-    bag_custom_data,
-    read_messages,
-    rosbags_output_types,
-)
+from liver_p2p_reg.bags.io import MARKER, POINTCLOUD2, BagWriter, bag_custom_data, read_messages
 from liver_p2p_reg.bags.make import CASE_KEY
+from liver_p2p_reg.bags.replay_outputs import DEFORM_OUTPUT_TOPICS, OUTPUT_TOPICS, ReplayOutputs
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.confidence import result_warnings
 from liver_p2p_reg.registration.methods import check_method_name
 from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.ros.messages import (
-    diagnostic_array,
     feed_intraop_fiducials_msg,
     feed_intraop_msg,
     feed_preop_fiducials_msg,
+    feed_preop_mesh_msg,
     feed_preop_msg,
     feed_structure_labels_msg,
     feed_structures_msg,
-    pose_stamped,
-    registered_structures_cloud,
-    transform_stamped,
 )
-from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, cloud_to_points_mm, points_to_cloud, stamp_to_ns
+from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns
 from liver_p2p_reg.ros.topics import (
-    TOPIC_DIAGNOSTICS,
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
-    TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
     TOPIC_PREOP_STRUCTURES,
-    TOPIC_REGISTERED,
     TOPIC_STRUCTURE_LABELS,
-    TOPIC_STRUCTURES,
-    TOPIC_TRANSFORM,
 )
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.outputs import ERROR, LEVEL_NAMES, OK, CoreOutput
 from liver_p2p_reg.structures_io import Structure, structure_bounds
 
 LOG = logging.getLogger("liver_p2p_reg.replay")
-OUTPUT_TOPICS = {
-    TOPIC_POSE: POSE_STAMPED,
-    TOPIC_TRANSFORM: TRANSFORM_STAMPED,
-    TOPIC_REGISTERED: POINTCLOUD2,
-    TOPIC_STRUCTURES: POINTCLOUD2,
-    TOPIC_DIAGNOSTICS: DIAGNOSTIC_ARRAY,
-}
+__all__ = ["DEFORM_OUTPUT_TOPICS", "OUTPUT_TOPICS", "ReplayRow", "format_table", "replay_bag", "replay_bags"]
 
 
 @dataclass
@@ -87,8 +66,12 @@ class ReplayRow:
     output: str = ""  # output bag path ("" when not written)
     info: dict = field(default_factory=dict)  # the bag's case description (custom_data)
     # one dict per registration that gave a pose: stamp_ns, rms_tre_mm (None without ground truth),
-    # level, method, and in survey mode survey_state / survey_visibility
+    # level, method, and in survey mode survey_state / survey_visibility; with `deform` deform_applied and
+    # deformed_rms_tre_mm (None unless applied with ground truth)
     per_frame: list[dict] = field(default_factory=list)
+    deform: bool = False  # replayed with the non-rigid stage on
+    deform_applied: int = 0  # registrations the stage was applied on
+    deformed_rms_tre_mm: float = float("nan")  # mean over those (with ground truth)
 
 
 def replay_bag(
@@ -126,84 +109,58 @@ def replay_bag(
     core = NodeCore(config, registrar, recorder_factory("overwrite" if overwrite else "refuse"))
     if structures:
         core.structures.set_structures(structures)
-    types = rosbags_output_types()
     writer = BagWriter(out_path, overwrite=overwrite) if out_path else None
-    outputs: list[CoreOutput] = []
-    output_frames: list[int] = []  # the intraop frame (1-based) each output answers
-    frames = 0
+    sink = ReplayOutputs(writer, observer)
+    outputs = sink.outputs
     last_ns = 0
-    latest: dict[str, object] = {}  # the last intraop cloud / fiducials received (the core registers the latest)
-    last_posed: tuple[CoreOutput, object, object, int] | None = None  # (output, its cloud, fiducials, frame)
-
-    def emit(output: CoreOutput | None, stamp_ns: int, log_ns: int) -> None:
-        nonlocal last_posed
-        if output is None:
-            return
-        if observer is not None:
-            observer.on_output(output)
-        outputs.append(output)
-        output_frames.append(frames)  # the core registers the latest cloud: the one just received
-        if output.pose is not None and output.result is not None:
-            last_posed = (output, latest.get("cloud"), latest.get("fiducials"), frames)
-        if writer is None:
-            return
-        if output.pose is not None:
-            writer.write(TOPIC_POSE, POSE_STAMPED, log_ns, pose_stamped(output.pose, types))
-            writer.write(TOPIC_TRANSFORM, TRANSFORM_STAMPED, log_ns, transform_stamped(output.pose, types))
-            cloud = points_to_cloud(
-                output.registered_preop_mm * M_PER_MM, types.cloud, frame_id=output.pose.frame_id, stamp_ns=stamp_ns
-            )
-            writer.write(TOPIC_REGISTERED, POINTCLOUD2, log_ns, cloud)
-            # with every pose, empty without structures, as register_node publishes it
-            cloud = registered_structures_cloud(output.structures, types.cloud, output.pose.frame_id, stamp_ns)
-            writer.write(TOPIC_STRUCTURES, POINTCLOUD2, log_ns, cloud)
-        writer.write(TOPIC_DIAGNOSTICS, DIAGNOSTIC_ARRAY, log_ns, diagnostic_array(output.diagnostics, stamp_ns, types))
-
     try:
         for item in read_messages(path):
             last_ns = item.timestamp_ns
             if observer is not None:
                 observer.on_input(item.topic, item.msg)
-            if writer is not None and item.topic not in OUTPUT_TOPICS:
-                writer.write(item.topic, item.msgtype, item.timestamp_ns, item.msg)
+            sink.copy_input(item)
             if item.topic == TOPIC_STRUCTURE_LABELS and not structures:  # std_msgs/String
                 feed_structure_labels_msg(core, item.msg.data)
+            if item.topic == TOPIC_PREOP_MESH and item.msgtype == MARKER:  # as register_node: kept, then prepared
+                diag = feed_preop_mesh_msg(core, item.msg)
+                sink.report([diag, core.prepare_deformation() if diag.level == OK else None], item.timestamp_ns)
             if item.msgtype != POINTCLOUD2:
                 continue
             if item.topic == TOPIC_PREOP:
-                diag = diagnostic_array([feed_preop_msg(core, item.msg)], item.timestamp_ns, types)
-                if writer is not None:
-                    writer.write(TOPIC_DIAGNOSTICS, DIAGNOSTIC_ARRAY, item.timestamp_ns, diag)
+                sink.report([feed_preop_msg(core, item.msg)], item.timestamp_ns)
             elif item.topic == TOPIC_PREOP_STRUCTURES and not structures:
                 feed_structures_msg(core, item.msg)
             elif item.topic == TOPIC_PREOP_FIDUCIALS:
                 feed_preop_fiducials_msg(core, item.msg)
             elif item.topic == TOPIC_INTRAOP_FIDUCIALS:
                 feed_intraop_fiducials_msg(core, item.msg)
-                latest["fiducials"] = item.msg
+                sink.latest["fiducials"] = item.msg
             elif item.topic == TOPIC_INTRAOP:
-                frames += 1
-                latest["cloud"] = item.msg
+                sink.frames += 1
+                sink.latest["cloud"] = item.msg
                 if max_frames and len(outputs) >= max_frames:
                     continue
                 for diag in feed_intraop_msg(core, item.msg):
-                    emit(CoreOutput([diag]), item.timestamp_ns, item.timestamp_ns)
-                emit(
+                    sink.emit(CoreOutput([diag]), item.timestamp_ns, item.timestamp_ns)
+                sink.emit(
                     core.process_pending(item.timestamp_ns * 1e-9),
                     stamp_to_ns(item.msg.header.stamp),
                     item.timestamp_ns,
                 )
         if not (max_frames and len(outputs) >= max_frames):
-            emit(core.flush(), last_ns, last_ns + 1)
+            sink.emit(core.flush(), last_ns, last_ns + 1)
     finally:
         core.close_recording()
         if writer is not None:
             writer.close()
+    frames, last_posed = sink.frames, sink.last_posed
     if plot_path is not None and last_posed is not None:
         output, cloud, fiducials, frame = last_posed
         title = f"{path.name}, frame {frame} of {frames} (the last registered)"
         _plot_frame(plot_path, core, output, cloud, fiducials, title=title)
-    return _summarize(path, frames, outputs, str(out_path or ""), info, output_frames)
+    row = _summarize(path, frames, outputs, str(out_path or ""), info, sink.output_frames)
+    row.deform = core.config.deform
+    return row
 
 
 def _bag_info(path: Path) -> dict:
@@ -261,6 +218,7 @@ def _summarize(
         return float(np.mean(values)) if values else float("nan")
 
     messages = [(o.summary, f) for o, f in zip(outputs, output_frames, strict=True) if o.level == worst]
+    posed = [o for o in outputs if o.pose is not None and o.result is not None]
     per_frame = [
         {
             "stamp_ns": o.pose.stamp_ns,
@@ -268,10 +226,12 @@ def _summarize(
             "level": o.level,
             "method": o.result.method,
             **{k: v for k, v in o.diagnostics[0].values.items() if k.startswith("survey_")},
+            **_deform_frame(o),
         }
-        for o in outputs
-        if o.pose is not None and o.result is not None
+        for o in posed
     ]
+    applied = [o for o in posed if o.deformed_preop_mm is not None]
+    deformed_tres = [o.result.deformed_rms_tre_mm for o in applied if o.result.deformed_rms_tre_mm is not None]
     return ReplayRow(
         bag=path.name,
         frames=frames,
@@ -290,7 +250,17 @@ def _summarize(
         output=out,
         info=info,
         per_frame=per_frame,
+        deform_applied=len(applied),
+        deformed_rms_tre_mm=mean(deformed_tres),
     )
+
+
+def _deform_frame(output: CoreOutput) -> dict:
+    """A registration's non-rigid stage for per_frame: applied or not, the deformed RMS-TRE ({} when it did not run)."""
+    if "deform_applied" not in output.diagnostics[0].values:
+        return {}
+    applied = output.deformed_preop_mm is not None
+    return {"deform_applied": applied, "deformed_rms_tre_mm": output.result.deformed_rms_tre_mm if applied else None}
 
 
 def replay_bags(
@@ -366,11 +336,16 @@ def format_flags(rows: Sequence[ReplayRow]) -> list[str]:
 
 def format_table(rows: Sequence[ReplayRow]) -> str:
     """Markdown-style table: bag, frames, visibility, RMS-TRE (mean and worst frame), residual,
-    uncertainty, runtime (p50), status."""
+    uncertainty, runtime (p50), status; when any bag was replayed with `deform`, the deformed RMS-TRE
+    (mean over the frames the stage was applied on) and on how many it was."""
     header = "bag|frames|visibility|RMS-TRE mm (mean)|(worst frame)|residual mm|uncertainty mm|runtime ms (p50)|status"
     header = header.split("|")
-    body = [
-        [
+    deform = any(r.deform for r in rows)
+    if deform:
+        header += ["deformed RMS-TRE mm (mean)", "deform applied"]
+    body = []
+    for r in rows:
+        line = [
             r.bag,
             f"{r.registered}/{r.frames}",
             fmt(r.visibility),
@@ -381,8 +356,9 @@ def format_table(rows: Sequence[ReplayRow]) -> str:
             fmt(r.runtime_ms_p50, 0),
             r.status,
         ]
-        for r in rows
-    ]
+        if deform:
+            line += [fmt(r.deformed_rms_tre_mm), f"{r.deform_applied}/{r.registered}" if r.deform else "-"]
+        body.append(line)
     return markdown_table(header, body)
 
 

@@ -54,7 +54,9 @@ def _noisy(info: CaseInfo, noise_mm: float) -> CaseInfo:
 
 
 def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
-    """One case: the pose, its verdict reasons, and per marker the bound's features and the true error."""
+    """One case: the pose, its verdict reasons, and per marker the bound's features and the true error; with
+    `deform` on, the error of the positions the non-rigid stage gives (the pose's where it was not applied)."""
+    from liver_p2p_reg.phantom.casefile import source_triangles
     from liver_p2p_reg.registration.confidence import result_warnings
     from liver_p2p_reg.registration.registrar import Registrar
 
@@ -63,6 +65,7 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
     config = Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)})
     row: dict[str, Any] = {"case_id": info.case_id, "liver_id": int(data.get("liver_id", -1))}
     row["visibility"] = info.visibility
+    row["deform_applied"] = False
     try:
         result = Registrar(config).register(
             data["src_pcd"],
@@ -70,6 +73,7 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
             source_fiducials_mm=src,
             target_fiducials_mm=tgt,
             sensor_origin_mm=case_origin(data),
+            source_triangles=source_triangles(data) if config.deform else None,
         )
         ok = bool(result.ok and result.error_model is not None)
     except LiverP2PError:
@@ -86,7 +90,14 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
             "features": np.full((len(src), len(FEATURES)), np.nan),
             "rms_mm": _rms(err),
         }
-    err = np.linalg.norm(transform_points(result.T_target_source, src) - tgt, axis=1)
+    deformation = result.deformation
+    row["deform_applied"] = bool(deformation is not None and deformation.applied)
+    moved = (
+        deformation.deformed_position_mm(src)
+        if row["deform_applied"]
+        else transform_points(result.T_target_source, src)
+    )
+    err = np.linalg.norm(moved - tgt, axis=1)
     reasons = [r for r in result_warnings(result, config) if r in OTHER_REASONS]
     return {
         **row,
@@ -115,7 +126,7 @@ def stack_rows(rows: list[dict[str, Any]], name: str, noise_mm: float) -> dict[s
         "errors": np.concatenate([r["errors"] for r in rows]) if rows else np.zeros(0),
         "features": np.concatenate([r["features"] for r in rows]) if rows else np.zeros((0, len(FEATURES))),
     }
-    for key in ("liver_id", "visibility", "method_visibility", "rms_mm", "ok", "reasons", "bound_ms"):
+    for key in ("liver_id", "visibility", "method_visibility", "rms_mm", "ok", "reasons", "bound_ms", "deform_applied"):
         out[key] = np.array([r[key] for r in rows])
     return out
 

@@ -72,6 +72,7 @@ def _make(args: argparse.Namespace, case: dict) -> int:
         case["target_mm"],
         source_fiducials_mm=case.get("source_fiducials_mm"),
         target_fiducials_mm=case.get("target_fiducials_mm"),
+        source_triangles=case.get("source_triangles"),  # a generated case's mesh: /preop/mesh
         n_frames=args.frames,
         frame_id=args.frame_id,
         motion_mm=args.motion_mm,

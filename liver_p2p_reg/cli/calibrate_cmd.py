@@ -14,6 +14,7 @@ from liver_p2p_reg.errors import InputError
 # generator and real-anatomy, random and camera crops (`liver-p2p dataset generate --testset NAME --out data`)
 DEFAULT_VAL = ("data/insilico-val-v2", "data/insilico-val-camera-v2", "data/real-val-v2", "data/real-val-camera-v2")
 RESULTS_PAGE = Path("docs/results/error_bound.md")
+DEFORMED_RESULTS_PAGE = Path("docs/results/error_bound_deformed.md")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -42,7 +43,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", default="out/bound", help="collected poses per set, reused when unchanged")
     p.add_argument("--out", help="calibration file to write (default: the bundled one)")
     p.add_argument("--force", action="store_true", help="replace an existing, different calibration file")
-    p.add_argument("--report", default=str(RESULTS_PAGE), help="results page of --judge (default: %(default)s)")
+    p.add_argument(
+        "--deformed",
+        action="store_true",
+        help="calibrate the bound of the non-rigid stage's deformed positions instead (deform on; fitted on the "
+        f"poses where it was applied; default --out the bundled deformed one, --report {DEFORMED_RESULTS_PAGE})",
+    )
+    p.add_argument("--report", help=f"results page of --judge (default: {RESULTS_PAGE})")
     p.add_argument(
         "--readme",
         nargs="?",
@@ -57,14 +64,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from liver_p2p_reg.bench import bound_data
     from liver_p2p_reg.bench.bound_fit import calibrate
-    from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, read_calibration
+    from liver_p2p_reg.registration.error_calibration import (
+        BUNDLED_CALIBRATION,
+        BUNDLED_DEFORMED_CALIBRATION,
+        DEFORMED,
+        deform_settings,
+        read_calibration,
+    )
     from liver_p2p_reg.registration.weights_id import weights_sha256
 
     config = (Config.from_yaml(args.config) if args.config else Config()).validate()
-    out = Path(args.out) if args.out else BUNDLED_CALIBRATION
+    if args.deformed:
+        config = config.replace(deform=True).validate()
+    out = Path(args.out) if args.out else (BUNDLED_DEFORMED_CALIBRATION if args.deformed else BUNDLED_CALIBRATION)
     weights = weights_sha256(config)  # "" for a method without weights
-    val = bound_data.concat([_collected(Path(d), args, config, weights) for d in args.val])
+    val = _applied(bound_data.concat([_collected(Path(d), args, config, weights) for d in args.val]), args)
     cal = calibrate(val, args.seed)
+    if args.deformed:
+        cal.update(positions=DEFORMED, deform=deform_settings(config))
     sets = [{"set": Path(d).name, "cases": int((val["set"] == Path(d).name).sum())} for d in args.val]
     cal.update(
         method=config.method,
@@ -77,7 +94,9 @@ def run(args: argparse.Namespace) -> int:
             "case_ids_sha256": hashlib.sha256("\n".join(sorted(val["case_id"])).encode()).hexdigest(),
             "noise_mm": args.noise_mm,
             "seed": args.seed,
-            "command": "liver-p2p calibrate-bound " + " ".join(f"--val {d}" for d in args.val),
+            "command": "liver-p2p calibrate-bound "
+            + ("--deformed " if args.deformed else "")
+            + " ".join(f"--val {d}" for d in args.val),
         },
     )
     text = json.dumps(cal, indent=1) + "\n"
@@ -92,6 +111,18 @@ def run(args: argparse.Namespace) -> int:
     if args.judge:
         _judge(args, config, weights, read_calibration(out))
     return 0
+
+
+def _applied(data: dict, args: argparse.Namespace) -> dict:
+    """With --deformed, the poses where the non-rigid stage was applied (the only ones its bound is used for)."""
+    from liver_p2p_reg.bench import bound_data
+
+    if not args.deformed:
+        return data
+    applied = data["deform_applied"].astype(bool)
+    if not applied.any():
+        raise InputError("the non-rigid stage was applied on none of these poses: nothing to calibrate")
+    return bound_data.subset(data, applied)
 
 
 def _collected(folder: Path, args: argparse.Namespace, config: Config, weights: str) -> dict:
@@ -117,15 +148,17 @@ def _judge(args: argparse.Namespace, config: Config, weights: str, calibration) 
     from liver_p2p_reg.bench.bound_markdown import results_page
     from liver_p2p_reg.bench.readme import replace_readme_block
 
-    data = bound_data.concat([_collected(Path(d), args, config, weights) for d in args.judge])
-    command = "liver-p2p calibrate-bound " + " ".join(["--judge", *args.judge])
+    data = _applied(bound_data.concat([_collected(Path(d), args, config, weights) for d in args.judge]), args)
+    flag = ["--deformed"] if args.deformed else []
+    command = "liver-p2p calibrate-bound " + " ".join([*flag, "--judge", *args.judge])
     page, block = results_page(
-        data, calibration, config.error_coverage, config.structure_error_warn_mm, args.seed, command
+        data, calibration, config.error_coverage, config.structure_error_warn_mm, args.seed, command, args.deformed
     )
-    report = Path(args.report)
+    report = Path(args.report or (DEFORMED_RESULTS_PAGE if args.deformed else RESULTS_PAGE))
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(page)
     print(f"wrote {report}")
     if args.readme:
-        replace_readme_block(Path(args.readme), block, "ERROR_BOUND")
-        print(f"wrote the ERROR_BOUND block of {args.readme}")
+        name = "ERROR_BOUND_DEFORMED" if args.deformed else "ERROR_BOUND"
+        replace_readme_block(Path(args.readme), block, name)
+        print(f"wrote the {name} block of {args.readme}")

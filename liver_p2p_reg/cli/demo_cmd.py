@@ -32,6 +32,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", help="registration method (default: the configured default)")
     p.add_argument("--config", help="YAML configuration file")
     p.add_argument(
+        "--deform",
+        action="store_true",
+        help="run the non-rigid stage after each pose (deform: true), in the live graph and the replay",
+    )
+    p.add_argument(
         "--out",
         default="out/demo",
         help="folder for recorded/output bags, node logs and an overlay PNG per bag, replaced on each run "
@@ -51,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
     config = Config.from_yaml(args.config) if args.config else Config()
     if args.method:
         config = config.replace(method=args.method)
+    if args.deform:
+        config = config.replace(deform=True)
     bags = bundled_bags_dir()
     if bags is None:
         raise InputError("no bundled bags found (expected a bags/ folder next to the package)")
@@ -93,7 +100,7 @@ def _report_graph(graph: tuple[list, float], replay_rows: list, out: Path) -> in
 
     rows, startup_s = graph
     replay_tre = {r.bag: r.rms_tre_mm for r in replay_rows}
-    print(format_graph_table(rows, replay_tre))
+    print(format_graph_table(rows, replay_tre, deform=any(r.deform for r in replay_rows)))
     deltas = [abs(r.rms_tre_mm - replay_tre[r.bag]) for r in rows if np.isfinite(r.rms_tre_mm) and r.bag in replay_tre]
     latency = [v for r in rows for v in r.latency_ms]
     poses = sum(r.registered for r in rows)

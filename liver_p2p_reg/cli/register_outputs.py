@@ -53,8 +53,12 @@ def summary_line(target: Path, payload: dict, output: Path | None, written: list
     parts = [f"residual {payload['residual_mm']:.2f} mm"]
     if "deformation" in payload:
         d = payload["deformation"]
+        bound = payload.get("deformed_error_bound_mm")
+        within = f", interior within {bound:.1f} mm" if d["applied"] and bound is not None else ""
         parts.append(
-            f"deformed {d['rms_displacement_mm']:.1f} mm RMS" if d["applied"] else f"not deformed ({d['reason']})"
+            f"deformed {d['rms_displacement_mm']:.1f} mm RMS{within}"
+            if d["applied"]
+            else f"not deformed ({d['reason']})"
         )
     if payload.get("uncertainty_mm") is not None:
         parts.append(f"uncertainty {payload['uncertainty_mm']:.1f} mm")

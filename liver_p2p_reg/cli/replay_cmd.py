@@ -33,6 +33,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", help="registration method (default: the configured one)")
     p.add_argument("--mode", choices=NODE_MODES, help="node mode (default: the configured one)")
     p.add_argument("--config", help="YAML configuration file (plain or ROS parameter file)")
+    p.add_argument(
+        "--deform",
+        action="store_true",
+        help="run the non-rigid stage after each pose (deform: true): --out bags get /registration/deformed_preop, "
+        "the table the deformed RMS-TRE and on how many frames the stage was applied",
+    )
     p.add_argument("--max-frames", type=int, default=0, help="register at most this many frames per bag (0: all)")
     p.add_argument("--json", help="also write the per-bag rows as JSON here")
     p.add_argument(
@@ -69,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
 
     config = Config.from_yaml(args.config) if args.config else Config()
     changes = {k: v for k, v in (("method", args.method), ("mode", args.mode)) if v}
+    if args.deform:
+        changes["deform"] = True
     if changes:
         config = config.replace(**changes)
     check_method_name(config.method)  # before reading any bag or importing torch
@@ -135,7 +143,7 @@ def _rerun(args: argparse.Namespace) -> int:
         raise InputError("a flight recording is re-run on its own: give one recording and no bags")
     given = [o for o, v in (("--out", args.out), ("--plots", args.plots), ("--method", args.method),
              ("--mode", args.mode), ("--config", args.config), ("--max-frames", args.max_frames),
-             ("--slicer", args.slicer), ("--structures", args.structures)) if v]  # fmt: skip
+             ("--slicer", args.slicer), ("--structures", args.structures), ("--deform", args.deform)) if v]  # fmt: skip
     if given:
         raise InputError(f"{', '.join(given)}: a flight recording is re-run under its recorded parameters only")
     if args.record:

@@ -60,8 +60,9 @@ def send_registration(
     warnings: list[str],
     structures: list[Any] | None = None,
 ) -> None:
-    """Model (the file's mesh if it has one), intraop cloud, CTToSensor, each structure (`PlacedStructure`s,
-    moved into the target's frame, a POLYDATA named by its label) and the verdict; returns once sent.
+    """Model (the file's mesh if it has one), intraop cloud, CTToSensor, the deformed model when the non-rigid
+    stage was applied, each structure (`PlacedStructure`s, moved into the target's frame, deformed when the stage
+    was applied, a POLYDATA named by its label) and the verdict; returns once sent.
 
     Call it once per registration on the same connection; close `bridge.endpoint` at the end.
     """
@@ -76,8 +77,11 @@ def send_registration(
     bridge.send_cloud(target_mm)
     bridge.send_pose(result.T_target_source)
     placed = structures or []
+    deformation = getattr(result, "deformation", None)
+    if deformation is not None and deformation.applied:  # the model where the non-rigid stage put it (sensor frame)
+        bridge.send_deformed_model(deformation.deformed_position_mm(vertices), triangles)
     for device, structure in zip(bridge.structure_devices([s.label for s in placed]), placed, strict=True):
-        bridge.send_structure(device, structure.position_mm)
+        bridge.send_structure(device, structure.current_position_mm)
     message = f"registered: residual {result.residual_mm:.2f} mm"
     if result.rms_tre_mm is not None:
         message += f", RMS-TRE {result.rms_tre_mm:.2f} mm"

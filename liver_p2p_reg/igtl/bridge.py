@@ -38,18 +38,28 @@ class SlicerBridge:
 
     def send_model(self, points_ct_mm: np.ndarray, triangles: np.ndarray | None = None, stamp_ns: int = 0) -> int:
         """The preop model (ct frame, mm): the mesh if triangles are given, else its points; returns points sent."""
-        if triangles is not None and len(triangles):
-            points = np.asarray(points_ct_mm, dtype=np.float64).reshape(-1, 3)
-            if not np.isfinite(points).all():
-                raise InputError("preop mesh has non-finite vertices")
-            ras = scene.ct_to_slicer(points, self.config.ct_convention)
-            body = wire.polydata_body(ras, triangles)
-        else:
-            points = _finite(points_ct_mm, "preop model")
-            ras = scene.decimate(scene.ct_to_slicer(points, self.config.ct_convention), self.config.max_model_points)
-            body = wire.polydata_body(*scene.splat(ras, self.config.point_size_mm))
+        ras = scene.ct_to_slicer(points_ct_mm, self.config.ct_convention)
+        sent, body = self._surface_body(ras, triangles, "preop")
         self._publish("POLYDATA", self.config.model_device, body, stamp_ns)
-        return len(ras)
+        return sent
+
+    def send_deformed_model(
+        self, points_sensor_mm: np.ndarray, triangles: np.ndarray | None = None, stamp_ns: int = 0
+    ) -> int:
+        """The deformed preop model, sensor frame (mm; not under CTToSensor): a mesh or points; returns points sent."""
+        sent, body = self._surface_body(points_sensor_mm, triangles, "deformed preop")
+        self._publish("POLYDATA", self.config.deformed_model_device, body, stamp_ns)
+        return sent
+
+    def _surface_body(self, points_mm: np.ndarray, triangles: np.ndarray | None, what: str) -> tuple[int, bytes]:
+        """(points sent, POLYDATA body) of a model in Slicer's coordinates: the mesh, or points decimated and splatted."""
+        if triangles is not None and len(triangles):
+            points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+            if not np.isfinite(points).all():  # triangles index every vertex: none can be dropped
+                raise InputError(f"{what} mesh has non-finite vertices")
+            return len(points), wire.polydata_body(points, triangles)
+        points = scene.decimate(_finite(points_mm, f"{what} model"), self.config.max_model_points)
+        return len(points), wire.polydata_body(*scene.splat(points, self.config.point_size_mm))
 
     def send_cloud(self, points_sensor_mm: np.ndarray, stamp_ns: int = 0) -> int:
         """The intraop cloud (sensor frame, mm), decimated; returns points sent."""
@@ -71,8 +81,7 @@ class SlicerBridge:
         """The device names of structures with these labels: each label as it is when it is a valid device
         name, else made one (non-ASCII and unprintable characters as '_', cut to 20 bytes), never one of the
         bridge's own devices nor another structure's (a clash gets a '~2', '~3', ... suffix)."""
-        c = self.config
-        taken = {c.transform_device, c.model_device, c.cloud_device, c.status_device}
+        taken = set(self.config.devices())
         return [_device_name(label, taken) for label in labels]
 
     def send_pose(self, T_sensor_ct_mm: np.ndarray, stamp_ns: int = 0) -> np.ndarray:

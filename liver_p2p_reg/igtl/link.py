@@ -1,7 +1,9 @@
 """ROS-free glue from ROS messages (rclpy or rosbags objects, or CDR bytes) and node-core outputs to the Slicer bridge.
 
 slicer_bridge_node (rclpy), `liver-p2p replay --slicer` (rosbags) and the tests drive this same
-object. Bad input messages are counted and logged, never raised: the link must outlive them.
+object. Bad input messages are counted and logged, never raised: the link must outlive them. The
+deformed preop surface goes out on the last /preop/mesh's triangles when it has as many points as that
+mesh has welded vertices (the non-rigid stage ran on it: register_node welds it alike), else as points.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from liver_p2p_reg.igtl.bridge import SlicerBridge
 from liver_p2p_reg.ros.messages import mesh_marker_mm, parse_structure_labels
 from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_points_mm, cloud_to_structures, stamp_to_ns
 from liver_p2p_reg.ros.topics import (
+    TOPIC_DEFORMED_PREOP,
     TOPIC_INTRAOP,
     TOPIC_POSE,
     TOPIC_PREOP,
@@ -97,6 +100,9 @@ class SlicerLink:
         self._lock = threading.Lock()
         self._clouds: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp -> decimated points (sensor, mm)
         self._mesh_stamp: int | None = None  # header stamp of the last mesh sent (its points need no resend)
+        # the last mesh's triangles and vertex count: a deformed surface of as many points is that mesh deformed
+        self._mesh: tuple[np.ndarray, int] | None = None
+        self._deformed_kind = ""  # how the last deformed model went (mesh or points): logged when it changes
         self._last_cloud_s = -np.inf
         self._deferred: tuple[np.ndarray, int] | None = None  # a pose's cloud held back by cloud_rate_hz
         self._structure_names: dict[int, str] = {}  # label id -> name (/preop/structure_labels)
@@ -108,6 +114,7 @@ class SlicerLink:
             "clouds_superseded": 0,  # held back by cloud_rate_hz, then replaced by a newer pose's
             "statuses_sent": 0,
             "structures_sent": 0,  # POLYDATA messages, one per structure and pose
+            "deformed_sent": 0,  # the deformed model, once per applied non-rigid stage
             "bad_messages": 0,
         }
 
@@ -117,7 +124,12 @@ class SlicerLink:
         stamp = stamp_to_ns(msg.header.stamp)
         if self._mesh_stamp == stamp:
             return
-        self._guard(TOPIC_PREOP, lambda: self._send_model(cloud_to_points_mm(msg), None, stamp))
+
+        def send() -> None:
+            self._send_model(cloud_to_points_mm(msg), None, stamp)
+            self._mesh = None  # another model: the mesh held is not its surface (its own mesh may follow)
+
+        self._guard(TOPIC_PREOP, send)
 
     def on_mesh_msg(self, msg: Any) -> None:
         """/preop/mesh (visualization_msgs/Marker TRIANGLE_LIST, metres): the model as a mesh."""
@@ -127,6 +139,7 @@ class SlicerLink:
             stamp = stamp_to_ns(msg.header.stamp)
             self._send_model(vertices, triangles, stamp)
             self._mesh_stamp = stamp
+            self._mesh = (triangles, len(vertices))  # welded as register_node welds it: same vertex order
 
         self._guard(TOPIC_PREOP_MESH, send)
 
@@ -175,6 +188,12 @@ class SlicerLink:
 
         self._guard(TOPIC_STRUCTURES, send)
 
+    def on_deformed_msg(self, msg: Any) -> None:
+        """/registration/deformed_preop (sensor frame): the deformed model, on the last mesh's triangles if it fits."""
+        self._guard(
+            TOPIC_DEFORMED_PREOP, lambda: self.send_deformed(cloud_to_points_mm(msg), stamp_to_ns(msg.header.stamp))
+        )
+
     def on_diagnostics_msg(self, msg: Any) -> None:
         """/diagnostics: a STRING for each registration attempt (not for the periodic summary)."""
         stamp = stamp_to_ns(msg.header.stamp)
@@ -189,6 +208,8 @@ class SlicerLink:
     def on_input(self, topic: str, msg: Any) -> None:
         if topic == TOPIC_PREOP:
             self.on_preop_msg(msg)
+        elif topic == TOPIC_PREOP_MESH:  # a bag carrying the mesh: the model as a mesh, its triangles kept
+            self.on_mesh_msg(msg)
         elif topic == TOPIC_INTRAOP:
             self.on_intraop_msg(msg)
 
@@ -200,6 +221,9 @@ class SlicerLink:
             if placed:  # where the non-rigid stage put them when it was applied
                 positions = [s.current_position_mm for s in placed]
                 self._guard("structures", lambda: self.send_structures([s.label for s in placed], positions, stamp))
+            deformed = output.deformed_preop_mm
+            if deformed is not None:  # only when the non-rigid stage was applied
+                self._guard("deformed preop", lambda: self.send_deformed(deformed, stamp))
         for diag in output.diagnostics:
             if diag.name == DIAG_NAME:
                 self.bridge.send_status(diag.level_name, diag.message, stamp)
@@ -221,6 +245,19 @@ class SlicerLink:
         for device, points in zip(self.bridge.structure_devices(labels), points_sensor_mm, strict=True):
             self.bridge.send_structure(device, points, stamp_ns)
             self.counters["structures_sent"] += 1
+
+    def send_deformed(self, points_sensor_mm: np.ndarray, stamp_ns: int) -> None:
+        """The deformed surface (sensor frame, mm) on the held mesh's triangles if it has as many points, else as points."""
+        points = np.asarray(points_sensor_mm, dtype=np.float64).reshape(-1, 3)
+        mesh = self._mesh
+        triangles = mesh[0] if mesh is not None and mesh[1] == len(points) else None
+        sent = self.bridge.send_deformed_model(points, triangles, stamp_ns)
+        self.counters["deformed_sent"] += 1
+        kind = f"mesh of {len(triangles)} triangles" if triangles is not None else "points"
+        if kind != self._deformed_kind:  # once per change, not per frame
+            self._deformed_kind = kind
+            device = self.config.deformed_model_device
+            self._log(logging.INFO, f"deformed preop model sent to Slicer as {device}: {sent} {kind}")
 
     def tick(self, force: bool = False) -> None:
         """Send the last pose's cloud if cloud_rate_hz allows it now (or `force`); call it now and then."""

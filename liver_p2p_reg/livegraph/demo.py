@@ -13,7 +13,7 @@ from rclpy.serialization import serialize_message
 
 from liver_p2p_reg.bags.io import BagWriter, read_messages
 from liver_p2p_reg.bags.player import BagPlayer, Played
-from liver_p2p_reg.bags.replay import OUTPUT_TOPICS, fmt, markdown_table
+from liver_p2p_reg.bags.replay import DEFORM_OUTPUT_TOPICS, OUTPUT_TOPICS, fmt, markdown_table
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.livegraph.graph import (
@@ -35,7 +35,7 @@ from liver_p2p_reg.ros.topics import (
 )
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME
 
-RECORDED_TYPES = OUTPUT_TOPICS  # what the graph publishes, recorded like replay's output bags
+RECORDED_TYPES = {**OUTPUT_TOPICS, **DEFORM_OUTPUT_TOPICS}  # what the graph publishes, recorded like replay's
 SETTLE_S = 15.0  # after the last cloud, how long the last registration may take to arrive
 
 
@@ -56,6 +56,8 @@ class GraphRow:
     reregister: str = ""  # the service's answer (success and message)
     warm_up_ms: float = float("nan")
     message: str = ""
+    deform_applied: int = 0  # poses the non-rigid stage was applied on (deform on)
+    deformed_rms_tre_mm: float = float("nan")  # mean over those
 
     def latency_p(self, q: float) -> float:
         return float(np.percentile(self.latency_ms, q)) if self.latency_ms else float("nan")
@@ -151,6 +153,8 @@ def _row(name: str, probe: GraphProbe, diag_index: int, starts: dict, clouds: di
         tre_by_stamp={s: float(v["rms_tre_mm"]) for s, v in per_stamp.items() if "rms_tre_mm" in v},
         poses=poses,
         message=worst[1],
+        deform_applied=sum(v.get("deform_applied") == "true" for v in posed),
+        deformed_rms_tre_mm=mean("deformed_rms_tre_mm"),
     )
 
 
@@ -191,11 +195,16 @@ def run_graph(
     return rows, startup_s
 
 
-def format_graph_table(rows: Sequence[GraphRow], replay_tre: dict[str, float] | None = None) -> str:
-    """Per-bag table: visibility, RMS-TRE, residual, status, latency p50/p95 (and replay's TRE)."""
+def format_graph_table(
+    rows: Sequence[GraphRow], replay_tre: dict[str, float] | None = None, deform: bool = False
+) -> str:
+    """Per-bag table: visibility, RMS-TRE, residual, status, latency p50/p95 (and replay's TRE; with `deform`
+    the deformed RMS-TRE and on how many poses the stage was applied)."""
     header = ["bag", "poses", "visibility", "RMS-TRE mm", "residual mm", "status", "latency ms p50", "p95"]
     if replay_tre is not None:
         header.append("replay RMS-TRE mm")
+    if deform:
+        header += ["deformed RMS-TRE mm", "deform applied"]
     body = []
     for r in rows:
         line = [
@@ -210,6 +219,8 @@ def format_graph_table(rows: Sequence[GraphRow], replay_tre: dict[str, float] | 
         ]
         if replay_tre is not None:
             line.append(fmt(replay_tre.get(r.bag, float("nan"))))
+        if deform:
+            line += [fmt(r.deformed_rms_tre_mm), f"{r.deform_applied}/{r.registered}"]
         body.append(line)
     return markdown_table(header, body)
 

@@ -32,6 +32,7 @@ from liver_p2p_reg.bags.player import played_qos
 from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
 from liver_p2p_reg.ros.topics import (
     INPUT_TOPICS,
+    TOPIC_DEFORMED_PREOP,
     TOPIC_DIAGNOSTICS,
     TOPIC_POSE,
     TOPIC_REGISTERED,
@@ -177,6 +178,7 @@ class GraphProbe:
         TOPIC_TRANSFORM: TransformStamped,
         TOPIC_REGISTERED: PointCloud2,
         TOPIC_STRUCTURES: PointCloud2,
+        TOPIC_DEFORMED_PREOP: PointCloud2,  # deform on: after the non-rigid stage
         TOPIC_DIAGNOSTICS: DiagnosticArray,
         "/rosout": Log,
     }

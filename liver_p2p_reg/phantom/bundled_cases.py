@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from liver_p2p_reg.phantom.casefile import read_case, sensor_origin_mm
+from liver_p2p_reg.phantom.casefile import read_case, sensor_origin_mm, source_triangles
 from liver_p2p_reg.phantom.crop import camera_axes, camera_order, sample_surface, vertex_normals
 from liver_p2p_reg.phantom.dataset import case_name, generate_dataset, liver_id_for
 from liver_p2p_reg.phantom.simulate import simulate_liver
@@ -81,6 +81,7 @@ def insilico_cases() -> list[tuple[str, dict]]:
                     name,
                     {
                         "source_mm": case["src_pcd"],
+                        "source_triangles": source_triangles(case),  # the preop mesh (bags: /preop/mesh)
                         "target_mm": target,
                         "source_fiducials_mm": case["src_marker"],
                         "target_fiducials_mm": target_fid,
@@ -189,6 +190,7 @@ def phantom_case(index: int, visibility_wanted: float) -> tuple[str, dict]:
     name = f"phantom_sim_{index + 1:02d}_vis{visibility:.2f}"
     return name, {
         "source_mm": sim.vertices_mm,
+        "source_triangles": sim.triangles,
         "target_mm": target,
         "source_fiducials_mm": src_marker,
         "target_fiducials_mm": tgt_marker,
@@ -240,6 +242,7 @@ def sweep_case(kind: str, index: int) -> tuple[str, dict]:
     name = f"sweep_{'insilico' if kind == 'insilico' else 'phantom_sim'}_{liver_id}"
     return name, {
         "source_mm": sim.vertices_mm,
+        "source_triangles": sim.triangles,
         "frames_mm": frames,
         "source_fiducials_mm": sim.fiducials_mm[markers],
         "frame_fiducials_mm": frame_fids,

@@ -15,6 +15,9 @@ from liver_p2p_reg.registration.error_bound import FEATURES, PoseEvidence
 from liver_p2p_reg.registration.weights_id import weights_sha256
 
 BUNDLED_CALIBRATION = Path(__file__).resolve().parents[1] / "weights" / "error_bound_v1.json"
+# The bound of the positions the non-rigid stage gives, calibrated on the validation poses where it was applied.
+BUNDLED_DEFORMED_CALIBRATION = BUNDLED_CALIBRATION.with_name("error_bound_deformed_v1.json")
+RIGID, DEFORMED = "rigid", "deformed"  # which positions a calibration's errors were measured at
 FORMAT = "liver_p2p_reg error-bound calibration"
 
 
@@ -30,6 +33,8 @@ class BoundCalibration:
     weights_sha256: str  # of the matcher weights the calibration ran with ("" for a method without weights)
     method: str
     provenance: dict[str, Any]  # data, seed, command: what `liver-p2p calibrate-bound` recorded
+    positions: str = RIGID  # RIGID: the pose's; DEFORMED: the non-rigid stage's (of `deform` settings)
+    deform: dict[str, Any] | None = None  # the non-rigid stage's settings a DEFORMED calibration ran with
 
     def scale_mm(self, features: np.ndarray) -> np.ndarray:
         """Predicted error scale (mm) of each row of features; inf where a feature is not finite."""
@@ -73,9 +78,9 @@ class ErrorModel:
         return float(q * np.sqrt(np.mean(scale**2)))
 
 
-def read_calibration(path: str | Path = "") -> BoundCalibration:
+def read_calibration(path: str | Path = "", bundled: Path = BUNDLED_CALIBRATION) -> BoundCalibration:
     """Read a calibration file (empty: the bundled one); one-line InputError when it is missing or malformed."""
-    p = Path(path) if path else BUNDLED_CALIBRATION
+    p = Path(path) if path else bundled
     try:
         stat = p.stat()
     except OSError:
@@ -109,6 +114,8 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
             weights_sha256=str(raw.get("weights_sha256", "")),
             method=str(raw.get("method", "")),
             provenance=dict(raw.get("provenance", {})),
+            positions=str(raw.get("positions", RIGID)),
+            deform=dict(raw["deform"]) if raw.get("deform") is not None else None,
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
@@ -143,14 +150,60 @@ def attach_error_model(
     result.error_model = model
     result.error_bound_mm = model.pose_bound_mm()
     result.error_coverage = config.error_coverage
+    result.error_calibration_note = calibration_note(calibration, result.method, config)
+
+
+def calibration_note(calibration: BoundCalibration, method: str, config: Any) -> str:
+    """Why a calibration's coverage is not known for this method and weights ("" when it is)."""
     # Not a WARN: the bound is still the best estimate there is; the user is told it is not a calibrated one.
     # A tracked pose is the calibrated method's ICP refinement from the previous pose: its calibration holds.
-    if result.method not in (calibration.method, "track"):
-        result.error_calibration_note = (
-            f"error bound calibrated for {calibration.method}, not {result.method}: its coverage is not known"
-        )
-    elif calibration.weights_sha256 and weights_sha256(config) != calibration.weights_sha256:
-        result.error_calibration_note = (
+    if method not in (calibration.method, "track"):
+        return f"error bound calibrated for {calibration.method}, not {method}: its coverage is not known"
+    if calibration.weights_sha256 and weights_sha256(config) != calibration.weights_sha256:
+        return (
             "error bound calibrated with other matcher weights: its coverage is not known "
             "(recalibrate: liver-p2p calibrate-bound)"
         )
+    return ""
+
+
+# The settings that change the deformed positions: a DEFORMED calibration holds for these only.
+DEFORM_SETTINGS = (
+    "deform_modes",
+    "deform_target_tets",
+    "deform_regularization",
+    "deform_iterations",
+    "deform_min_gain",
+)
+
+
+def deform_settings(config: Any) -> dict[str, Any]:
+    """The non-rigid stage's settings a deformed calibration is made with and checked against."""
+    return {name: getattr(config, name) for name in DEFORM_SETTINGS}
+
+
+def attach_deformed_error_model(result: Any, config: Any) -> None:
+    """Give an applied deformation the bound of its deformed positions (`result.deformed_error_model`,
+    `deformed_error_bound_mm`): the same pose evidence, the DEFORMED calibration's scale and quantiles.
+
+    Settings other than the calibration's are told in `result.deformed_error_calibration_note`."""
+    if result.error_model is None or result.deformation is None or not result.deformation.applied:
+        return
+    if not config.deform_error_calibration_path and not BUNDLED_DEFORMED_CALIBRATION.exists():
+        # only while the first one is made (calibrate-bound --deformed registers without it): said, not fatal
+        result.deformed_error_calibration_note = "no calibration of deformed positions: they have no bound"
+        return
+    calibration = read_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION)
+    if calibration.positions != DEFORMED:
+        raise InputError(f"{config.deform_error_calibration_path}: not a calibration of deformed positions")
+    calibration.column(config.error_coverage)
+    model = ErrorModel(result.error_model.evidence, calibration, config.error_coverage)
+    result.deformed_error_model = model
+    result.deformed_error_bound_mm = model.pose_bound_mm()
+    differ = [k for k, v in deform_settings(config).items() if (calibration.deform or {}).get(k) != v]
+    if differ:
+        result.deformed_error_calibration_note = (
+            f"deformed-position bound calibrated with other {', '.join(differ)}: its coverage is not known"
+        )
+    else:
+        result.deformed_error_calibration_note = calibration_note(calibration, result.method, config)

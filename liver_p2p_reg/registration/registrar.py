@@ -124,6 +124,7 @@ class Registrar:
         when those are given (a CT mesh beside a sampled cloud); without triangles it is rebuilt from the points.
         """
         from liver_p2p_reg.registration.deform import deform_result
+        from liver_p2p_reg.registration.error_calibration import attach_deformed_error_model
 
         start = time.perf_counter()
         source = clean_points(source_mm, "source", min_points=self.config.min_points)
@@ -134,6 +135,9 @@ class Registrar:
             n_given = len(np.asarray(mesh_vertices_mm).reshape(-1, 3))
         tris = _check_triangles(source_triangles, len(surface), n_given)
         result.deformation = deform_result(result, surface, target, self.config, self.cache, tris)
+        result.deformed_error_model, result.deformed_error_bound_mm = None, float("nan")
+        result.deformed_error_calibration_note = ""
+        attach_deformed_error_model(result, self.config)  # the bound of the deformed positions, when applied
         result.runtime_ms["deform"] = (time.perf_counter() - start) * 1e3
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
         if fid_s is not None and fid_t is not None:

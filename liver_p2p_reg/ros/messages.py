@@ -52,6 +52,58 @@ def mesh_marker_mm(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     return vertices, corner_vertex.reshape(-1, 3).astype(np.int64)
 
 
+@dataclass(frozen=True)
+class MarkerTypes:
+    """The classes a visualization_msgs/Marker is built of, in one binding (rclpy or rosbags, which wants every field)."""
+
+    cloud: MessageTypes  # Header, Time and how uint8[] data is stored
+    Marker: type
+    Point: type
+    Pose: type
+    Quaternion: type
+    Vector3: type
+    ColorRGBA: type
+    Duration: type
+    CompressedImage: type
+    MeshFile: type
+
+
+PREOP_MESH_RGBA = (0.8, 0.45, 0.35, 1.0)
+
+
+def triangle_list_marker(
+    vertices_m: np.ndarray, triangles: np.ndarray, types: MarkerTypes, frame_id: str, stamp_ns: int
+) -> Any:
+    """/preop/mesh: a Marker TRIANGLE_LIST of these triangles (three `points` per triangle, metres, in `frame_id`),
+    identity pose, scale 1, what `mesh_marker_mm` reads back; the loader and the bags build it here."""
+    corners = np.asarray(vertices_m, dtype=np.float64)[np.asarray(triangles, dtype=np.int64).reshape(-1)]
+    empty = types.cloud.wrap_bytes(b"")
+    r, g, b, a = PREOP_MESH_RGBA
+    return types.Marker(
+        header=make_header(types.cloud, frame_id, stamp_ns),
+        ns="preop",
+        id=0,
+        type=MARKER_TRIANGLE_LIST,
+        action=0,  # ADD
+        pose=types.Pose(
+            position=types.Point(x=0.0, y=0.0, z=0.0), orientation=types.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+        ),
+        scale=types.Vector3(x=1.0, y=1.0, z=1.0),
+        color=types.ColorRGBA(r=r, g=g, b=b, a=a),
+        lifetime=types.Duration(sec=0, nanosec=0),
+        frame_locked=True,
+        points=[types.Point(x=x, y=y, z=z) for x, y, z in corners.tolist()],
+        colors=[],
+        texture_resource="",
+        texture=types.CompressedImage(header=make_header(types.cloud, "", 0), format="", data=empty),
+        uv_coordinates=[],
+        text="",
+        mesh_resource="",
+        mesh_file=types.MeshFile(filename="", data=empty),
+        mesh_use_embedded_materials=False,
+    )
+
+
 def feed_preop_mesh_msg(core: NodeCore, msg: Any) -> Diagnostic:
     """A /preop/mesh Marker into the core (the non-rigid stage's surface); an ERROR diagnostic when it is not a mesh."""
     try:
@@ -141,10 +193,10 @@ def registered_structures_cloud(
     structures: Sequence[PlacedStructure], types: MessageTypes, frame_id: str, stamp_ns: int
 ) -> Any:
     """/registration/structures: the structures moved into the sensor frame (metres; their deformed positions
-    when the non-rigid stage was applied), label_id and error_bound (m)."""
+    when the non-rigid stage was applied), label_id and error_bound (m; of the positions given)."""
     points = np.concatenate([s.current_position_mm for s in structures]) if structures else np.zeros((0, 3))
     ids = np.concatenate([np.full(len(s.position_mm), s.label_id) for s in structures]) if structures else []
-    bounds = np.concatenate([s.error_bound_mm for s in structures]) if structures else np.zeros(0)
+    bounds = np.concatenate([s.current_error_bound_mm for s in structures]) if structures else np.zeros(0)
     return structures_to_cloud(
         points * M_PER_MM, np.asarray(ids), types, frame_id=frame_id, stamp_ns=stamp_ns, error_bound_m=bounds * M_PER_MM
     )

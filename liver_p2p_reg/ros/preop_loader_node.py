@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Point
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -19,10 +18,15 @@ from visualization_msgs.msg import Marker
 
 from liver_p2p_reg.cloud_io import MESH_FORMATS, load_mesh, load_points
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.ros.messages import diagnostic_array, preop_structures_cloud, structure_labels_json
+from liver_p2p_reg.ros.messages import (
+    diagnostic_array,
+    preop_structures_cloud,
+    structure_labels_json,
+    triangle_list_marker,
+)
 from liver_p2p_reg.ros.node_main import run_node
-from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, points_to_cloud
-from liver_p2p_reg.ros.rclpy_types import RCLPY_TYPES
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, points_to_cloud, stamp_to_ns
+from liver_p2p_reg.ros.rclpy_types import RCLPY_MARKER_TYPES, RCLPY_TYPES
 from liver_p2p_reg.ros.topics import (
     TOPIC_DIAGNOSTICS,
     TOPIC_PREOP,
@@ -62,14 +66,8 @@ def mesh_marker(path: str, units: str, frame_id: str, stamp: Time) -> Marker | N
     vertices, triangles = load_mesh(path)
     if len(triangles) == 0 or not np.isfinite(vertices).all():
         return None
-    marker = Marker(ns="preop", id=0, type=Marker.TRIANGLE_LIST, action=Marker.ADD, frame_locked=True)
-    marker.header.frame_id, marker.header.stamp = frame_id, stamp
-    marker.pose.orientation.w = 1.0
-    marker.scale.x = marker.scale.y = marker.scale.z = 1.0
-    marker.color.r, marker.color.g, marker.color.b, marker.color.a = 0.8, 0.45, 0.35, 1.0
-    corners = vertices[triangles.reshape(-1)] * UNITS_TO_M[units]
-    marker.points = [Point(x=x, y=y, z=z) for x, y, z in corners.tolist()]
-    return marker
+    vertices_m = vertices * UNITS_TO_M[units]
+    return triangle_list_marker(vertices_m, triangles, RCLPY_MARKER_TYPES, frame_id, stamp_to_ns(stamp))
 
 
 def structure_specs(value: Any) -> list[str]:

@@ -19,8 +19,9 @@ class RegisterOutputs:
 
     A registration goes out in two steps: `_publish_pose` the moment the rigid pose is known (NodeCore's
     `on_pose`: pose, transform, /tf, the registered preop cloud), then `_publish` once the frame is done
-    (after the non-rigid stage when `deform` is on): the deformed preop cloud when the stage was applied,
-    the structures (deformed when it was applied) and the diagnostics.
+    (after the non-rigid stage when `deform` is on): the deformed preop surface when the stage was applied
+    (the /preop/mesh's welded vertices when it ran on that mesh, else the /preop/points), the structures
+    (deformed when it was applied) and the diagnostics.
     """
 
     def _publish_pose(self: Any, output: CoreOutput) -> None:

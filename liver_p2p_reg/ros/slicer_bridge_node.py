@@ -15,6 +15,7 @@ from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint
 from liver_p2p_reg.igtl.link import SlicerLink
 from liver_p2p_reg.ros.node_main import log_at, parameters_from, run_node
 from liver_p2p_reg.ros.topics import (
+    TOPIC_DEFORMED_PREOP,
     TOPIC_DIAGNOSTICS,
     TOPIC_INTRAOP,
     TOPIC_POSE,
@@ -55,6 +56,9 @@ class SlicerBridgeNode(Node):
         self.create_subscription(String, TOPIC_STRUCTURE_LABELS, self.link.on_structure_labels_msg, labels_qos)
         structures_qos = rclpy_qos(TOPIC_STRUCTURES)
         self.create_subscription(PointCloud2, TOPIC_STRUCTURES, self.link.on_structures_msg, structures_qos)
+        # the preop surface after the non-rigid stage (register_node's `deform`), on /preop/mesh's triangles
+        deformed_qos = rclpy_qos(TOPIC_DEFORMED_PREOP)
+        self.create_subscription(PointCloud2, TOPIC_DEFORMED_PREOP, self.link.on_deformed_msg, deformed_qos)
         diagnostics_qos = rclpy_qos(TOPIC_DIAGNOSTICS)
         self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.link.on_diagnostics_msg, diagnostics_qos)
         self.status_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, diagnostics_qos)
@@ -64,7 +68,8 @@ class SlicerBridgeNode(Node):
             where += f" {config.host}:{config.port}"
         self.get_logger().info(
             f"OpenIGTLink {config.role} {where}: {config.transform_device} (TRANSFORM), "
-            f"{config.model_device}, {config.cloud_device} and one per structure label (POLYDATA), "
+            f"{config.model_device}, {config.deformed_model_device}, {config.cloud_device} "
+            "and one per structure label (POLYDATA), "
             f"{config.status_device} (STRING); "
             f"ct frame in {config.ct_convention}"
         )

@@ -21,7 +21,7 @@ TOPIC_DIAGNOSTICS = "/diagnostics"
 # register_node's inputs, the topics a recorded case carries
 INPUT_TOPICS = (TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS)
 # register_node's other inputs from the loader (not all PointCloud2): bags carry and play them latched too
-STRUCTURE_INPUT_TOPICS = (TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS)
+LOADER_INPUT_TOPICS = (TOPIC_PREOP_MESH, TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS)
 
 
 @dataclass(frozen=True)

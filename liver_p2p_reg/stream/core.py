@@ -205,6 +205,7 @@ class NodeCore:
         for the model of the same frame and stamp. InputError when it is not a mesh; then `prepare_deformation()`."""
         mesh = checked_mesh(vertices_mm, triangles, frame_id, stamp_ns)
         self.mesh.set(mesh)
+        self._recording.preop_mesh(mesh)
         with self._lock:
             current = self.preop_mm is not None and self.mesh.for_model(self.preop_frame, self.preop_stamp_ns) is mesh
         return mesh_diagnostic(mesh, current)

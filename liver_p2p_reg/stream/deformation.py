@@ -3,7 +3,8 @@
 The stage runs after the rigid pose has gone out, on the same model and frame, and never changes the
 pose or the verdict: a stage that is not applied only says why (`deform_reason`). Its surface is the
 /preop/mesh of the current model (same frame and stamp as its /preop/points) when one arrived, else
-the surface rebuilt from the points.
+the surface rebuilt from the points; the deformed surface it outputs is then that mesh's welded vertices, in
+their order (its triangles pair with them), else the deformed /preop/points.
 """
 
 from __future__ import annotations
@@ -162,8 +163,15 @@ def mesh_diagnostic(mesh: PreopMesh, for_current_model: bool) -> Diagnostic:
     return Diagnostic(OK, PREOP_DIAG_NAME, message, values)
 
 
-def stage_values(deformation: Deformation, mesh: PreopMesh | None, ms: float, tre_mm: float | None) -> dict[str, str]:
-    """The registration diagnostic's `deform_*` key/values."""
+def stage_values(
+    deformation: Deformation,
+    mesh: PreopMesh | None,
+    ms: float,
+    tre_mm: float | None,
+    bound_mm: float | None = None,
+    bound_note: str = "",
+) -> dict[str, str]:
+    """The registration diagnostic's `deform_*` key/values (`bound_mm`: the deformed positions' interior bound)."""
     values = {
         "deform_applied": str(bool(deformation.applied)).lower(),
         "deform_reason": deformation.reason,
@@ -176,6 +184,10 @@ def stage_values(deformation: Deformation, mesh: PreopMesh | None, ms: float, tr
     }
     if tre_mm is not None and deformation.applied:
         values["deformed_rms_tre_mm"] = f"{tre_mm:.3f}"
+    if bound_mm is not None and deformation.applied:
+        values["deformed_error_bound_mm"] = f"{bound_mm:.3f}"
+    if bound_note and deformation.applied:
+        values["deformed_error_calibration_note"] = bound_note
     return values
 
 
@@ -183,7 +195,8 @@ def run_stage(
     registrar: Registrar, rigid: CoreOutput, frame: Frame, structures: list[Structure], mesh: PreopMesh | None
 ) -> CoreOutput:
     """The non-rigid stage on a registered frame (its pose already out): the same output with the `deform_*`
-    values and, when applied, the deformed preop surface and structures. Never raises; pose and verdict stand."""
+    values and, when applied, the deformed preop surface (the mesh's welded vertices when it ran on `mesh`, else
+    the model's points; sensor frame, mm) and structures. Never raises; pose and verdict stand."""
     result, start = rigid.result, time.perf_counter()
     T = np.asarray(result.T_target_source, dtype=np.float64).copy()
     kwargs: dict[str, Any] = {"source_fiducials_mm": frame.fid_s, "target_fiducials_mm": frame.fid_t}
@@ -192,19 +205,33 @@ def run_stage(
     try:
         registrar.deform(result, frame.preop_mm, frame.points_mm, **kwargs)
         if result.deformation.applied:
-            deformed = result.deformation.deformed_position_mm(frame.preop_mm)
+            # on a mesh: its vertices, so that a holder of /preop/mesh (welded alike) pairs them with its triangles
+            surface = frame.preop_mm if mesh is None else mesh.vertices_mm
+            deformed = result.deformation.deformed_position_mm(surface)
             placed = place_structures(result, structures)  # the rigid positions and bounds, the deformed positions
     except LiverP2PError as exc:
-        result.deformation, result.deformed_rms_tre_mm = not_applied(T, f"not run: {exc}"), None
+        _stands(result, T, f"not run: {exc}")
         deformed, placed = None, rigid.structures
     except Exception as exc:  # the node must outlive anything the stage raises
         LOG.exception("the non-rigid stage raised")
-        result.deformation, result.deformed_rms_tre_mm = not_applied(T, f"crashed: {type(exc).__name__}: {exc}"), None
+        _stands(result, T, f"crashed: {type(exc).__name__}: {exc}")
         deformed, placed = None, rigid.structures
-    deformation: Deformation = result.deformation
     result.T_target_source = T  # the rigid pose is the published one, whatever happened
     ms = (time.perf_counter() - start) * 1e3
     diag = rigid.diagnostics[0]
-    values = {**diag.values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm)}
+    deformation: Deformation = result.deformation
+    values = {**diag.values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm, *_bound(result))}
     diagnostics = [Diagnostic(diag.level, diag.name, diag.message, values, diag.hardware_id), *rigid.diagnostics[1:]]
     return dataclasses.replace(rigid, diagnostics=diagnostics, structures=placed, deformed_preop_mm=deformed)
+
+
+def _stands(result: Any, T: np.ndarray, reason: str) -> None:
+    """The rigid result stands: the stage's outputs on `result` say so, none of its deformed values remain."""
+    result.deformation, result.deformed_rms_tre_mm = not_applied(T, reason), None
+    result.deformed_error_model, result.deformed_error_bound_mm = None, float("nan")
+
+
+def _bound(result: Any) -> tuple[float | None, str]:
+    """The deformed positions' interior bound (None without one) and its calibration note."""
+    bound = result.deformed_error_bound_mm if result.deformed_error_model is not None else None
+    return bound, result.deformed_error_calibration_note

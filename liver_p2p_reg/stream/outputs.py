@@ -65,7 +65,8 @@ class CoreOutput:
     result: RegistrationResult | None = None
     reason: str = ""  # continuous | once | reregister
     structures: list[PlacedStructure] = field(default_factory=list)  # moved into the sensor frame by the pose
-    # the preop cloud after the non-rigid stage (sensor frame, mm); None: the stage was off or not applied
+    # the preop surface after the non-rigid stage (sensor frame, mm): the /preop/mesh's welded vertices in their
+    # order when the stage ran on that mesh, else the /preop/points; None: the stage was off or not applied
     deformed_preop_mm: np.ndarray | None = None
 
     @property

@@ -2,8 +2,8 @@
 
 NodeCore holds one `Recording`: it opens a recorder from the factory when `config.record_path` is
 set ("" = off), closes it when the path changes, writes a snapshot of the core's state at the head of
-every file (the config, the current model and its fiducials, the tracking prior) and hands every
-model, fiducial set, parameter change, survey reset and registration over in the order they took
+every file (the config, the current model, its mesh and fiducials, the tracking prior) and hands every
+model, mesh, fiducial set, parameter change, survey reset and registration over in the order they took
 effect. A recorder that fails (disk full, ...) is dropped with one ERROR: registrations go on.
 """
 
@@ -24,6 +24,7 @@ from liver_p2p_reg.stream.outputs import CoreOutput
 
 if TYPE_CHECKING:
     from liver_p2p_reg.stream.core import NodeCore
+    from liver_p2p_reg.stream.deformation import PreopMesh
 
 LOG = logging.getLogger("liver_p2p_reg.node")
 
@@ -39,7 +40,7 @@ class RegistrationRecord:
     n_raw: int  # the cloud's raw point count (width x height)
     decode_error: str  # the decoder's InputError ("" if none)
     fiducials_mm: tuple[np.ndarray, np.ndarray] | None  # the (preop, intraop) pair the registration used
-    output: CoreOutput
+    output: CoreOutput  # its deformed_preop_mm and `deform_*` diagnostic values: the non-rigid stage's, when it ran
     extras: dict[str, Any] = field(default_factory=dict)  # the CLI's: sensor_origin_mm, initial_T_mm
 
 
@@ -53,6 +54,8 @@ class Recorder(Protocol):
     def preop(self, points_mm: np.ndarray, frame_id: str, stamp_ns: int, snapshot: bool = False) -> None: ...
 
     def preop_fiducials(self, points_mm: np.ndarray | None, stamp_ns: int, snapshot: bool = False) -> None: ...
+
+    def preop_mesh(self, mesh: PreopMesh, snapshot: bool = False) -> None: ...  # the non-rigid stage's surface
 
     def event(self, name: str, values: dict[str, Any] | None = None) -> None: ...
 
@@ -120,6 +123,9 @@ class Recording:
         recorder.config(config, snapshot=True)
         if core.preop_mm is not None:
             recorder.preop(core.preop_mm, core.preop_frame, core.preop_stamp_ns, snapshot=True)
+            mesh = core.mesh.for_model(core.preop_frame, core.preop_stamp_ns)
+            if mesh is not None:
+                recorder.preop_mesh(mesh, snapshot=True)
             if core.preop_fiducials_mm is not None:
                 recorder.preop_fiducials(core.preop_fiducials_mm, core.preop_stamp_ns, snapshot=True)
         track = core._tracker.state  # the prior the next tracked frame starts from
@@ -151,6 +157,10 @@ class Recording:
         stamp = self._core.preop_stamp_ns if stamp_ns is None else int(stamp_ns)
         with self._lock:
             self._call(lambda r: r.preop_fiducials(points_mm, stamp))
+
+    def preop_mesh(self, mesh: PreopMesh) -> None:
+        with self._lock:
+            self._call(lambda r: r.preop_mesh(mesh))
 
     def event(self, name: str) -> None:
         with self._lock:

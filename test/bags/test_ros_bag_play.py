@@ -14,6 +14,7 @@ rclpy = require_rclpy()
 
 from ros_support import BAG_B  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
 
 from liver_p2p_reg.bags.io import read_messages  # noqa: E402
 from liver_p2p_reg.livegraph.graph import GraphProbe, set_isolated_environment, stamp_ns  # noqa: E402
@@ -22,6 +23,7 @@ from liver_p2p_reg.ros.topics import (  # noqa: E402
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
     rclpy_qos,
 )
 
@@ -30,10 +32,16 @@ from liver_p2p_reg.ros.topics import (  # noqa: E402
 def listener():
     set_isolated_environment()
     probe = GraphProbe("bag_play_listener")
-    got = {TOPIC_PREOP: [], TOPIC_PREOP_FIDUCIALS: [], TOPIC_INTRAOP: [], TOPIC_INTRAOP_FIDUCIALS: []}
+    got = {
+        TOPIC_PREOP: [],
+        TOPIC_PREOP_FIDUCIALS: [],
+        TOPIC_PREOP_MESH: [],
+        TOPIC_INTRAOP: [],
+        TOPIC_INTRAOP_FIDUCIALS: [],
+    }
     for topic, items in got.items():
         probe.node.create_subscription(
-            PointCloud2,
+            Marker if topic == TOPIC_PREOP_MESH else PointCloud2,
             topic,
             lambda m, items=items: items.append((stamp_ns(m), time.monotonic())),
             rclpy_qos(topic),
@@ -59,11 +67,13 @@ def test_play_keeps_stamps_and_timing_at_rate(listener):
     proc = play("--rate", "2")
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
-    assert "published 12 messages" in out
+    assert len(expected) == 13 and f"published {len(expected)} messages" in out  # the preop mesh too
     probe.wait_for(lambda: len(got[TOPIC_INTRAOP]) == 5, 5)
     assert [s for s, _ in got[TOPIC_INTRAOP]] == [s for t, s in expected if t == TOPIC_INTRAOP]
     assert [s for s, _ in got[TOPIC_INTRAOP_FIDUCIALS]] == [s for t, s in expected if t == TOPIC_INTRAOP_FIDUCIALS]
     assert [s for s, _ in got[TOPIC_PREOP]] == [s for t, s in expected if t == TOPIC_PREOP]
+    # the mesh on its latched QoS, with its model's stamp (register_node pairs them by it)
+    assert probe.wait_for(lambda: [s for s, _ in got[TOPIC_PREOP_MESH]] == [s for s, _ in got[TOPIC_PREOP]], 5)
     gaps = np.diff([t for _, t in got[TOPIC_INTRAOP]])
     # recorded 0.5 s apart, played at rate 2 (arrival times also carry this machine's scheduling jitter)
     assert abs(np.median(gaps) - 0.25) < 0.05 and abs(gaps.sum() - 1.0) < 0.3, gaps

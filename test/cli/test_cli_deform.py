@@ -69,3 +69,28 @@ def test_benchmark_deform_rows_keep_their_rigid_error(case: dict, tmp_path: Path
     summary = (tmp_path / "b" / "summary.md").read_text()
     assert "The non-rigid stage" in summary and "| fpfh-ransac-icp+deform | [0.30,0.40) | 1 |" in summary
     assert main(["-q", *args, "--methods", "fpfh-ransac-icp+nothing"]) == 2
+
+
+def test_register_deform_sends_the_deformed_model_to_slicer(case: dict, tmp_path: Path) -> None:
+    from igtl_support import SlicerServerStandIn
+
+    from liver_p2p_reg.cloud_io import load_mesh
+
+    d = case["dir"]
+    config = tmp_path / "applied.yaml"  # a small gain: this liver deforms little, the stage is applied
+    config.write_text((d / "small.yaml").read_text() + "deform_min_gain: 0.0\n")
+    slicer = SlicerServerStandIn()
+    try:
+        args = [str(d / "preop.ply"), str(d / "view.ply"), "--deform", "--config", str(config), "-q"]
+        args += ["--output", str(tmp_path / "out.json"), "--slicer", f"127.0.0.1:{slicer.port}"]
+        assert main(["register", *args]) == 0
+        payload = json.loads((tmp_path / "out.json").read_text())
+        assert payload["deformation"]["applied"], payload["deformation"]["reason"]
+        model = slicer.wait_connected().wait_for("DeformedModel")[0].value
+        vertices, triangles = load_mesh(d / "preop.ply")
+        assert len(model.points) == len(vertices) and len(model.polygons) == len(triangles)  # on the file's mesh
+        rigid = vertices @ np.asarray(payload["transform"])[:3, :3].T + np.asarray(payload["transform"])[:3, 3]
+        shift = np.linalg.norm(np.asarray(model.points, float) - rigid, axis=1)  # sensor frame, like the cloud
+        assert 0.01 < shift.max() < 25.0  # the deformed model, not the rigidly moved one
+    finally:
+        slicer.close()

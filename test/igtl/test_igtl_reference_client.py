@@ -5,7 +5,7 @@ layout as written in igtl_support; here the library Slicer itself links (Debian'
 libopenigtlink-dev) unpacks every TRANSFORM, POLYDATA and STRING with its CRC check. The client
 prints what the library read (see its header comment), and this module compares that with what
 the link was given: a bundled bag's registration, replayed through the link as `replay --slicer`
-does, then a mesh, a UTF-8 verdict and live updates. The client's own checks (a bad CRC, a
+does, then a mesh, a UTF-8 verdict and live updates, the structures and the deformed model. The client's own checks (a bad CRC, a
 missing message) are tested too, so that its "crc=ok" means something.
 """
 
@@ -53,7 +53,12 @@ LIBRARY = find_reference_library()
 if LIBRARY is None:
     pytest.skip(SKIP_REASON, allow_module_level=True)
 
-from igtl_support import assert_wire_equal, expected_transform  # noqa: E402 (after the skip: pyigtl may skip too)
+from igtl_support import (  # noqa: E402 (after the skip: pyigtl may skip too)
+    STAGE_STAMP_NS,
+    assert_wire_equal,
+    deformed_stage,
+    expected_transform,
+)
 
 from liver_p2p_reg.bags.replay import replay_bag  # noqa: E402
 from liver_p2p_reg.config import Config  # noqa: E402
@@ -312,6 +317,38 @@ def test_each_structure_as_the_reference_library_reads_it(client: Path) -> None:
         message = read.one("POLYDATA", placed.label)
         assert_splatted_cloud(message, placed.position_mm, config.point_size_mm)
         assert_stamp(message, output.pose.stamp_ns)
+
+
+def test_the_deformed_model_as_the_reference_library_reads_it(client: Path) -> None:
+    """The non-rigid stage's surface as the replay's observer sends it: the mesh's triangles on the deformed welded
+    vertices, sensor frame, under its own device, beside the preop model (ct frame, RAS) of the same mesh."""
+    from liver_p2p_reg.ros.topics import TOPIC_PREOP_MESH
+
+    stage = deformed_stage()
+    n_vertices, n_triangles = len(stage.vertices_mm), len(stage.triangles)
+    config = SlicerConfig(host="127.0.0.1", port=0)
+    endpoint = open_endpoint(config)
+    try:
+        link = SlicerLink(SlicerBridge(config, endpoint))
+        process = start_client(client, endpoint.port, "POLYDATA:PreopModel", "POLYDATA:DeformedModel")
+        assert endpoint.wait_for_peers(1, 10.0), "the reference client did not connect"
+        link.on_input(TOPIC_PREOP_MESH, stage.marker)
+        link.on_output(stage.output)
+        read = finish_client(process)
+    finally:
+        endpoint.close()
+    assert read.returncode == 0, read.stdout
+    deformed = read.one("POLYDATA", "DeformedModel")
+    assert deformed["version"] == "1" and deformed["crc"] == "ok"
+    assert int(deformed["points"]) == n_vertices and int(deformed["polygons"]) == n_triangles
+    assert int(deformed["polygon_words"]) == 4 * n_triangles
+    assert int(deformed["vertices"]) == int(deformed["lines"]) == int(deformed["strips"]) == 0
+    np.testing.assert_array_equal(float32s(deformed["first_points"]), stage.output.deformed_preop_mm.astype(np.float32))
+    assert cells(deformed["first_polygons"]) == stage.triangles.tolist()
+    assert_stamp(deformed, STAGE_STAMP_NS)
+    model = read.one("POLYDATA", "PreopModel")  # the same triangles, undeformed, in the CT's RAS coordinates
+    assert int(model["points"]) == n_vertices and cells(model["first_polygons"]) == stage.triangles.tolist()
+    np.testing.assert_array_equal(float32s(model["first_points"]), (stage.vertices_mm * [-1, -1, 1]).astype(np.float32))
 
 
 def _bag_messages(topic: str) -> list:

@@ -122,6 +122,8 @@ def test_slicer_config_refuses_bad_settings() -> None:
         {"role": "client", "port": 0},
         {"transform_device": "X" * 21},
         {"model_device": "CTToSensor"},
+        {"deformed_model_device": "PreopModel"},  # the deformed model must not replace the model in Slicer
+        {"deformed_model_device": ""},
         {"max_cloud_points": 0},
         {"cloud_rate_hz": float("nan")},
         {"cloud_rate_hz": -1.0},

@@ -50,6 +50,7 @@ TYPES = {
     "/preop/mesh": Marker,
     "/intraop/points": PointCloud2,
     "/registration/pose": PoseStamped,
+    "/registration/deformed_preop": PointCloud2,
     "/diagnostics": DiagnosticArray,
 }
 MAX_CLOUD_POINTS = SlicerConfig().max_cloud_points
@@ -297,6 +298,51 @@ def test_mesh_from_the_loader_is_sent_as_a_mesh(graph: dict) -> None:
         received = {tuple(np.round(model.points[c], 3).ravel()) for c in model.polygons}
         flipped = corners_mm * [-1, -1, 1]
         assert received == {tuple(np.round(flipped[f], 3).ravel()) for f in faces}
+    finally:
+        slicer.close()
+
+
+def test_the_deformed_preop_goes_out_on_the_meshs_triangles(graph: dict) -> None:
+    """/registration/deformed_preop (sensor frame): DeformedModel on the last /preop/mesh's triangles when it has
+    as many points as that mesh has welded vertices, else as points; not flipped to RAS (it is no ct frame)."""
+    from liver_p2p_reg.ros.pointcloud2 import points_to_cloud
+    from liver_p2p_reg.ros.rclpy_types import RCLPY_TYPES
+
+    player: Player = graph["player"]
+    corners_mm = np.array([[0, 0, 0], [70, 0, 0], [0, 50, 0], [0, 0, 30]], dtype=float)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    mesh = Marker(type=Marker.TRIANGLE_LIST, action=Marker.ADD)
+    mesh.header.frame_id, mesh.header.stamp = "ct", player.node.get_clock().now().to_msg()
+    mesh.points = [Point(x=x * 1e-3, y=y * 1e-3, z=z * 1e-3) for x, y, z in corners_mm[faces.reshape(-1)]]
+    welded = np.unique(corners_mm, axis=0)  # the documented vertex order: the corners (mm) welded and sorted
+    triangles = [[int(np.flatnonzero((welded == corners_mm[i]).all(axis=1))[0]) for i in f] for f in faces]
+    deformed_mm = welded + [[5.0, -3.0, 120.0]] + np.arange(12).reshape(4, 3) * 0.25  # where the stage put them
+    slicer = Recorder.connect(graph["port"])
+    try:
+        player.publish("/preop/mesh", mesh)
+        end = time.monotonic() + 20  # the mesh taken (its triangles kept) before the deformed cloud comes
+        while not any(len(m.value.polygons) == 4 and len(m.value.points) == 4 for m in slicer.of("PreopModel")):
+            assert time.monotonic() < end, "the mesh never reached Slicer"
+            time.sleep(0.05)
+        cloud = points_to_cloud(
+            deformed_mm * 1e-3, RCLPY_TYPES.cloud, frame_id="camera", stamp_ns=1_700_000_003 * 10**9
+        )
+        player.publish("/registration/deformed_preop", cloud)
+        model = slicer.wait_for("DeformedModel")[0]
+        np.testing.assert_allclose(model.value.points, deformed_mm, rtol=0, atol=1e-4)  # sensor frame, as sent
+        assert [c.tolist() for c in model.value.polygons] == triangles
+        assert model.timestamp_s == pytest.approx(1_700_000_003.0, abs=1e-6)
+        five = np.vstack([deformed_mm, [[1.0, 2.0, 3.0]]])  # not the mesh's vertex count: as points, no crash
+        player.publish(
+            "/registration/deformed_preop", points_to_cloud(five * 1e-3, RCLPY_TYPES.cloud, frame_id="camera")
+        )
+        points = slicer.wait_for("DeformedModel", 2)[1].value
+        assert len(points.points) == 15 and len(points.polygons) == 5
+        np.testing.assert_allclose(points.points[:5], five, rtol=0, atol=1e-4)
+        end = time.monotonic() + 10
+        while player.bridge_stats().get("deformed_sent") != "2" and time.monotonic() < end:
+            time.sleep(0.1)
+        assert player.bridge_stats()["deformed_sent"] == "2"
     finally:
         slicer.close()
 

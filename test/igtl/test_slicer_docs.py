@@ -18,7 +18,7 @@ def test_every_bridge_parameter_documented_with_its_default() -> None:
         row = next((line for line in text.splitlines() if line.startswith(f"| `{f.name}` |")), None)
         assert row is not None, f"{f.name} missing from msg_docs/parameters_slicer_bridge.md"
         assert f"`{getattr(defaults, f.name)!r}`" in row, f"{f.name}: documented default differs from SlicerConfig"
-    for device in (defaults.transform_device, defaults.model_device, defaults.cloud_device, defaults.status_device):
+    for device in defaults.devices():
         assert f"| `{device}` |" in text
 
 

@@ -82,8 +82,9 @@ def test_the_topics_name_each_structure_by_the_labels_message(link: SlicerLink, 
 
 
 def test_device_names_are_valid_and_never_the_bridges_own(link: SlicerLink) -> None:
-    labels = ["tumour", "PreopModel", "Lebermetastase Segment VIII", "tumour", "Gefäß"]
+    labels = ["tumour", "PreopModel", "Lebermetastase Segment VIII", "tumour", "Gefäß", "DeformedModel"]
     devices = link.bridge.structure_devices(labels)
     assert devices[0] == "tumour" and devices[1] == "PreopModel~2" and devices[2] == "Lebermetastase Segme"
     assert devices[3] == "tumour~2" and devices[4] == "Gef__"  # non-ASCII letters as '_'
+    assert devices[5] == "DeformedModel~2"  # nor the deformed model's
     assert len(set(devices)) == len(devices) and all(d.isascii() and d.isprintable() and len(d) <= 20 for d in devices)

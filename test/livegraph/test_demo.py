@@ -38,3 +38,13 @@ def test_demo_without_rclpy_says_so_in_one_line_and_replays(tmp_path):
     assert len(notes) == 1 and "ROS-free replay" in notes[0]
     assert "Live ROS 2 graph" not in proc.stdout
     assert any(line.startswith(f"| {BAG}") for line in lines) and "runtime ms (p50)" in proc.stdout
+
+
+def test_demo_deform_adds_the_deformed_tre_to_the_replay_table(tmp_path):
+    proc = demo(tmp_path, "--replay", "--deform")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert any("deformed RMS-TRE mm (mean)" in line and "deform applied" in line for line in lines)
+    row = [c.strip() for c in next(line for line in lines if line.startswith(f"| {BAG}")).strip("|").split("|")]
+    applied, registered = (int(n) for n in row[-1].split("/"))
+    assert registered == 5 and applied >= 1 and 0 < float(row[-2]) < 20  # the stage ran on the bag's mesh

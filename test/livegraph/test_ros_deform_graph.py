@@ -54,7 +54,7 @@ from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, PREOP_DIAG_NAME  # no
 TYPES = RCLPY_TYPES.cloud
 # a small elastic model (built in about a second) and an exact rigid pose from the fiducials
 PARAMS = {"method": "procrustes", "deform": True, "deform_modes": 12, "deform_target_tets": 1500}
-DEFORM_KEYS = set(stage_values(Deformation(True, "", np.eye(4)), None, 1.0, 1.0))
+DEFORM_KEYS = set(stage_values(Deformation(True, "", np.eye(4)), None, 1.0, 1.0, 1.0))
 STAMP_NS = 1_700_000_000_000_000_000
 
 
@@ -83,7 +83,8 @@ def case(tmp_path_factory):
 
 
 def expected_output(case):
-    """What register_node should publish for the frame, computed here from the same messages the graph carries."""
+    """(the output, the welded mesh vertices (mm, ct)) register_node should publish for the frame, computed here
+    from the same messages the graph carries."""
     path = str(case["dir"] / "preop.ply")
     preop = cloud_to_points_mm(points_to_cloud(load_model_m(path, "mm"), TYPES, frame_id="ct"))
     vertices, triangles = mesh_marker_mm(mesh_marker(path, "mm", "ct", Time(sec=1, nanosec=0)))
@@ -95,7 +96,7 @@ def expected_output(case):
     )
     core.set_intraop_fiducials(cloud_to_points_mm(case["fiducials"]), STAMP_NS)
     core.on_intraop_points(cloud_to_points_mm(case["view"]), "camera", STAMP_NS)
-    return core.reregister()
+    return core.reregister(), vertices
 
 
 def attempts(probe, since=0):
@@ -133,11 +134,15 @@ def test_register_node_publishes_the_deformed_preop_after_the_pose_only_with_def
         values = values_of(verdict)
         assert DEFORM_KEYS <= set(values) and values["deform_applied"] == "true" and values["deform_reason"] == ""
         assert values["deform_surface"] == "mesh" and float(values["deform_ms"]) > 0
+        assert float(values["deformed_error_bound_mm"]) > 0  # the deformed positions' own calibrated bound
         # the same arithmetic as the ROS-free core on the same messages (float32 metres on the wire)
-        expected = expected_output(case)
+        expected, vertices = expected_output(case)
+        # on the loader's mesh: its welded vertices in their order (a /preop/mesh holder pairs them with its triangles)
+        assert deformed.msg.width * deformed.msg.height == len(vertices) != rigid.msg.width * rigid.msg.height
         np.testing.assert_allclose(cloud_to_points_m(deformed.msg) * 1e3, expected.deformed_preop_mm, rtol=0, atol=1e-3)
         np.testing.assert_allclose(cloud_to_points_m(rigid.msg) * 1e3, expected.registered_preop_mm, rtol=0, atol=1e-3)
-        shift_mm = np.linalg.norm(cloud_to_points_m(deformed.msg) - cloud_to_points_m(rigid.msg), axis=1) * 1e3
+        T = expected.pose.T_sensor_ct_mm  # the rigid pose: how far the stage moved each vertex from it
+        shift_mm = np.linalg.norm(cloud_to_points_m(deformed.msg) * 1e3 - (vertices @ T[:3, :3].T + T[:3, 3]), axis=1)
         assert 0.01 < shift_mm.max() < 25.0
 
         # deform off: the same pose and verdict, nothing on the deformed topic, no deform_* keys

@@ -48,7 +48,7 @@ def test_the_non_rigid_stages_topic_and_diagnostic_keys_are_documented():
     page = (DOCS / "registration_deformed_preop.md").read_text()
     assert "reliable, volatile, depth 1" in page and QOS_OF_TOPIC[TOPIC_DEFORMED_PREOP].depth == 1
     diagnostics = (DOCS / "diagnostics.md").read_text()
-    registration = stage_values(Deformation(True, "", np.eye(4)), None, 1.0, 1.0)
+    registration = stage_values(Deformation(True, "", np.eye(4)), None, 1.0, 1.0, 1.0, "note")
     mesh = PreopMesh(np.zeros((4, 3)), np.array([[0, 1, 2]]), "ct", 0)
     preop = {**mesh_diagnostic(mesh, True).values, **prepare_stage_keys()}
     for key in [*registration, *preop]:

@@ -29,7 +29,7 @@ from liver_p2p_reg.structures_io import Structure
 
 # a small elastic model: built in well under a second
 SMALL = dict(method="procrustes", mode="on_demand", deform_modes=12, deform_target_tets=1500)
-DEFORM_KEYS = set(stage_values(Deformation(True, "", np.eye(4)), None, 1.0, 1.0))
+DEFORM_KEYS = set(stage_values(Deformation(True, "", np.eye(4)), None, 1.0, 1.0, 1.0, "note"))
 TYPES = typestore().types
 
 
@@ -172,8 +172,11 @@ def test_the_rigid_pose_goes_out_first_then_the_stage_adds_its_surface_and_value
     assert float(diag.values["deform_residual_after_mm"]) < float(diag.values["deform_residual_before_mm"])
     deformation = output.result.deformation
     assert deformation.applied and np.array_equal(output.result.T_target_source, rigid.pose.T_sensor_ct_mm)
-    np.testing.assert_array_equal(output.deformed_preop_mm, deformation.deformed_position_mm(case["points"]))
-    shift = np.linalg.norm(output.deformed_preop_mm - output.registered_preop_mm, axis=1)
+    # on the mesh: its vertices, in their order (a holder of /preop/mesh pairs them with its triangles)
+    assert len(output.deformed_preop_mm) == len(case["vertices"]) != len(case["points"])
+    np.testing.assert_array_equal(output.deformed_preop_mm, deformation.deformed_position_mm(case["vertices"]))
+    rigid_vertices = case["vertices"] @ rigid.pose.T_sensor_ct_mm[:3, :3].T + rigid.pose.T_sensor_ct_mm[:3, 3]
+    shift = np.linalg.norm(output.deformed_preop_mm - rigid_vertices, axis=1)
     assert 0.01 < shift.max() < core.config.deform_max_displacement_mm
     (tumour,) = output.structures  # the structures where the stage put them; the rigid positions kept beside
     np.testing.assert_array_equal(tumour.position_mm, rigid.structures[0].position_mm)
@@ -183,7 +186,10 @@ def test_the_rigid_pose_goes_out_first_then_the_stage_adds_its_surface_and_value
     np.testing.assert_array_equal(tumour.error_bound_mm, rigid.structures[0].error_bound_mm)
     points, bounds = published_structures_mm(output)  # /registration/structures: the deformed positions
     np.testing.assert_allclose(points, tumour.deformed_position_mm, rtol=0, atol=1e-3)
-    np.testing.assert_allclose(bounds, tumour.error_bound_mm, rtol=1e-6)
+    # ... and the bounds of those positions: the deformed-position calibration's, not the rigid pose's
+    assert tumour.deformed_error_bound_mm is not None and np.all(np.isfinite(tumour.deformed_error_bound_mm))
+    assert not np.allclose(tumour.deformed_error_bound_mm, tumour.error_bound_mm)
+    np.testing.assert_allclose(bounds, tumour.deformed_error_bound_mm, rtol=1e-6)
     assert core.status().values["deform_applied"] == "true"  # the periodic status carries them too
     assert elastic_models(core) == built  # the frame built nothing: the warm-up did
 
@@ -205,6 +211,10 @@ def test_a_stage_not_applied_changes_neither_the_pose_nor_the_verdict(case) -> N
 def test_the_mesh_serves_the_model_of_its_stamp_and_a_late_one_rebuilds_the_elastic_model(case) -> None:
     core, _, output, warm, _ = registered(case, mesh_stamp=99, deform=True)  # another model's mesh: not used
     assert warm.values["deform_surface"] == "points" and output.diagnostics[0].values["deform_surface"] == "points"
+    assert output.diagnostics[0].values["deform_applied"] == "true"  # on the rebuilt surface: the points, in order
+    np.testing.assert_array_equal(
+        output.deformed_preop_mm, output.result.deformation.deformed_position_mm(case["points"])
+    )
     assert core.prepare_deformation() is None  # already built for this model and surface
     late = core.set_preop_mesh(case["vertices"], case["triangles"], "ct", 5)
     assert late.level == OK and "kept for the model of its stamp" not in late.message
