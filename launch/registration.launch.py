@@ -29,6 +29,7 @@ def generate_launch_description():
         {
             "model_path": model_path,
             "fiducials_path": fiducials_path,
+            "mesh_path": LaunchConfiguration("mesh_path"),
             "frame_id": "ct",
             "units": LaunchConfiguration("units"),
             "structures_paths": LaunchConfiguration("structures"),
@@ -42,6 +43,9 @@ def generate_launch_description():
                 "model_path", default_value="", description="preop mesh/cloud in mm (PLY/STL/OBJ/VTK)"
             ),
             DeclareLaunchArgument("fiducials_path", default_value="", description="optional preop fiducials file (mm)"),
+            DeclareLaunchArgument(
+                "mesh_path", default_value="", description="optional closed mesh of a model given as points (mm)"
+            ),
             DeclareLaunchArgument(
                 "structures",
                 default_value="",

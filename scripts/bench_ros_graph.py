@@ -60,7 +60,7 @@ BEGIN, END = "<!-- ROS-GRAPH-BENCH:START -->", "<!-- ROS-GRAPH-BENCH:END -->"
 
 def start_up(probe: GraphProbe, bag: Path, out: Path, env: dict) -> tuple[NodeProcess, float]:
     """register_node started while the model is latched and clouds arrive: process start -> first pose."""
-    model, fiducials = model_files(bag, out / "startup")
+    model, fiducials, _ = model_files(bag, out / "startup")  # points only, as it was measured
     params = {"model_path": str(model), "units": "m", **({"fiducials_path": str(fiducials)} if fiducials else {})}
     loader = NodeProcess("preop_loader_node", params, env=env, log_dir=out / "logs", name="loader_startup")
     assert probe.wait_for(lambda: "published" in loader.stderr(), 120), loader.stderr()

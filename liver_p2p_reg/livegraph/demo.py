@@ -24,7 +24,8 @@ from liver_p2p_reg.livegraph.graph import (
     stamp_ns,
     values_of,
 )
-from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m
+from liver_p2p_reg.ros.messages import mesh_marker_mm
+from liver_p2p_reg.ros.pointcloud2 import M_PER_MM, cloud_to_points_m
 from liver_p2p_reg.ros.topics import (
     TOPIC_DIAGNOSTICS,
     TOPIC_INTRAOP,
@@ -32,6 +33,7 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_POSE,
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
+    TOPIC_PREOP_MESH,
 )
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES, PREOP_DIAG_NAME
 
@@ -63,9 +65,10 @@ class GraphRow:
         return float(np.percentile(self.latency_ms, q)) if self.latency_ms else float("nan")
 
 
-def model_files(bag: Path, folder: Path) -> tuple[Path, Path | None]:
-    """The bag's preop model (and fiducials) as .npy files in metres, for preop_loader_node."""
-    messages = {m.topic: m.msg for m in read_messages(bag, [TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS])}
+def model_files(bag: Path, folder: Path) -> tuple[Path, Path | None, Path | None]:
+    """The bag's preop model (and fiducials) as .npy files in metres, and its /preop/mesh as a PLY in metres
+    (None without one), for preop_loader_node."""
+    messages = {m.topic: m.msg for m in read_messages(bag, [TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_PREOP_MESH])}
     if TOPIC_PREOP not in messages:
         raise InputError(f"{bag} has no {TOPIC_PREOP}")
     folder.mkdir(parents=True, exist_ok=True)
@@ -75,17 +78,31 @@ def model_files(bag: Path, folder: Path) -> tuple[Path, Path | None]:
     if TOPIC_PREOP_FIDUCIALS in messages:
         fiducials = folder / "preop_fiducials_m.npy"
         np.save(fiducials, cloud_to_points_m(messages[TOPIC_PREOP_FIDUCIALS]))
-    return model, fiducials
+    mesh = None
+    if TOPIC_PREOP_MESH in messages:
+        from liver_p2p_reg.o3d import o3d_module
+
+        o3d = o3d_module()
+        vertices_mm, triangles = mesh_marker_mm(messages[TOPIC_PREOP_MESH])  # welded as register_node welds it
+        mesh = folder / "preop_mesh_m.ply"
+        surface = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(vertices_mm * M_PER_MM), o3d.utility.Vector3iVector(triangles)
+        )
+        if not o3d.io.write_triangle_mesh(str(mesh), surface):
+            raise InputError(f"could not write {mesh}")
+    return model, fiducials, mesh
 
 
 def run_bag(probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dict[str, str]) -> GraphRow:
     """Loader for the bag's model, then its /intraop/* played live, then one ~/reregister call."""
-    model, fiducials = model_files(bag, out_dir)
+    model, fiducials, mesh = model_files(bag, out_dir)
     diag_index = probe.count(TOPIC_DIAGNOSTICS)
     starts = {topic: probe.count(topic) for topic in RECORDED_TYPES}
     params = {"model_path": str(model), "units": "m"}
     if fiducials is not None:
         params["fiducials_path"] = str(fiducials)
+    if mesh is not None:
+        params["mesh_path"] = str(mesh)
     loader = NodeProcess("preop_loader_node", params, env=env, log_dir=log_dir, name=f"loader_{bag.name}")
     try:
         ready = probe.wait_for(lambda: probe.diagnostics(diag_index, PREOP_DIAG_NAME), 120.0)

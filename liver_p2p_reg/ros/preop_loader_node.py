@@ -41,6 +41,8 @@ from liver_p2p_reg.structures_io import Structure, read_structures
 
 TYPES = RCLPY_TYPES.cloud
 UNITS_TO_M = {"mm": M_PER_MM, "m": 1.0}
+# string parameters and defaults; mesh_path: the /preop/mesh of a model given as points (else model_path's triangles)
+FILE_PARAMETERS = (("model_path", ""), ("fiducials_path", ""), ("mesh_path", ""), ("frame_id", "ct"), ("units", "mm"))
 STATUS_PERIOD_S = 1.0  # the loader's status on /diagnostics, repeated for late joiners (diagnostics are volatile)
 
 
@@ -59,12 +61,19 @@ def load_model_m(path: str, units: str) -> np.ndarray:
     return points * UNITS_TO_M[units]
 
 
-def mesh_marker(path: str, units: str, frame_id: str, stamp: Time) -> Marker | None:
-    """The model file's triangles as a Marker TRIANGLE_LIST in metres (for /preop/mesh), None for a cloud."""
+def mesh_marker(path: str, units: str, frame_id: str, stamp: Time, *, required: bool = False) -> Marker | None:
+    """The file's triangles as a Marker TRIANGLE_LIST in metres (for /preop/mesh), None for a cloud; `required`
+    (the mesh_path parameter): InputError instead of None, the file being given as a mesh."""
+    if required and not Path(path).is_file():
+        raise InputError(f"mesh_path not found: {path}")
     if Path(path).suffix.lower() not in MESH_FORMATS:
+        if required:
+            raise InputError(f"mesh_path {path} is not a mesh file ({', '.join(sorted(MESH_FORMATS))})")
         return None
     vertices, triangles = load_mesh(path)
     if len(triangles) == 0 or not np.isfinite(vertices).all():
+        if required:
+            raise InputError(f"mesh_path {path} holds no triangles with finite vertices")
         return None
     vertices_m = vertices * UNITS_TO_M[units]
     return triangle_list_marker(vertices_m, triangles, RCLPY_MARKER_TYPES, frame_id, stamp_to_ns(stamp))
@@ -100,7 +109,7 @@ class PreopLoaderWiring:
     publishers again (deactivate), so a late joiner no longer gets a model this node does not stand behind."""
 
     def _declare(self: Any) -> None:
-        for name, default in (("model_path", ""), ("fiducials_path", ""), ("frame_id", "ct"), ("units", "mm")):
+        for name, default in FILE_PARAMETERS:
             self.declare_parameter(name, default)
         # a string array, or one string of comma-separated specs (dynamic typing: a launch argument is a string)
         self.declare_parameter("structures_paths", [], ParameterDescriptor(dynamic_typing=True))
@@ -110,7 +119,7 @@ class PreopLoaderWiring:
     def _load(self: Any) -> None:
         """Read the model (and fiducials) files now, InputError for a missing or unreadable one; then the
         structure files: a bad one is left out, reported as an ERROR on /diagnostics with its reason."""
-        param = {n: self.get_parameter(n).value for n in ("model_path", "fiducials_path", "frame_id", "units")}
+        param = {n: self.get_parameter(n).value for n, _ in FILE_PARAMETERS}
         model_m = load_model_m(param["model_path"], param["units"])
         fiducials_m = load_model_m(param["fiducials_path"], param["units"]) if param["fiducials_path"] else None
         specs = structure_specs(self.get_parameter("structures_paths").value)
@@ -118,7 +127,10 @@ class PreopLoaderWiring:
         stamp_ns = self.get_clock().now().nanoseconds
         # the mesh itself, for viewers (the Slicer bridge, RViz); same stamp as its points: they pair by it
         stamp = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
-        mesh = mesh_marker(param["model_path"], param["units"], param["frame_id"], stamp)
+        if param["mesh_path"]:  # a cloud model with its CT mesh beside it (the bag replayed in the demo)
+            mesh = mesh_marker(param["mesh_path"], param["units"], param["frame_id"], stamp, required=True)
+        else:
+            mesh = mesh_marker(param["model_path"], param["units"], param["frame_id"], stamp)
         self.loaded = {**param, "model_m": model_m, "fiducials_m": fiducials_m, "mesh": mesh, "stamp_ns": stamp_ns}
         self.loaded.update(structures=structures, structure_errors=errors)
         for spec, reason in errors:

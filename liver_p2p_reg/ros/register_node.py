@@ -197,7 +197,8 @@ class RegisterWiring(RegisterOutputs):
     def _on_mesh(self, msg: Marker) -> None:
         diag = feed_preop_mesh_msg(self.core, msg)  # ERROR for a malformed marker (ignored); else kept for its model
         self._report([diag])
-        if diag.level == OK:  # a mesh of the current model: its elastic model is built again (deform on)
+        # a mesh of the current model: its elastic model is built again (deform on); a next model's waits for it
+        if diag.level == OK and diag.values.get("for_current_model") == "true":
             self._submit(lambda: self._report_any(self.core.prepare_deformation()))
 
     def _on_preop_fiducials(self, msg: PointCloud2) -> None:

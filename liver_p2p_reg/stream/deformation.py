@@ -158,6 +158,7 @@ def mesh_diagnostic(mesh: PreopMesh, for_current_model: bool) -> Diagnostic:
         "mesh_triangles": str(len(mesh.triangles)),
         "frame_id": mesh.frame_id,
         "stamp_ns": str(mesh.stamp_ns),
+        "for_current_model": str(bool(for_current_model)).lower(),
     }
     message = f"preop mesh received ({len(mesh.triangles)} triangles, {len(mesh.vertices_mm)} vertices){waits}"
     return Diagnostic(OK, PREOP_DIAG_NAME, message, values)

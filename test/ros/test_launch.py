@@ -19,7 +19,7 @@ LAUNCH = ROOT / "launch" / "registration.launch.py"
 JAZZY_NODE_KWARGS = {"executable", "package", "name", "namespace", "exec_name", "parameters", "remappings"}
 JAZZY_NODE_KWARGS |= {"ros_arguments", "arguments", "output", "condition", "emulate_tty", "respawn", "respawn_delay"}
 JAZZY_NODE_KWARGS |= {"sigterm_timeout", "sigkill_timeout", "additional_env", "cwd", "on_exit", "prefix", "log_cmd"}
-LOADER_PARAMETERS = {"model_path", "fiducials_path", "frame_id", "units", "structures_paths"}
+LOADER_PARAMETERS = {"model_path", "fiducials_path", "mesh_path", "frame_id", "units", "structures_paths"}
 MANAGED = {"register_lifecycle_node": "register_node", "preop_loader_lifecycle_node": "preop_loader_node"}
 
 

@@ -129,3 +129,31 @@ def test_parameter_set_keeps_the_registrar_cache(ros_context):
     finally:
         node.stop()
         node.destroy_node()
+
+
+def test_preop_loader_publishes_mesh_path_beside_a_point_model(ros_context, tmp_path):
+    """A model given as points with its mesh beside it (the demo's bags): /preop/mesh is that mesh's."""
+    from liver_p2p_reg.o3d import o3d_module
+    from liver_p2p_reg.ros.messages import mesh_marker_mm
+
+    o3d = o3d_module()
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=60.0, resolution=8)
+    mesh = tmp_path / "mesh.ply"
+    assert o3d.io.write_triangle_mesh(str(mesh), sphere)
+    model = tmp_path / "model.npy"
+    np.save(model, np.random.default_rng(0).normal(size=(500, 3)) * 50.0)
+    node = PreopLoaderNode(
+        parameter_overrides=[Parameter("model_path", value=str(model)), Parameter("mesh_path", value=str(mesh))]
+    )
+    try:
+        vertices_mm, triangles = mesh_marker_mm(node.loaded["mesh"])
+        assert len(triangles) == len(sphere.triangles) and len(vertices_mm) == len(sphere.vertices)
+        assert np.abs(np.linalg.norm(vertices_mm, axis=1) - 60.0).max() < 1e-3  # the mesh's, in mm
+        assert len(node.loaded["model_m"]) == 500  # the points stay the model
+    finally:
+        node.destroy_node()
+    for bad, reason in ((model, "not a mesh file"), (tmp_path / "none.ply", "mesh_path not found")):
+        with pytest.raises(InputError, match=reason):
+            PreopLoaderNode(
+                parameter_overrides=[Parameter("model_path", value=str(model)), Parameter("mesh_path", value=str(bad))]
+            )

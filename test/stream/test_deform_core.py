@@ -127,7 +127,9 @@ def registered(case, mesh_stamp: int | None = 5, **cfg):
     registration of the case, as register_node runs it."""
     core = NodeCore(Config(**{**SMALL, **cfg}))
     if mesh_stamp is not None:
-        assert core.set_preop_mesh(case["vertices"], case["triangles"], "ct", mesh_stamp).level == OK
+        early = core.set_preop_mesh(case["vertices"], case["triangles"], "ct", mesh_stamp)
+        # before its model: kept, and register_node builds nothing for it yet (the model's warm-up will)
+        assert early.level == OK and early.values["for_current_model"] == "false"
     warm = core.set_preop(case["points"], "ct", 5)
     assert warm.level == OK, warm.message
     built = elastic_models(core)  # what the warm-up built
@@ -218,7 +220,7 @@ def test_the_mesh_serves_the_model_of_its_stamp_and_a_late_one_rebuilds_the_elas
     assert core.prepare_deformation() is None  # already built for this model and surface
     late = core.set_preop_mesh(case["vertices"], case["triangles"], "ct", 5)
     assert late.level == OK and "kept for the model of its stamp" not in late.message
-    assert late.values["mesh_triangles"] == str(len(case["triangles"]))
+    assert late.values["mesh_triangles"] == str(len(case["triangles"])) and late.values["for_current_model"] == "true"
     rebuilt = core.prepare_deformation()
     assert rebuilt.level == OK and "elastic model built on its mesh" in rebuilt.message, rebuilt.message
     assert rebuilt.values["deform_surface"] == "mesh" and core.prepare_deformation() is None
