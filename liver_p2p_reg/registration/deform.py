@@ -78,24 +78,39 @@ class Deformation:
 
 
 def elastic_model(
-    cache: dict[str, Any], source_mm: np.ndarray, triangles: np.ndarray | None, config: Config
+    cache: dict[str, Any],
+    source_mm: np.ndarray,
+    triangles: np.ndarray | None,
+    config: Config,
+    fit_points_mm: np.ndarray | None = None,
 ) -> ElasticModel:
-    """The preop model's elastic model, built once per (source, triangles, settings) and kept in the cache."""
+    """The preop model's elastic model, built once per (source, triangles, settings) and kept in the cache;
+    with `fit_points_mm` (the registered cloud beside a mesh), the same model fitted through those points."""
     from liver_p2p_reg.registration.features.fpfh import outward_normals
     from liver_p2p_reg.registration.mechanics.modes import build_elastic_model
+
+    def normals_of(points: np.ndarray) -> np.ndarray:
+        extent = float(np.max(np.ptp(points, axis=0)))
+        return outward_normals(points / extent, 0.05)  # the radius is relative to the extent
 
     tris = None if triangles is None else np.ascontiguousarray(triangles, dtype=np.int64)
     key_points = source_mm if tris is None else np.concatenate([source_mm.ravel(), tris.ravel().astype(np.float64)])
     params = (config.deform_modes, config.deform_target_tets, tris is not None)
 
     def build() -> ElasticModel:
-        extent = float(np.max(np.ptp(source_mm, axis=0)))
-        normals = outward_normals(source_mm / extent, 0.05)  # the radius is relative to the extent
+        normals = normals_of(source_mm)
         return build_elastic_model(
             source_mm, normals, tris, n_modes=config.deform_modes, target_tets=config.deform_target_tets
         )
 
-    return remember_latest(cache, "elastic", key_points, params, build)
+    model = remember_latest(cache, "elastic", key_points, params, build)
+    if fit_points_mm is None or fit_points_mm is source_mm:
+        return model
+    # the fit's data term on the cloud the rigid pose was found on: denser than a decimated mesh's vertices
+    fit = np.asarray(fit_points_mm, dtype=np.float64)
+    return remember_latest(
+        cache, "elastic_fit", fit, (*params, id(model)), lambda: model.on_surface(fit, normals_of(fit))
+    )
 
 
 def not_applied(T: np.ndarray, reason: str, **known: Any) -> Deformation:
@@ -110,8 +125,10 @@ def deform_result(
     config: Config,
     cache: dict[str, Any],
     triangles: np.ndarray | None = None,
+    fit_points_mm: np.ndarray | None = None,
 ) -> Deformation:
-    """Run the non-rigid stage from `result`'s rigid pose (never raises for data it cannot use)."""
+    """Run the non-rigid stage from `result`'s rigid pose (never raises for data it cannot use); the model is
+    built on `source_mm` (+ `triangles`) and fitted through `fit_points_mm` when given (else `source_mm`)."""
     from liver_p2p_reg.registration.deform_fit import fit_deformation
 
     T = np.asarray(result.T_target_source, dtype=np.float64)
@@ -125,7 +142,7 @@ def deform_result(
             T, f"rigid residual {result.residual_mm:.1f} mm > {cfg.deform_max_residual_mm:g} mm: a gross pose"
         )
     try:
-        model = elastic_model(cache, source_mm, triangles, config)
+        model = elastic_model(cache, source_mm, triangles, config, fit_points_mm)
     except InputError as exc:
         return not_applied(T, f"no elastic model: {exc}")
     known = dict(model_build_ms=model.build_ms, n_modes=model.n_modes, n_nodes=len(model.mesh.nodes_mm), model=model)

@@ -134,7 +134,8 @@ class Registrar:
             surface = clean_points(mesh_vertices_mm, "preop mesh", min_points=4)
             n_given = len(np.asarray(mesh_vertices_mm).reshape(-1, 3))
         tris = _check_triangles(source_triangles, len(surface), n_given)
-        result.deformation = deform_result(result, surface, target, self.config, self.cache, tris)
+        fit = None if mesh_vertices_mm is None else source  # beside a mesh: fitted through the registered cloud
+        result.deformation = deform_result(result, surface, target, self.config, self.cache, tris, fit)
         result.deformed_error_model, result.deformed_error_bound_mm = None, float("nan")
         result.deformed_error_calibration_note = ""
         attach_deformed_error_model(result, self.config)  # the bound of the deformed positions, when applied
@@ -184,8 +185,9 @@ class Registrar:
 
         surface = clean_points(source_mm if mesh_vertices_mm is None else mesh_vertices_mm, "preop model", min_points=4)
         tris = _check_triangles(source_triangles, len(surface), len(surface))
+        fit = None if mesh_vertices_mm is None else clean_points(source_mm, "source", min_points=self.config.min_points)
         try:
-            elastic_model(self.cache, surface, tris, self.config)
+            elastic_model(self.cache, surface, tris, self.config, fit)
         except LiverP2PError as exc:
             return f"no elastic model: {exc}"
         return ""

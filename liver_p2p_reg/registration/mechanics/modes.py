@@ -9,6 +9,7 @@ stays with the rigid parameters. The solve per registration is then a few dozen 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -56,6 +57,19 @@ class ElasticModel:
         if stride not in self._basis_cache:
             self._basis_cache[stride] = self.basis_at(self.source_ids[::stride], self.source_weights[::stride])
         return self._basis_cache[stride]
+
+    def on_surface(self, points_mm: np.ndarray, normals: np.ndarray) -> ElasticModel:
+        """The same model fitted through other preop points (a sampled cloud beside the mesh it was built on)."""
+        points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        ids, weights = self.embed(points)
+        return dataclasses.replace(
+            self,
+            source_mm=points,
+            source_normals=np.asarray(normals, float),
+            source_ids=ids,
+            source_weights=weights,
+            _basis_cache={},
+        )
 
     def displacement_at(self, points_mm: np.ndarray, coefficients_mm: np.ndarray) -> np.ndarray:
         """Displacement (P, 3) at any preop points; a point outside the mesh takes its nearest node's."""
