@@ -12,7 +12,7 @@ import numpy as np
 
 from liver_p2p_reg.bags.io import MARKER, POINTCLOUD2, BagWriter, bag_custom_data, read_messages
 from liver_p2p_reg.bags.make import CASE_KEY
-from liver_p2p_reg.bags.replay_outputs import DEFORM_OUTPUT_TOPICS, OUTPUT_TOPICS, ReplayOutputs
+from liver_p2p_reg.bags.replay_outputs import ReplayOutputs
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.confidence import result_warnings
@@ -42,7 +42,7 @@ from liver_p2p_reg.stream.outputs import ERROR, LEVEL_NAMES, OK, CoreOutput
 from liver_p2p_reg.structures_io import Structure, structure_bounds
 
 LOG = logging.getLogger("liver_p2p_reg.replay")
-__all__ = ["DEFORM_OUTPUT_TOPICS", "OUTPUT_TOPICS", "ReplayRow", "format_table", "replay_bag", "replay_bags"]
+__all__ = ["ReplayRow", "format_table", "replay_bag", "replay_bags"]
 
 
 @dataclass

@@ -74,15 +74,19 @@ def run(args: argparse.Namespace) -> int:
     from liver_p2p_reg.registration.weights_id import weights_sha256
 
     config = (Config.from_yaml(args.config) if args.config else Config()).validate()
-    if args.deformed:
-        config = config.replace(deform=True).validate()
+    # the rigid bound is fitted on the pose's errors whatever the --config says about the stage
+    config = config.replace(deform=bool(args.deformed)).validate()
     out = Path(args.out) if args.out else (BUNDLED_DEFORMED_CALIBRATION if args.deformed else BUNDLED_CALIBRATION)
     weights = weights_sha256(config)  # "" for a method without weights
-    val = _applied(bound_data.concat([_collected(Path(d), args, config, weights) for d in args.val]), args)
+    collected = bound_data.concat([_collected(Path(d), args, config, weights) for d in args.val])
+    val = _applied(collected, args)
     cal = calibrate(val, args.seed)
     if args.deformed:
         cal.update(positions=DEFORMED, deform=deform_settings(config))
-    sets = [{"set": Path(d).name, "cases": int((val["set"] == Path(d).name).sum())} for d in args.val]
+    sets = [{"set": Path(d).name, "cases": int((collected["set"] == Path(d).name).sum())} for d in args.val]
+    if args.deformed:  # the poses it was fitted on: those where the stage was applied
+        for entry in sets:
+            entry["applied_poses"] = int((val["set"] == entry["set"]).sum())
     cal.update(
         method=config.method,
         weights_sha256=weights,

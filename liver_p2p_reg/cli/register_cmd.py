@@ -324,7 +324,7 @@ def _register_each(args, config, registrar, source_path, source, views, fiducial
         if slicer is not None:
             from liver_p2p_reg.cli.slicer import send_registration
 
-            send_registration(slicer, source_path, source, target, result, warnings, placed)
+            send_registration(slicer, source_path, source, target, result, warnings, placed, args.source_mesh)
         written = write_extras(source, target, result, config, warnings, fid_s, fid_t, moved[i], plots[i])
         if not quiet:
             print(summary_line(target_path, payload, outputs[i], written), file=summary_stream, flush=True)

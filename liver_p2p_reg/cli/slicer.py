@@ -59,6 +59,7 @@ def send_registration(
     result: Any,
     warnings: list[str],
     structures: list[Any] | None = None,
+    mesh: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Model (the file's mesh if it has one), intraop cloud, CTToSensor, the deformed model when the non-rigid
     stage was applied, each structure (`PlacedStructure`s, moved into the target's frame, deformed when the stage
@@ -70,7 +71,7 @@ def send_registration(
 
     vertices, triangles = source_mm, None
     if Path(source_path).suffix.lower() in MESH_FORMATS:
-        mesh_vertices, mesh_triangles = load_mesh(source_path)
+        mesh_vertices, mesh_triangles = mesh if mesh is not None else load_mesh(source_path)  # read once
         if len(mesh_triangles):
             vertices, triangles = mesh_vertices, mesh_triangles
     bridge.send_model(vertices, triangles)

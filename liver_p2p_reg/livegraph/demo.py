@@ -13,7 +13,8 @@ from rclpy.serialization import serialize_message
 
 from liver_p2p_reg.bags.io import BagWriter, read_messages
 from liver_p2p_reg.bags.player import BagPlayer, Played
-from liver_p2p_reg.bags.replay import DEFORM_OUTPUT_TOPICS, OUTPUT_TOPICS, fmt, markdown_table
+from liver_p2p_reg.bags.replay import fmt, markdown_table
+from liver_p2p_reg.bags.replay_outputs import DEFORM_OUTPUT_TOPICS, OUTPUT_TOPICS
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.livegraph.graph import (

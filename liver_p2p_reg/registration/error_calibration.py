@@ -135,6 +135,8 @@ def attach_error_model(
     if not result.ok or T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return
     calibration = read_calibration(config.error_calibration_path)
+    if calibration.positions != RIGID:
+        raise InputError(f"{config.error_calibration_path}: a calibration of deformed positions, not of the pose's")
     calibration.column(config.error_coverage)  # an uncalibrated coverage is refused before any work
     evidence = pose_evidence(
         T,
@@ -167,13 +169,17 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
     return ""
 
 
-# The settings that change the deformed positions: a DEFORMED calibration holds for these only.
+# The settings that change the deformed positions, and the gates that decide which poses the stage is applied on
+# (the only ones a DEFORMED calibration holds for): it holds for these values only.
 DEFORM_SETTINGS = (
     "deform_modes",
     "deform_target_tets",
     "deform_regularization",
     "deform_iterations",
     "deform_min_gain",
+    "deform_min_points",
+    "deform_max_residual_mm",
+    "deform_max_displacement_mm",
 )
 
 
@@ -189,14 +195,15 @@ def attach_deformed_error_model(result: Any, config: Any) -> None:
     Settings other than the calibration's are told in `result.deformed_error_calibration_note`."""
     if result.error_model is None or result.deformation is None or not result.deformation.applied:
         return
-    if not config.deform_error_calibration_path and not BUNDLED_DEFORMED_CALIBRATION.exists():
-        # only while the first one is made (calibrate-bound --deformed registers without it): said, not fatal
-        result.deformed_error_calibration_note = "no calibration of deformed positions: they have no bound"
+    path = config.deform_error_calibration_path or str(BUNDLED_DEFORMED_CALIBRATION)
+    try:  # a bad or missing file costs the deformed positions their bound (said), never the deformation itself
+        calibration = read_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION)
+        if calibration.positions != DEFORMED:
+            raise InputError(f"{path} is not a calibration of deformed positions")
+        calibration.column(config.error_coverage)
+    except InputError as exc:
+        result.deformed_error_calibration_note = f"the deformed positions have no bound: {exc}"
         return
-    calibration = read_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION)
-    if calibration.positions != DEFORMED:
-        raise InputError(f"{config.deform_error_calibration_path}: not a calibration of deformed positions")
-    calibration.column(config.error_coverage)
     model = ErrorModel(result.error_model.evidence, calibration, config.error_coverage)
     result.deformed_error_model = model
     result.deformed_error_bound_mm = model.pose_bound_mm()

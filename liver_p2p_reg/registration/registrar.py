@@ -134,13 +134,13 @@ class Registrar:
             surface = clean_points(mesh_vertices_mm, "preop mesh", min_points=4)
             n_given = len(np.asarray(mesh_vertices_mm).reshape(-1, 3))
         tris = _check_triangles(source_triangles, len(surface), n_given)
+        fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)  # bad ones refused before any work
         fit = None if mesh_vertices_mm is None else source  # beside a mesh: fitted through the registered cloud
         result.deformation = deform_result(result, surface, target, self.config, self.cache, tris, fit)
         result.deformed_error_model, result.deformed_error_bound_mm = None, float("nan")
         result.deformed_error_calibration_note = ""
         attach_deformed_error_model(result, self.config)  # the bound of the deformed positions, when applied
         result.runtime_ms["deform"] = (time.perf_counter() - start) * 1e3
-        fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
         if fid_s is not None and fid_t is not None:
             moved = result.deformation.deformed_position_mm(fid_s)
             result.deformed_rms_tre_mm = float(np.sqrt(np.mean(np.sum((moved - fid_t) ** 2, axis=1))))

@@ -230,6 +230,7 @@ def _stands(result: Any, T: np.ndarray, reason: str) -> None:
     """The rigid result stands: the stage's outputs on `result` say so, none of its deformed values remain."""
     result.deformation, result.deformed_rms_tre_mm = not_applied(T, reason), None
     result.deformed_error_model, result.deformed_error_bound_mm = None, float("nan")
+    result.deformed_error_calibration_note = ""
 
 
 def _bound(result: Any) -> tuple[float | None, str]:

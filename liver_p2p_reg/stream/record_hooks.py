@@ -122,10 +122,10 @@ class Recording:
         core = self._core
         recorder.config(config, snapshot=True)
         if core.preop_mm is not None:
-            recorder.preop(core.preop_mm, core.preop_frame, core.preop_stamp_ns, snapshot=True)
             mesh = core.mesh.for_model(core.preop_frame, core.preop_stamp_ns)
-            if mesh is not None:
+            if mesh is not None:  # before its points, as bags log it: a re-run builds the elastic model once
                 recorder.preop_mesh(mesh, snapshot=True)
+            recorder.preop(core.preop_mm, core.preop_frame, core.preop_stamp_ns, snapshot=True)
             if core.preop_fiducials_mm is not None:
                 recorder.preop_fiducials(core.preop_fiducials_mm, core.preop_stamp_ns, snapshot=True)
         track = core._tracker.state  # the prior the next tracked frame starts from

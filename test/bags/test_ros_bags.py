@@ -6,7 +6,8 @@ import yaml
 
 from liver_p2p_reg.bags.io import bag_topics, read_messages
 from liver_p2p_reg.bags.make import CASE_KEY, make_case_bag
-from liver_p2p_reg.bags.replay import OUTPUT_TOPICS, format_table, replay_bag
+from liver_p2p_reg.bags.replay import format_table, replay_bag
+from liver_p2p_reg.bags.replay_outputs import OUTPUT_TOPICS
 from liver_p2p_reg.cli import main
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError

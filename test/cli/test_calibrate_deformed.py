@@ -86,8 +86,16 @@ def test_an_applied_stage_bounds_its_deformed_positions(calibrated: dict) -> Non
 
 
 def test_a_rigid_calibration_is_refused_and_other_settings_are_noted(calibrated: dict, tmp_path: Path) -> None:
-    with pytest.raises(InputError, match="not a calibration of deformed positions"):
-        _registered(calibrated, str(BUNDLED_CALIBRATION))
+    # a rigid file: the deformation stands, its positions have no bound and say why
+    result, case = _registered(calibrated, str(BUNDLED_CALIBRATION))
+    assert result.deformation.applied and result.deformed_error_model is None
+    assert "is not a calibration of deformed positions" in result.deformed_error_calibration_note
+    (placed,) = place_structures(result, [Structure("tumour", case["src_marker"][:5])])
+    assert np.all(np.isnan(placed.current_error_bound_mm))  # no bound rather than the rigid pose's
+    # and the reverse: the deformed file as the pose's calibration is refused in one line
+    config = Config.from_yaml(calibrated["config"]).replace(error_calibration_path=str(calibrated["out"]))
+    with pytest.raises(InputError, match="a calibration of deformed positions, not of the pose's"):
+        Registrar(config).register(case["src_pcd"], case["tgt_pcd"])
     raw = json.loads(calibrated["out"].read_text())
     raw["deform"]["deform_regularization"] = 0.5
     other = tmp_path / "other.json"

@@ -19,6 +19,7 @@ from liver_p2p_reg.cloud_io import load_mesh, load_points, sample_mesh_surface, 
 from liver_p2p_reg.igtl import scene
 from liver_p2p_reg.igtl.link import level_of, pose_to_T_mm
 from liver_p2p_reg.metrics import transform_points
+from liver_p2p_reg.ros.messages import mesh_marker_mm
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
 from liver_p2p_reg.slicer_config import SlicerConfig
 from liver_p2p_reg.stream.outputs import DIAG_NAME, LEVEL_NAMES
@@ -135,8 +136,10 @@ def test_replay_serves_a_bag_to_slicer(tmp_path: Path) -> None:
     for got, T in zip(transforms, poses, strict=True):
         assert_wire_equal(got.value, expected_transform(T))
     assert [m.value for m in received.wait_for("RegistrationStatus", 2)] == statuses
-    model = received.wait_for("PreopModel")[0].value
-    assert len(model.polygons) == min(len(preop), SlicerConfig().max_model_points)
+    models = received.wait_for("PreopModel")
+    assert len(models) == 1  # the bag's mesh (logged before its points, same stamp): the points are not sent too
+    mesh = next(mesh_marker_mm(m.msg) for m in read_messages(BAG, ["/preop/mesh"]))
+    assert len(models[0].value.polygons) == len(mesh[1]) != min(len(preop), SlicerConfig().max_model_points)
     clouds = received.wait_for("IntraopCloud")
     assert all(len(c.value.polygons) == SlicerConfig().max_cloud_points for c in clouds)  # 18508 decimated
     received.close()

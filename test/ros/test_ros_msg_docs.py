@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from liver_p2p_reg.bags.replay import OUTPUT_TOPICS
+from liver_p2p_reg.bags.replay_outputs import OUTPUT_TOPICS
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.deform import Deformation
 from liver_p2p_reg.ros.topics import (
