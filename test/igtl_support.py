@@ -207,41 +207,10 @@ def assert_wire_equal(received: np.ndarray, expected: np.ndarray) -> None:
 
 
 def mesh_marker_msg(vertices_mm: np.ndarray, triangles: np.ndarray, stamp_ns: int, frame_id: str = "ct") -> Any:
-    """A /preop/mesh visualization_msgs/Marker TRIANGLE_LIST (rosbags classes), as preop_loader_node makes it:
-    three corners per triangle, metres, identity pose and scale."""
-    from liver_p2p_reg.bags.io import typestore
-    from liver_p2p_reg.ros.messages import MARKER_TRIANGLE_LIST
+    """A /preop/mesh Marker TRIANGLE_LIST (rosbags classes, metres), built as the loader and the bags build it."""
+    from liver_p2p_reg.bags.mesh import preop_mesh_marker
 
-    t = typestore().types
-    sec, nanosec = divmod(int(stamp_ns), 10**9)
-    header = t["std_msgs/msg/Header"](
-        stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
-    )
-    corners_m = np.asarray(vertices_mm, dtype=np.float64)[np.asarray(triangles).reshape(-1)] * 1e-3
-    return t["visualization_msgs/msg/Marker"](
-        header=header,
-        ns="preop",
-        id=0,
-        type=MARKER_TRIANGLE_LIST,
-        action=0,
-        pose=t["geometry_msgs/msg/Pose"](
-            position=t["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
-            orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-        ),
-        scale=t["geometry_msgs/msg/Vector3"](x=1.0, y=1.0, z=1.0),
-        color=t["std_msgs/msg/ColorRGBA"](r=0.8, g=0.45, b=0.35, a=1.0),
-        lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
-        frame_locked=True,
-        points=[t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=float(z)) for x, y, z in corners_m],
-        colors=[],
-        texture_resource="",
-        texture=t["sensor_msgs/msg/CompressedImage"](header=header, format="", data=np.zeros(0, np.uint8)),
-        uv_coordinates=[],
-        text="",
-        mesh_resource="",
-        mesh_file=t["visualization_msgs/msg/MeshFile"](filename="", data=np.zeros(0, np.uint8)),
-        mesh_use_embedded_materials=False,
-    )
+    return preop_mesh_marker(vertices_mm, triangles, frame_id, stamp_ns)
 
 
 @dataclass
