@@ -20,7 +20,8 @@ def o3d_module() -> ModuleType:
     removed afterwards, so code that imports `open3d.visualization` later still gets the real one.
     """
     module = sys.modules.get("open3d")
-    if module is not None:
+    if module is not None:  # imported elsewhere first (a plain `import open3d`): quiet it all the same
+        module.utility.set_verbosity_level(module.utility.VerbosityLevel.Error)
         return module
     try:
         try:

@@ -49,7 +49,9 @@ def decimated_mesh(
 
 def _clustered(vertices: np.ndarray, tris: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
     """The mesh clustered on the finest cell that leaves at most max_triangles (InputError when none does)."""
-    import open3d as o3d
+    from liver_p2p_reg.o3d import o3d_module
+
+    o3d = o3d_module()
 
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(tris))
     fine_mm = max(float(np.max(np.ptp(vertices, axis=0))) / 96.0, 1e-6)

@@ -23,9 +23,11 @@ def results_page(
     seed: int,
     command: str,
     deformed: bool = False,
+    link: str = "",
 ) -> tuple[str, str]:
     """The page (markdown) and the README's short block, from the poses at visibility 0.05-0.3 (`deformed`: the
-    bound of the non-rigid stage's positions, on the poses where it was applied)."""
+    bound of the non-rigid stage's positions, on the poses where it was applied; `link`: the page as the block's
+    file links it, default from the repository root)."""
     lo_vis, hi_vis = TRUE_BINS[0][0], TRUE_BINS[-1][1]
     data = subset(data, (data["visibility"] >= lo_vis) & (data["visibility"] < hi_vis))
     judged = judge(data, calibration, coverage, warn_mm)
@@ -111,7 +113,7 @@ def results_page(
     block = "\n".join(
         [
             f"Error bound of {what} ({coverage:.0%}, split-conformal, calibrated on validation sets; judged on "
-            f"{sets}, {len(data['count'])} poses; [details](docs/results/{page})):",
+            f"{sets}, {len(data['count'])} poses; [details]({link or 'docs/results/' + page})):",
             "",
             "| coverage per bin | pooled [95 % CI] | bad poses with OK | good warned | bound / error | cost |",
             "|---|---|---|---|---|---|",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -155,10 +156,19 @@ def _judge(args: argparse.Namespace, config: Config, weights: str, calibration) 
     data = _applied(bound_data.concat([_collected(Path(d), args, config, weights) for d in args.judge]), args)
     flag = ["--deformed"] if args.deformed else []
     command = "liver-p2p calibrate-bound " + " ".join([*flag, "--judge", *args.judge])
-    page, block = results_page(
-        data, calibration, config.error_coverage, config.structure_error_warn_mm, args.seed, command, args.deformed
-    )
     report = Path(args.report or (DEFORMED_RESULTS_PAGE if args.deformed else RESULTS_PAGE))
+    # the block links the page from wherever it is written (the README, or a results page beside it)
+    link = os.path.relpath(report, Path(args.readme).parent) if args.readme else ""
+    page, block = results_page(
+        data,
+        calibration,
+        config.error_coverage,
+        config.structure_error_warn_mm,
+        args.seed,
+        command,
+        args.deformed,
+        link,
+    )
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(page)
     print(f"wrote {report}")

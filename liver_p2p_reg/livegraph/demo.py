@@ -94,7 +94,9 @@ def model_files(bag: Path, folder: Path) -> tuple[Path, Path | None, Path | None
     return model, fiducials, mesh
 
 
-def run_bag(probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dict[str, str]) -> GraphRow:
+def run_bag(
+    probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dict[str, str], deform: bool = False
+) -> GraphRow:
     """Loader for the bag's model, then its /intraop/* played live, then one ~/reregister call."""
     model, fiducials, mesh = model_files(bag, out_dir)
     diag_index = probe.count(TOPIC_DIAGNOSTICS)
@@ -102,11 +104,11 @@ def run_bag(probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dic
     params = {"model_path": str(model), "units": "m"}
     if fiducials is not None:
         params["fiducials_path"] = str(fiducials)
-    if mesh is not None:
+    if mesh is not None and deform:  # the stage's surface; without the stage the graph runs as it always did
         params["mesh_path"] = str(mesh)
     loader = NodeProcess("preop_loader_node", params, env=env, log_dir=log_dir, name=f"loader_{bag.name}")
     try:
-        ready = probe.wait_for(lambda: probe.diagnostics(diag_index, PREOP_DIAG_NAME), 120.0)
+        ready = probe.wait_for(lambda: _warmed_up(probe, diag_index), 120.0)  # not the mesh's, logged before
         if not ready:
             raise InputError(f"register_node reported no preop model for {bag.name} (see {log_dir})")
         warm_up_ms = float(values_of(ready[-1][0]).get("warm_up_ms", "nan"))
@@ -124,6 +126,12 @@ def run_bag(probe: GraphProbe, bag: Path, out_dir: Path, log_dir: Path, env: dic
     row.reregister, row.warm_up_ms = rereg, warm_up_ms
     _record(probe, starts, out_dir / "recorded")
     return row
+
+
+def _warmed_up(probe: GraphProbe, diag_index: int) -> list[tuple[object, float]]:
+    """The preop model's own statuses since `diag_index` (warmed up, unchanged or refused), not its mesh's."""
+    preop = probe.diagnostics(diag_index, PREOP_DIAG_NAME)
+    return [(s, t) for s, t in preop if "mesh_triangles" not in values_of(s)]
 
 
 def _attempts(probe: GraphProbe, diag_index: int) -> list[tuple[object, float]]:
@@ -199,7 +207,8 @@ def run_graph(
         if not probe.wait_for_subscriber(TOPIC_INTRAOP, 60.0):
             raise InputError(f"register_node did not come up (see {log_dir}/register_node.stderr)")
         for bag in bags:
-            rows.append(run_bag(probe, bag, out_dir / bag.name.removesuffix(".mcap"), log_dir, env))
+            deform = bool((params or {}).get("deform"))  # the loader then gives the node the bag's mesh too
+            rows.append(run_bag(probe, bag, out_dir / bag.name.removesuffix(".mcap"), log_dir, env, deform))
             log(f"  {bag.name}: {rows[-1].registered}/{rows[-1].frames} poses, {rows[-1].status}")
             if not node.alive():
                 raise InputError(f"register_node exited with status {node.proc.returncode} (see {log_dir})")

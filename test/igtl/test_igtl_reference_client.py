@@ -65,6 +65,7 @@ from liver_p2p_reg.config import Config  # noqa: E402
 from liver_p2p_reg.igtl import wire  # noqa: E402
 from liver_p2p_reg.igtl.bridge import SlicerBridge, open_endpoint  # noqa: E402
 from liver_p2p_reg.igtl.link import SlicerLink  # noqa: E402
+from liver_p2p_reg.ros.messages import mesh_marker_mm  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm, stamp_to_ns  # noqa: E402
 from liver_p2p_reg.slicer_config import SlicerConfig  # noqa: E402
 from liver_p2p_reg.stream.outputs import DIAG_NAME  # noqa: E402
@@ -242,12 +243,14 @@ def test_a_replayed_registration_as_the_reference_library_reads_it(client: Path)
     assert_splatted_cloud(cloud, evenly(cloud_mm, CLOUD_POINTS), config.point_size_mm)
     assert_stamp(cloud, pose.stamp_ns)
 
-    (preop_msg,) = tee.inputs["/preop/points"]
-    preop_mm = cloud_to_points_mm(preop_msg)
-    assert len(preop_mm) > MODEL_POINTS
-    ras = preop_mm * [-1.0, -1.0, 1.0]  # LPS ct frame -> Slicer's RAS
+    # the bag's /preop/mesh (same stamp as its points, logged first) is the model Slicer gets: a mesh, not points
+    (preop_msg,), (mesh_msg,) = tee.inputs["/preop/points"], tee.inputs["/preop/mesh"]
+    vertices_mm, triangles = mesh_marker_mm(mesh_msg)
+    ras = vertices_mm * [-1.0, -1.0, 1.0]  # LPS ct frame -> Slicer's RAS
     model = read.one("POLYDATA", "PreopModel")
-    assert_splatted_cloud(model, evenly(ras, MODEL_POINTS), config.point_size_mm)
+    assert int(model["points"]) == len(vertices_mm) and int(model["polygons"]) == len(triangles)
+    np.testing.assert_array_equal(float32s(model["first_points"]), ras.astype(np.float32))
+    assert cells(model["first_polygons"])[:5] == triangles[:5].tolist()
     assert_stamp(model, stamp_to_ns(preop_msg.header.stamp))
 
 

@@ -22,6 +22,8 @@ def sweep() -> dict:
     """The sweep bag's preop model and fiducials, and every frame with its ground-truth fiducials (mm)."""
     out: dict = {"frames": [], "fiducials": []}
     for item in read_messages(SWEEP):
+        if item.topic == "/preop/mesh":  # a Marker: the non-rigid stage's surface, not used here
+            continue
         points = cloud_to_points_mm(item.msg)
         if item.topic == "/preop/points":
             out["preop"] = points
