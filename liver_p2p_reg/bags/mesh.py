@@ -14,16 +14,6 @@ from liver_p2p_reg.errors import InputError
 MAX_MESH_TRIANGLES = 8000
 
 
-def checked_triangles(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(F, 3) int64 triangles indexing the vertices; InputError (one line) when they do not."""
-    tris = np.asarray(triangles)
-    if tris.ndim != 2 or tris.shape[1] != 3 or len(tris) == 0 or tris.dtype.kind not in "iu":
-        raise InputError(f"source triangles must be a non-empty (F, 3) integer array, got shape {tris.shape}")
-    if tris.min() < 0 or tris.max() >= len(vertices_mm):
-        raise InputError(f"source triangles index vertex {int(tris.max())} of {len(vertices_mm)}")
-    return tris.astype(np.int64)
-
-
 def decimated_mesh(
     vertices_mm: np.ndarray, triangles: np.ndarray, max_triangles: int = MAX_MESH_TRIANGLES
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -33,10 +23,10 @@ def decimated_mesh(
     meets the count: unlike quadric decimation it leaves no long edges, so the surface stays closed for the elastic
     model's voxelization (registration/mechanics/solid.py samples each triangle at most 16 times an edge).
     """
-    vertices = np.asarray(vertices_mm, dtype=np.float64).reshape(-1, 3)
-    tris = checked_triangles(vertices, triangles)
-    if not np.isfinite(vertices).all():
-        raise InputError("source mesh vertices must all be finite")
+    from liver_p2p_reg.stream.deformation import checked_mesh  # the one check of a preop mesh
+
+    checked = checked_mesh(vertices_mm, triangles, "", 0)
+    vertices, tris = checked.vertices_mm, checked.triangles
     if max_triangles < 4:
         raise InputError(f"a closed mesh needs at least 4 triangles, max_triangles is {max_triangles}")
     if len(tris) > max_triangles:

@@ -108,9 +108,8 @@ def elastic_model(
         return model
     # the fit's data term on the cloud the rigid pose was found on: denser than a decimated mesh's vertices
     fit = np.asarray(fit_points_mm, dtype=np.float64)
-    return remember_latest(
-        cache, "elastic_fit", fit, (*params, id(model)), lambda: model.on_surface(fit, normals_of(fit))
-    )
+    # kept with the model it derives from: a rebuilt model never serves an old one's
+    return remember_latest(model._surfaces, "surface", fit, (), lambda: model.on_surface(fit, normals_of(fit)))
 
 
 def not_applied(T: np.ndarray, reason: str, **known: Any) -> Deformation:

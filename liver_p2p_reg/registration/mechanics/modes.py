@@ -39,6 +39,7 @@ class ElasticModel:
     source_weights: np.ndarray  # (P, 4) barycentric weights
     build_ms: float = 0.0
     _basis_cache: dict = field(default_factory=dict, repr=False)
+    _surfaces: dict = field(default_factory=dict, repr=False)  # this model fitted through other points (on_surface)
 
     @property
     def n_modes(self) -> int:
@@ -69,6 +70,7 @@ class ElasticModel:
             source_ids=ids,
             source_weights=weights,
             _basis_cache={},
+            _surfaces={},
         )
 
     def displacement_at(self, points_mm: np.ndarray, coefficients_mm: np.ndarray) -> np.ndarray:
