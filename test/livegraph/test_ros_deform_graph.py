@@ -123,6 +123,9 @@ def test_register_node_publishes_the_deformed_preop_after_the_pose_only_with_def
 
         assert probe.wait_for(on_mesh, 120), register.stderr()
         probe.publish(TOPIC_INTRAOP_FIDUCIALS, case["fiducials"])
+        # the oracle needs the cloud's fiducials, which travel on another topic: let them arrive first (under a
+        # loaded suite the cloud could otherwise be registered before them, and procrustes refuses it)
+        time.sleep(1.0)
         probe.publish(TOPIC_INTRAOP, case["view"])
         assert probe.wait_for(lambda: attempts(probe) and probe.count(TOPIC_DEFORMED_PREOP), 60), register.stderr()
         (pose,), (rigid,), (deformed,) = (probe.since(t) for t in (TOPIC_POSE, TOPIC_REGISTERED, TOPIC_DEFORMED_PREOP))
