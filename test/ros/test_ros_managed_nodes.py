@@ -126,7 +126,8 @@ def test_preop_loader_configure_loads_activate_publishes(tmp_path):
         assert change(probe, "preop_loader_node", Transition.TRANSITION_CLEANUP)
         assert state_of(probe) == State.PRIMARY_STATE_UNCONFIGURED
     finally:
-        code, _ = loader.stop()
+        # a loaded full suite has seen this node's DDS shutdown take more than the default 10 s
+        code, _ = loader.stop(timeout_s=30.0)
         probe.close()
     assert code == 0, loader.stderr()
 
