@@ -23,6 +23,12 @@ class TrainConfig:
     store_tets: int = 6000
     val_livers: int = 6  # the last livers of the store: validation only, never trained on
     val_pairs: int = 24
+    # Visibility of the validation pairs that pick the checkpoint: procedural (held-out livers) and
+    # real (train_dev livers). A small-view stage validates where it trains.
+    val_visibility_min: float = 0.2
+    val_visibility_max: float = 1.0
+    real_val_visibility_min: float = 0.2
+    real_val_visibility_max: float = 0.5
     seed: int = 0
     steps: int = 6000
     lr: float = 1e-3
@@ -126,6 +132,10 @@ class TrainConfig:
                 "training config: need 0 < visibility_min <= visibility_max <= 1, got "
                 f"{self.visibility_min} and {self.visibility_max}"
             )
+        for kind in ("val_visibility", "real_val_visibility"):
+            lo, hi = getattr(self, f"{kind}_min"), getattr(self, f"{kind}_max")
+            if not 0 < lo <= hi <= 1:
+                raise InputError(f"training config: need 0 < {kind}_min <= {kind}_max <= 1, got {lo} and {hi}")
         if not self.crop_modes or any(mode not in CROP_MODES for mode in self.crop_modes):
             raise InputError(
                 f"training config: crop_modes must be a non-empty list of {CROP_MODES}, got {self.crop_modes}"

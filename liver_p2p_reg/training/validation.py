@@ -22,20 +22,27 @@ FAILED_MM = 1e3  # a failed registration counts as this error
 LOW_VISIBILITY = 0.35
 
 
+def _visibility(cfg: Any, kind: str, default: tuple[float, float]) -> tuple[float, float]:
+    """The config's (min, max) validation visibility of `kind`; `default` for configs without one."""
+    return (getattr(cfg, f"{kind}_min", default[0]), getattr(cfg, f"{kind}_max", default[1]))
+
+
 def validation_cases(cfg: Any, val_files: list[Path], real_dev_files: list[Path] = ()) -> list[dict]:
     """A fixed set of validation pairs from the held-out livers (random crops, no noise), plus,
     with `real_val_pairs`, real train_dev livers seen as in surgery (random and camera crops,
-    visibility 0.2-0.5, noise 0 or 2 mm)."""
+    noise 0 or 2 mm); visibilities from the config (by default 0.2-1.0 and 0.2-0.5)."""
     from liver_p2p_reg.phantom.loader import PairSampler
 
-    sampler = PairSampler(cfg.store_dir, seed=10_000 + cfg.seed, visibility_range=(0.2, 1.0))
+    sampler = PairSampler(
+        cfg.store_dir, seed=10_000 + cfg.seed, visibility_range=_visibility(cfg, "val_visibility", (0.2, 1.0))
+    )
     sampler.files = list(val_files)
     cases = [sampler.sample() for _ in range(cfg.val_pairs)]
     if cfg.real_val_pairs and real_dev_files:
         real = PairSampler(
             cfg.real_store_dir,
             seed=20_000 + cfg.seed,
-            visibility_range=(0.2, 0.5),
+            visibility_range=_visibility(cfg, "real_val_visibility", (0.2, 0.5)),
             crop_modes=("random", "camera"),
             noise_levels_mm=(0.0, 2.0),
         )
