@@ -76,6 +76,24 @@ def test_train_writes_checkpoints_and_resumes(store: Path, tmp_path: Path) -> No
     assert rows[-1]["step"] == "3" and float(rows[-1]["val_learned_p2p_mm"]) > 0
 
 
+def test_training_reproduces_its_first_steps_bitwise_from_the_seed(store: Path, tmp_path: Path) -> None:
+    cfg = TrainConfig(
+        store_dir=str(store), val_livers=1, val_pairs=1, steps=3, val_every=3, checkpoint_every=3,
+        loader_workers=0, warmup_steps=1, crop_modes=["random"], model=dict(SMALL), seed=7,
+        visibility_min=0.05, visibility_max=0.35, val_visibility_min=0.05, val_visibility_max=0.35,
+    )  # fmt: skip
+    runs = [train(cfg, tmp_path / f"run{i}", progress=False) for i in range(2)]
+    weights = [load_weights(tmp_path / f"run{i}" / "last.safetensors").state_dict() for i in range(2)]
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+    logs = [[r["loss"] for r in csv.DictReader(open(tmp_path / f"run{i}" / "log.csv"))] for i in range(2)]
+    assert logs[0] == logs[1] and len(logs[0]) >= 1
+    assert json.dumps(runs[0]["best_metrics"]) == json.dumps(runs[1]["best_metrics"])  # NaN where no real pairs
+    cfg.seed = 8  # another seed draws other pairs: the weights differ (the test can fail)
+    train(cfg, tmp_path / "run_other", progress=False)
+    other = load_weights(tmp_path / "run_other" / "last.safetensors").state_dict()
+    assert not all(torch.equal(weights[0][k], other[k]) for k in other)
+
+
 def test_bad_training_config_is_an_input_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     bad = tmp_path / "train.yaml"
     bad.write_text("stepz: 3\n")
@@ -91,13 +109,14 @@ def test_bad_training_config_is_an_input_error(tmp_path: Path, monkeypatch: pyte
         ("crop_modes: [random, sideways]", "crop_modes"),
         ("model: {widht: 3}", "unknown model keys: widht"),
         ("init_weights: nope.safetensors", "init_weights nope.safetensors not found"),
+        ("val_visibility_min: 0.0", "val_visibility_min <= val_visibility_max"),
         ("- a list", "must be a mapping"),
     ]:
         bad.write_text(text + "\n")
         with pytest.raises(InputError, match=message):
             TrainConfig.from_yaml(bad)
     monkeypatch.chdir(Path(__file__).parents[2])  # init_weights is relative to the repository
-    for name in ("train.yaml", "train_finetune.yaml"):  # the shipped configs pass
+    for name in ("train.yaml", "train_finetune.yaml", "train_small_views.yaml"):  # the shipped configs pass
         TrainConfig.from_yaml(Path("config") / name)
 
 

@@ -1,0 +1,66 @@
+"""Apply the small-view shipping rule (docs/benchmark_real/RULE_small_views.md) to a candidate matcher.
+
+    python scripts/select_small_view_matcher.py --reference v3= --candidate v4=RUN/best.safetensors \
+        --out-root out/select_small --report docs/benchmark_real/selection_small_views.md
+
+Runs `liver-p2p benchmark` (resumable) with `learned-p2p-icp` and each weights on real-val-v2,
+real-val-camera-v2 and insilico-val-v2 (clean + 2 mm noise on every case), then writes the rule's
+table and verdict. An empty path is the bundled weights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+from liver_p2p_reg.bench.small_view_rule import METHOD, SETS, verdict
+
+
+def run_benchmarks(name: str, weights: str, args: argparse.Namespace) -> None:
+    """Every validation set with these weights (rows already in OUT/cases.csv are kept)."""
+    config = Path(args.out_root) / f"{name}.yaml"
+    config.parent.mkdir(parents=True, exist_ok=True)
+    config.write_text(f"weights_path: '{Path(weights).resolve() if weights else ''}'\n")
+    for dataset, extra in SETS.items():
+        cmd = [sys.executable, "-m", "liver_p2p_reg", "-q", "benchmark", "--dataset", dataset, "--methods", METHOD]
+        cmd += ["--out", str(Path(args.out_root) / name / dataset), "--workers", str(args.workers)]
+        cmd += ["--config", str(config), "--threads", "1", *extra]
+        if args.data_root:
+            cmd += ["--data-root", args.data_root]
+        print("+", " ".join(cmd), flush=True)
+        subprocess.run(cmd, check=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--reference", required=True, help="NAME=WEIGHTS of the shipped matcher (empty: bundled)")
+    parser.add_argument("--candidate", required=True, help="NAME=WEIGHTS")
+    parser.add_argument("--out-root", default="out/select_small")
+    parser.add_argument("--data-root", help="named sets' root (default: $LIVER_P2P_DATA or ./data)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--report", help="write the table and verdict here (markdown)")
+    parser.add_argument("--no-run", action="store_true", help="only apply the rule to existing runs")
+    args = parser.parse_args()
+    names = []
+    for item in (args.reference, args.candidate):
+        name, _, weights = item.partition("=")
+        names.append(name)
+        if not args.no_run:
+            run_benchmarks(name, weights, args)
+    table, text = verdict(names[0], names[1], args.out_root)
+    report = ["# Small-view matcher selection on the validation sets (rule: RULE_small_views.md)", "", *table, "", text]
+    report += [
+        "",
+        f"Command: `python scripts/select_small_view_matcher.py --reference {args.reference} "
+        f"--candidate {args.candidate}`",
+    ]
+    print("\n".join(report))
+    if args.report:
+        Path(args.report).write_text("\n".join(report) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
