@@ -52,3 +52,17 @@ def test_descriptors_invariant_to_rotation_of_either_input(rng: np.random.Genera
     assert np.abs(xs - xs.mean(axis=0)).max() > 1e-2
     xs_other, _ = _describe(net, src, tgt[: len(tgt) // 2])
     assert np.abs(xs_other - xs).max() > 1e-4
+
+
+def test_inference_pooling_equals_the_training_pooling_exactly(rng: np.random.Generator) -> None:
+    # Inference max-pools onto the nodes with index_reduce, training with scatter_reduce (its gradients).
+    torch.manual_seed(1)
+    net = MatcherNet(ModelConfig(width=16, heads=2, layers=1, out_dim=8, max_nodes=32)).eval()
+    src = torch.as_tensor(_surface(300, rng))
+    features = torch.as_tensor(local_features(src.numpy()), dtype=torch.float32)
+    h = net.embed(features).detach()
+    _, pooled_train, _ = net._nodes(src, h)
+    with torch.no_grad():
+        _, pooled_infer, _ = net._nodes(src, h)
+    assert torch.equal(pooled_train.detach(), pooled_infer)
+    assert (pooled_infer > -1e3).all()  # every node owns points: the maxima are real, not the fill value

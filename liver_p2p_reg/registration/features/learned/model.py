@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -110,7 +111,12 @@ class MatcherNet(nn.Module):
         d_point_node = torch.cdist(pts, nodes)
         owner = d_point_node.argmin(dim=1)
         pooled = torch.full((n_nodes, h.shape[1]), -1e4, dtype=h.dtype, device=h.device)
-        pooled = pooled.scatter_reduce(0, owner[:, None].expand_as(h), h, reduce="amax", include_self=True)
+        if torch.is_grad_enabled():  # training: the reduction its gradients were always taken through
+            pooled = pooled.scatter_reduce(0, owner[:, None].expand_as(h), h, reduce="amax", include_self=True)
+        else:  # inference: the same maxima (exact), ~80x faster on CPU than the expanded scatter
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "index_reduce() is in beta"
+                pooled = pooled.index_reduce_(0, owner, h, "amax", include_self=True)
         return d_point_node, pooled, torch.cdist(nodes, nodes).to(h.dtype)
 
     def _biases(self, dist: torch.Tensor) -> list[torch.Tensor]:

@@ -1,0 +1,145 @@
+"""The default path against the classical path, side by side in one process: time per registration and per stage.
+
+    OMP_NUM_THREADS=2 .venv/bin/python scripts/bench_paths.py [--dataset real-val-v2] [--per-bin 8] \
+        [--repeats 3] [--threads 2] [--readme docs/results/speed.md]
+
+Hidden real-liver cases of a named set (2 mm sensor noise, the bins below 0.3), registered in one process
+with one Registrar per method (the node's situation: the preoperative source's own work is cached after
+its first registration, so each case is registered once untimed first). The methods alternate case by
+case and repeat by repeat, so a load that drifts hits both alike; the headline is the median over cases
+of each case's median time, and the ratio is the median of the per-case ratios. Run it on an idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from liver_p2p_reg.bench.cases import add_target_noise, case_info, read_case, resolve_dataset
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.phantom.testset import testset_cases
+from liver_p2p_reg.registration.registrar import Registrar
+
+BINS = ((0.05, 0.1), (0.1, 0.15), (0.15, 0.2), (0.2, 0.3))
+MARK = "SPEED"  # the README block this script owns
+
+
+def pick_cases(dataset: str, per_bin: int) -> list:
+    """The first `per_bin` cases of each bin (by case id), each with 2 mm of added sensor noise."""
+    folder, _ = resolve_dataset(dataset, None)
+    infos = sorted((case_info(p) for p in testset_cases(folder)), key=lambda c: c.case_id)
+    chosen = []
+    for lo, hi in BINS:
+        in_bin = [c for c in infos if lo <= c.visibility < hi][:per_bin]
+        chosen += [dataclasses.replace(c, added_noise_mm=2.0, noise_mm=c.noise_mm + 2.0) for c in in_bin]
+    return chosen
+
+
+def time_cases(cases: list, methods: list[str], threads: int, repeats: int) -> dict[str, list[dict]]:
+    """Per method, one record per case: its median total and per-stage times (ms), its TRE (mm)."""
+    registrars = {m: Registrar(Config(method=m, num_threads=threads)) for m in methods}
+    out: dict[str, list[dict]] = {m: [] for m in methods}
+    for case in tqdm(cases, desc="cases", unit="case"):
+        data = read_case(case.path)
+        source, target = data["src_pcd"], add_target_noise(np.asarray(data["tgt_pcd"], float), case)
+        fid = {"source_fiducials_mm": data["src_marker"], "target_fiducials_mm": data["tgt_marker"]}
+        runs: dict[str, list] = {m: [] for m in methods}
+        for m in methods:  # untimed: the source's own work (voxels, tree, features, network encoding) cached
+            registrars[m].register(source, target, **fid)
+        for r in range(repeats):
+            for m in methods if r % 2 == 0 else methods[::-1]:
+                runs[m].append(registrars[m].register(source, target, **fid))
+        for m in methods:
+            stages = sorted({k for res in runs[m] for k in res.runtime_ms})
+            out[m].append(
+                {
+                    "visibility": case.visibility,
+                    "rms_tre_mm": float(runs[m][0].rms_tre_mm),
+                    **{k: statistics.median(res.runtime_ms.get(k, 0.0) for res in runs[m]) for k in stages},
+                }
+            )
+    return out
+
+
+def report(records: dict[str, list[dict]], methods: list[str], command: str, threads: int) -> list[str]:
+    """The markdown block: medians per method and stage, per bin, and the per-case ratio."""
+    ref, default = methods[0], methods[-1]
+    lines = [
+        f"Generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {os.cpu_count()} CPUs "
+        f"(load average at the end {os.getloadavg()[0]:.2f}), {threads} torch threads, "
+        f"{len(records[ref])} cases, source cached.",
+        "",
+        f"Command: `{command}`",
+        "",
+        "| method | median total (ms) | p90 total (ms) | mean RMS-TRE (mm) | stages (median ms) |",
+        "|---|---|---|---|---|",
+    ]
+    for m in methods:
+        totals = [r["total"] for r in records[m]]
+        stages = [k for k in records[m][0] if k not in ("total", "visibility", "rms_tre_mm")]
+        parts = ", ".join(f"{k} {statistics.median(r.get(k, 0.0) for r in records[m]):.1f}" for k in stages)
+        lines.append(
+            f"| {m} | {statistics.median(totals):.1f} | {np.percentile(totals, 90):.1f} | "
+            f"{np.mean([r['rms_tre_mm'] for r in records[m]]):.2f} | {parts} |"
+        )
+    ratios = [d["total"] / f["total"] for d, f in zip(records[default], records[ref], strict=True)]
+    lines += ["", f"| visibility | cases | {ref} median (ms) | {default} median (ms) | per-case ratio (median) |"]
+    lines.append("|---|---|---|---|---|")
+    for lo, hi in BINS:
+        idx = [i for i, r in enumerate(records[ref]) if lo <= r["visibility"] < hi]
+        if idx:
+            lines.append(
+                f"| [{lo:.2f}, {hi:.2f}) | {len(idx)} | {statistics.median(records[ref][i]['total'] for i in idx):.1f} | "
+                f"{statistics.median(records[default][i]['total'] for i in idx):.1f} | "
+                f"{statistics.median(ratios[i] for i in idx):.2f} |"
+            )
+    lines += ["", f"Per-case ratio {default} / {ref}, all cases: median {statistics.median(ratios):.2f}."]
+    return lines
+
+
+def write_block(path: Path, lines: list[str]) -> None:
+    """Replace (or append) this script's block in `path`, keeping the rest of the file."""
+    start, end = f"<!-- {MARK}:START -->", f"<!-- {MARK}:END -->"
+    text = path.read_text() if path.exists() else "# Time per registration: the default against the classical path\n"
+    block = "\n".join([start, *lines, end])
+    if start in text and end in text:
+        text = text[: text.index(start)] + block + text[text.index(end) + len(end) :]
+    else:
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
+    path.write_text(text)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dataset", default="real-val-v2")
+    ap.add_argument("--methods", default="fpfh-ransac-icp,learned-p2p-icp", help="reference first, default last")
+    ap.add_argument("--per-bin", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--readme", help="write the block into this markdown file")
+    args = ap.parse_args()
+    methods = args.methods.split(",")
+    cases = pick_cases(args.dataset, args.per_bin)
+    if not cases:
+        raise SystemExit(f"no cases of {args.dataset} below visibility 0.3")
+    records = time_cases(cases, methods, args.threads, args.repeats)
+    command = (
+        f"OMP_NUM_THREADS={args.threads} .venv/bin/python scripts/bench_paths.py --dataset {args.dataset} "
+        f"--per-bin {args.per_bin} --repeats {args.repeats} --threads {args.threads}"
+    )
+    lines = report(records, methods, command, args.threads)
+    print("\n".join(lines))
+    if args.readme:
+        write_block(Path(args.readme), lines)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
