@@ -97,13 +97,15 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
             if cfg.get("init_weights")
             else "."
         ),
-        f"- Validation ({cfg['val_pairs']} pairs, held-out livers, random crops, visibility 0.2-1.0, no noise): "
+        f"- Validation ({cfg['val_pairs']} pairs, held-out livers, random crops, visibility "
+        f"{cfg.get('val_visibility_min', 0.2):g}-{cfg.get('val_visibility_max', 1.0):g}, no noise): "
         f"learned {val.get('val_learned_mm', float('nan')):.2f} mm, "
         f"learned-p2p {val.get('val_learned_p2p_mm', float('nan')):.2f} mm mean RMS-TRE, "
         f"success@20mm {val.get('val_success20', float('nan')):.2f}"
         + (
             f"; {cfg['real_val_pairs']} pairs of the real train_dev livers (random and camera crops, visibility "
-            f"0.2-0.5, noise 0 or 2 mm): learned-p2p {val['val_real_p2p_mm']:.2f} mm."
+            f"{cfg.get('real_val_visibility_min', 0.2):g}-{cfg.get('real_val_visibility_max', 0.5):g}, "
+            f"noise 0 or 2 mm): learned-p2p {val['val_real_p2p_mm']:.2f} mm."
             if cfg.get("real_val_pairs") and "val_real_p2p_mm" in val
             else "."
         ),

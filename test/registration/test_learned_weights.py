@@ -105,3 +105,22 @@ def test_cli_reports_bad_weights_in_one_line(tmp_path: Path) -> None:
     assert "Traceback" not in proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "weights not found" in lines[0], proc.stderr
+
+
+# Another CPU takes other SIMD paths and moves a pose by ~1e-5 mm; a changed pose moves it by far more.
+POSE_TOLERANCE_MM = 0.05
+
+
+def test_bundled_weights_reproduce_the_reference_poses_on_bundled_bags() -> None:
+    from learned_reference_poses import FRAMES, REFERENCE, frame_pose
+    from same_pose import surface_shift_mm
+
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.registration.weights_id import weights_sha256
+
+    ref = json.loads(REFERENCE.read_text())
+    assert ref["weights_sha256"] == weights_sha256(Config()), "reference made with other weights: rewrite it"
+    for bag, index in FRAMES:
+        pose, preop = frame_pose(bag, index)
+        shift = surface_shift_mm(pose, np.asarray(ref["poses"][f"{bag}#{index}"]), preop)
+        assert shift <= POSE_TOLERANCE_MM, f"{bag}#{index}: {shift:.4f} mm from the reference pose"

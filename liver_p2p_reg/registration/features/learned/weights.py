@@ -10,7 +10,7 @@ import torch
 from liver_p2p_reg.errors import WeightsError
 from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
 
-BUNDLED_WEIGHTS = Path(__file__).resolve().parents[3] / "weights" / "matcher_v3.safetensors"
+BUNDLED_WEIGHTS = Path(__file__).resolve().parents[3] / "weights" / "matcher_v4.safetensors"
 FORMAT = "liver_p2p_reg.matcher/1"
 
 
