@@ -17,7 +17,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="replay rosbag2/MCAP bags through the registration node core, or re-run a flight recording",
         description="Replay bags through the node core; given one flight recording (record_path, --record), "
         "re-run each of its registrations under its recorded parameters and model and check that every pose "
-        "is bitwise identical (exit 1 with one line if any differs).",
+        "is bitwise identical or within floating-point round-off (exit 1 with one line if any differs).",
     )
     p.add_argument("bags", nargs="+", help="rosbag2 directories (with metadata.yaml) or .mcap files, or one recording")
     p.add_argument("--out", help="folder for output bags with /registration/* and /diagnostics added")
