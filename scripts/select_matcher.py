@@ -12,25 +12,10 @@ verdict. An empty path is the bundled weights. The first candidate is the refere
 from __future__ import annotations
 
 import argparse
-import subprocess
-import sys
 from pathlib import Path
 
+from liver_p2p_reg.bench.candidate_runs import run_candidate
 from liver_p2p_reg.bench.matcher_rule import METHODS, SETS, verdict
-
-
-def run_benchmarks(name: str, weights: str, args: argparse.Namespace) -> None:
-    config = Path(args.out_root) / f"{name}.yaml"
-    config.parent.mkdir(parents=True, exist_ok=True)
-    config.write_text(f"weights_path: '{Path(weights).resolve() if weights else ''}'\n")
-    for dataset, extra in SETS.items():
-        cmd = [sys.executable, "-m", "liver_p2p_reg", "-q", "benchmark", "--dataset", dataset]
-        cmd += ["--methods", ",".join(METHODS), "--out", str(Path(args.out_root) / name / dataset)]
-        cmd += ["--workers", str(args.workers), "--config", str(config), *extra]
-        if args.data_root:
-            cmd += ["--data-root", args.data_root]
-        print("+", " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True)
 
 
 def main() -> int:
@@ -47,7 +32,9 @@ def main() -> int:
         name, _, weights = item.partition("=")
         candidates.append(name)
         if not args.no_run:
-            run_benchmarks(name, weights, args)
+            run_candidate(
+                name, weights, SETS, list(METHODS), args.out_root, workers=args.workers, data_root=args.data_root
+            )
     table, text = verdict(candidates, args.out_root)
     report = ["# Matcher selection on the validation sets (rule: RULE.md)", "", *table, "", text, ""]
     report += [

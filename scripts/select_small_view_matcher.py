@@ -11,26 +11,10 @@ table and verdict. An empty path is the bundled weights.
 from __future__ import annotations
 
 import argparse
-import subprocess
-import sys
 from pathlib import Path
 
+from liver_p2p_reg.bench.candidate_runs import run_candidate
 from liver_p2p_reg.bench.small_view_rule import METHOD, SETS, verdict
-
-
-def run_benchmarks(name: str, weights: str, args: argparse.Namespace) -> None:
-    """Every validation set with these weights (rows already in OUT/cases.csv are kept)."""
-    config = Path(args.out_root) / f"{name}.yaml"
-    config.parent.mkdir(parents=True, exist_ok=True)
-    config.write_text(f"weights_path: '{Path(weights).resolve() if weights else ''}'\n")
-    for dataset, extra in SETS.items():
-        cmd = [sys.executable, "-m", "liver_p2p_reg", "-q", "benchmark", "--dataset", dataset, "--methods", METHOD]
-        cmd += ["--out", str(Path(args.out_root) / name / dataset), "--workers", str(args.workers)]
-        cmd += ["--config", str(config), "--threads", "1", *extra]
-        if args.data_root:
-            cmd += ["--data-root", args.data_root]
-        print("+", " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True)
 
 
 def main() -> int:
@@ -48,7 +32,9 @@ def main() -> int:
         name, _, weights = item.partition("=")
         names.append(name)
         if not args.no_run:
-            run_benchmarks(name, weights, args)
+            run_candidate(
+                name, weights, SETS, [METHOD], args.out_root, workers=args.workers, data_root=args.data_root, threads=1
+            )
     table, text = verdict(names[0], names[1], args.out_root)
     report = ["# Small-view matcher selection on the validation sets (rule: RULE_small_views.md)", "", *table, "", text]
     report += [
