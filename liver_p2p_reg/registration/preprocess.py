@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -111,6 +111,9 @@ class PreprocessedPair:
     source: np.ndarray  # (N, 3) voxelized
     target: np.ndarray  # (M, 3) voxelized
     source_tree: cKDTree  # of `source`, built once per model (residuals are measured against it)
+    # What this registration already looked up in the Registrar's cache (the ICP's source index):
+    # its key hashes the whole source, and screening refines up to seven poses per registration.
+    memo: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def visibility(self) -> float:

@@ -232,3 +232,12 @@ def test_voxel_downsample_survives_cells_too_far_apart_for_one_int64_key() -> No
     out = voxel_downsample(points, 1.0)  # spans ~(3e7)^3 cells: more than an int64 key can number
     np.testing.assert_allclose(out, [[0.2, 0.2, 0.2], [5.2, 0.0, 0.0], [3e7, -3e7, 3e7]])
     assert count_voxels(points, 1.0) == 3
+
+
+def test_icp_cross_product_has_np_cross_bits(rng: np.random.Generator) -> None:
+    from liver_p2p_reg.registration.refine import cross_rows
+
+    for n in (1, 5, 400):
+        a, b = rng.normal(size=(n, 3)) * 30.0, rng.normal(size=(n, 3))
+        assert cross_rows(a, b).tobytes() == np.cross(a, b).tobytes()  # ICP's poses stay bit for bit what they were
+    assert np.array_equal(cross_rows(np.eye(3), np.roll(np.eye(3), -1, axis=0)), np.roll(np.eye(3), -2, axis=0))
