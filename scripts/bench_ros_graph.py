@@ -1,6 +1,6 @@
 """Measure the live ROS 2 graph on the bundled bags: latency, full registration, start-up, warm-up, idle CPU, memory.
 
-    OMP_NUM_THREADS=2 .venv/bin/python scripts/bench_ros_graph.py [--readme README.md]
+    OMP_NUM_THREADS=2 .venv/bin/python scripts/bench_ros_graph.py [--readme docs/results/ros_graph.md]
 
 Everything goes through real topics: register_node and preop_loader_node run as processes on
 an isolated domain (random ROS_DOMAIN_ID, localhost-only discovery) and this script plays the
@@ -182,7 +182,7 @@ def main() -> int:
     text = table(report)
     print(text)
     if args.readme:
-        command = "OMP_NUM_THREADS=2 .venv/bin/python scripts/bench_ros_graph.py --readme README.md"
+        command = f"OMP_NUM_THREADS=2 .venv/bin/python scripts/bench_ros_graph.py --readme {args.readme}"
         block = (
             f"{BEGIN}\nMeasured with `{command}` on {report['cpus']} CPUs, OMP_NUM_THREADS={report['omp_num_threads']}, "
             f"{report['poses']}/{report['clouds']} clouds of {report['bags']} bags got a pose, "
