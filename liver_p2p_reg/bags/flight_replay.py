@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path
 from typing import Any
@@ -32,12 +32,14 @@ from liver_p2p_reg.bags.recorder import (
     recorder_factory,
     run_environment,
 )
+from liver_p2p_reg.bags.rerun_report import Rerun, deformed_within_roundoff, within_roundoff
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.registration.weights_id import weights_sha256
 from liver_p2p_reg.ros.messages import mesh_marker_mm
 from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
 from liver_p2p_reg.ros.topics import (
+    TOPIC_DEFORMED_PREOP,
     TOPIC_INTRAOP,
     TOPIC_INTRAOP_FIDUCIALS,
     TOPIC_PREOP,
@@ -154,60 +156,6 @@ def read_recording(path: str | Path, state: ReadState | None = None) -> Iterator
 
 
 # ---------------------------------------------------------------- the re-run
-# Why a round-off class beside bitwise equality: the same inputs, parameters and weights re-run in another
-# process can now and then sum a reduction in another order (one CI run re-ran one `register` pose 1.83e-6 mm
-# from its recording; ~50 in-process repeats and 8 test runs here were all bitwise equal), so "bit for bit" is
-# what a re-run usually gives, and anything beyond these bounds is a real difference (model, parameter, code).
-ROUNDOFF_TRANSLATION_MM = 1e-4
-ROUNDOFF_ROTATION = 1e-6  # a rotation entry: at most 0.2 um at 200 mm from the origin
-
-
-def within_roundoff(T: np.ndarray, want: np.ndarray) -> bool:
-    """Whether pose T (4x4, mm) equals the recorded `want` up to floating-point round-off."""
-    return bool(
-        np.all(np.abs(T[:3, :3] - want[:3, :3]) <= ROUNDOFF_ROTATION)
-        and np.all(np.abs(T[:3, 3] - want[:3, 3]) <= ROUNDOFF_TRANSLATION_MM)
-        and np.array_equal(T[3], want[3])
-    )
-
-
-@dataclass
-class Rerun:
-    """What re-running a recording gave."""
-
-    files: list[str]
-    registrations: int = 0  # registrations recorded (completed ones) and re-run
-    poses: int = 0  # of them, those that recorded a pose
-    identical: int = 0  # of those, poses re-run bit for bit
-    roundoff: int = 0  # ... and those within floating-point round-off of the recorded pose (ROUNDOFF_*)
-    no_pose: int = 0  # recorded without a pose and re-run without one
-    deformed: int = 0  # registrations with a recorded deformed surface (the non-rigid stage applied) ...
-    deformed_identical: int = 0  # ... re-run to bitwise the same surface
-    differences: list[str] = field(default_factory=list)  # one line per registration that differs
-    truncated: bool = False  # the last file ends without its footer (its writer was killed)
-    notes: list[str] = field(default_factory=list)  # how this run's environment differs from the recording's
-
-    @property
-    def ok(self) -> bool:
-        return not self.differences
-
-    def summary(self) -> str:
-        line = (
-            f"{self.registrations} registrations re-run from {len(self.files)} file(s): {self.identical} of "
-            f"{self.poses} poses bitwise identical to the recorded ones, {self.no_pose} without a pose as recorded"
-        )
-        if self.roundoff:
-            line += (
-                f"; {self.roundoff} more within floating-point round-off ({ROUNDOFF_TRANSLATION_MM:g} mm, "
-                f"{ROUNDOFF_ROTATION:g} in a rotation entry)"
-            )
-        if self.deformed:
-            line += f"; {self.deformed_identical} of {self.deformed} deformed preop surfaces bitwise identical"
-        if self.truncated:
-            line += "; the recording ends without its footer (writer killed): read up to its last complete registration"
-        return line
-
-
 class _Rerunner:
     """The state of one re-run: the core, the preop model as recorded, the cloud of the registration being read."""
 
@@ -219,6 +167,7 @@ class _Rerunner:
         self.cloud: np.ndarray | None = None
         self.preop_fiducials: np.ndarray | None = None  # the last /preop/fiducials: a pair's preop side
         self.intraop_fiducials: np.ndarray | None = None  # the registration's own
+        self.deformed: np.ndarray | None = None  # the registration's deformed surface as recorded (float32 metres)
         self.report = Rerun([])
 
     def config(self, values: dict[str, Any]) -> None:
@@ -255,6 +204,8 @@ class _Rerunner:
             self.cloud = message_points_mm(msg)
         elif topic == TOPIC_INTRAOP_FIDUCIALS:
             self.intraop_fiducials = message_points_mm(msg)
+        elif topic == TOPIC_DEFORMED_PREOP:
+            self.deformed = message_points_mm(msg)
         elif topic == TOPIC_EVENT and values["event"] == "tracker":
             restore_tracker(core, values)
         elif topic == TOPIC_EVENT and values["event"] == "reset_survey":
@@ -299,14 +250,18 @@ class _Rerunner:
             report.differences.append(f"{where}: pose differs (max |dT| {delta:.3g}, mm in its translation)")
 
     def _compare_deformed(self, values: dict[str, Any], deformed: np.ndarray | None, where: str) -> None:
-        """The re-run's deformed preop surface against the recorded digest (recordings that keep one)."""
+        """The re-run's deformed preop surface against the recorded digest (recordings that keep one), and where
+        the digests differ, against the recorded surface itself (round-off, or a difference)."""
+        recorded, self.deformed = self.deformed, None
         if "deformed_preop_sha256" not in values:  # recorded before the digest existed
             return
         want, got = values["deformed_preop_sha256"], points_sha256(deformed)
         if want is not None:
             self.report.deformed += 1
             self.report.deformed_identical += got == want
-        if got != want:
+        if got != want and want and got and recorded is not None and deformed_within_roundoff(deformed, recorded):
+            self.report.deformed_roundoff += 1
+        elif got != want:
             shown = {True: "one", False: "none"}
             detail = (
                 "not bitwise the same" if want and got else f"recorded {shown[bool(want)]}, re-run {shown[bool(got)]}"

@@ -13,15 +13,7 @@ import numpy as np
 import pytest
 from ros_support import BAG_A, BAGS, bag_frames_m
 
-from liver_p2p_reg.bags.flight_replay import (
-    ROUNDOFF_TRANSLATION_MM,
-    ReadState,
-    Rerun,
-    is_recording,
-    read_recording,
-    rerun_recording,
-    within_roundoff,
-)
+from liver_p2p_reg.bags.flight_replay import ReadState, is_recording, read_recording, rerun_recording
 from liver_p2p_reg.bags.io import read_messages
 from liver_p2p_reg.bags.recorder import (
     TOPIC_CONFIG,
@@ -33,6 +25,7 @@ from liver_p2p_reg.bags.recorder import (
     recorder_factory,
 )
 from liver_p2p_reg.bags.replay import replay_bag
+from liver_p2p_reg.bags.rerun_report import ROUNDOFF_TRANSLATION_MM, Rerun, deformed_within_roundoff, within_roundoff
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.ros.messages import (
     feed_intraop_fiducials_msg,
@@ -146,6 +139,9 @@ def test_round_off_is_told_apart_from_a_real_difference():
     moved[2, 3] += 1e-3
     assert within_roundoff(T, T) and within_roundoff(near, T)
     assert not within_roundoff(rotated, T) and not within_roundoff(moved, T)
+    surface = np.random.default_rng(0).normal(size=(50, 3)) * 80.0
+    assert deformed_within_roundoff(surface + 5e-4, surface) and not deformed_within_roundoff(surface + 2e-3, surface)
+    assert not deformed_within_roundoff(surface[:-1], surface)  # another vertex count is never round-off
     report = Rerun(["a.mcap"], registrations=3, poses=3, identical=2, roundoff=1)
     assert report.ok and "2 of 3 poses bitwise identical" in report.summary()
     assert f"1 more within floating-point round-off ({ROUNDOFF_TRANSLATION_MM:g} mm" in report.summary()
