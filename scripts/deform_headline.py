@@ -14,7 +14,7 @@ from pathlib import Path
 
 from liver_p2p_reg.bench.cases_csv import read_rows
 from liver_p2p_reg.bench.deform_table import table_deform
-from liver_p2p_reg.bench.readme import replace_readme_block
+from liver_p2p_reg.bench.readme import write_headline
 
 METHOD = "learned-p2p-icp+deform"
 
@@ -35,17 +35,11 @@ def main() -> None:
         if not lines:
             lines += [body[0].replace("| method |", "| set |", 1), body[1]]
         lines += body[2:]
-    text = "\n".join(
-        [
-            f"`{METHOD}` against its own rigid pose, real CT test livers, 2 mm noise "
-            f"(`.venv/bin/python scripts/deform_headline.py {' '.join(args.outs)} --readme README.md`):",
-            "",
-            *lines,
-        ]
+    caption = (
+        f"`{METHOD}` against its own rigid pose, real CT test livers, 2 mm noise "
+        f"(`.venv/bin/python scripts/deform_headline.py {' '.join(args.outs)} --readme README.md`):"
     )
-    print(text)
-    if args.readme:
-        replace_readme_block(Path(args.readme), text, "DEFORM")
+    write_headline(caption, lines, args.readme, "DEFORM")
 
 
 if __name__ == "__main__":

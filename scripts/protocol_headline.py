@@ -18,7 +18,7 @@ import numpy as np
 
 from liver_p2p_reg.bench.bound_report import TRUE_BINS
 from liver_p2p_reg.bench.cases_csv import read_rows
-from liver_p2p_reg.bench.readme import replace_readme_block
+from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.bench.stats import SAFETY_TAU_MM, success_rate
 
 METHODS = (("bound", "rigid bound"), ("fpfh-ransac-icp", "`fpfh-ransac-icp`"), ("learned-p2p-icp", "default"))
@@ -56,18 +56,12 @@ def main() -> None:
     lines = [f"| set | method | {bins} |", "|---|---|" + "---|" * len(TRUE_BINS)]
     for out in map(Path, args.outs):
         lines += set_rows(out)
-    text = "\n".join(
-        [
-            f"Mean RMS-TRE (mm) / success@{SAFETY_TAU_MM:g} mm at interior points, {NOISE_MM:g} mm sensor noise, "
-            "about 128 poses per cell; rigid bound: ICP started from the true pose "
-            f"(`.venv/bin/python scripts/protocol_headline.py {' '.join(args.outs)} --readme README.md`):",
-            "",
-            *lines,
-        ]
+    caption = (
+        f"Mean RMS-TRE (mm) / success@{SAFETY_TAU_MM:g} mm at interior points, {NOISE_MM:g} mm sensor noise, "
+        "about 128 poses per cell; rigid bound: ICP started from the true pose "
+        f"(`.venv/bin/python scripts/protocol_headline.py {' '.join(args.outs)} --readme README.md`):"
     )
-    print(text)
-    if args.readme:
-        replace_readme_block(Path(args.readme), text, "PROTOCOL")
+    write_headline(caption, lines, args.readme, "PROTOCOL")
 
 
 if __name__ == "__main__":

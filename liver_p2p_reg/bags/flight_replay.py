@@ -239,14 +239,15 @@ class _Rerunner:
             return
         report.poses += 1
         want = np.asarray(recorded["T_sensor_ct_mm"], dtype=np.float64)
-        if T is None:
+        got = None if T is None else np.asarray(T, dtype=np.float64)
+        if got is None:
             report.differences.append(f"{where}: recorded with a pose, re-run without one")
-        elif np.asarray(T, dtype=np.float64).tobytes() == want.tobytes():
+        elif got.tobytes() == want.tobytes():
             report.identical += 1
-        elif within_roundoff(np.asarray(T, dtype=np.float64), want):
+        elif within_roundoff(got, want):
             report.roundoff += 1
         else:
-            delta = float(np.max(np.abs(np.asarray(T, dtype=np.float64) - want)))
+            delta = float(np.max(np.abs(got - want)))
             report.differences.append(f"{where}: pose differs (max |dT| {delta:.3g}, mm in its translation)")
 
     def _compare_deformed(self, values: dict[str, Any], deformed: np.ndarray | None, where: str) -> None:

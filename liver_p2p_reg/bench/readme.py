@@ -32,3 +32,13 @@ def replace_readme_block(readme: Path, block: str, name: str = "BENCHMARK") -> N
 def relative_link(target: Path, start_dir: Path) -> str:
     """A POSIX relative link from `start_dir` to `target` (for the README)."""
     return Path(os.path.relpath(target.resolve(), start_dir.resolve())).as_posix()
+
+
+def write_headline(caption: str, lines: list[str], readme: str | None, name: str) -> str:
+    """A headline block (caption, blank line, table lines): printed, and written into `readme`'s `name` block
+    when a README is given; returns its text."""
+    text = "\n".join([caption, "", *lines])
+    print(text)
+    if readme:
+        replace_readme_block(Path(readme), text, name)
+    return text
