@@ -47,6 +47,19 @@ def clean_stderr(text: str) -> list[str]:
     return bad
 
 
+def preop_fiducials_held(probe: GraphProbe) -> str:
+    """How many preop fiducials register_node holds, by its latest periodic status ('' before one)."""
+    statuses = [values_of(s) for s, _ in probe.diagnostics(0, DIAG_NAME) if "received_clouds" in values_of(s)]
+    return statuses[-1].get("preop_fiducials", "") if statuses else ""
+
+
+def wait_for_fiducial_paths(probe: GraphProbe, n_preop: int, timeout_s: float = 60.0) -> bool:
+    """Until register_node holds the model's `n_preop` fiducials (a loader's latched topic, discovered on its
+    own) and hears /intraop/fiducials: an oracle cloud sent before either is refused (no fiducials)."""
+    held = probe.wait_for(lambda: preop_fiducials_held(probe) == str(n_preop), timeout_s)
+    return bool(held) and probe.wait_for_subscriber(TOPIC_INTRAOP_FIDUCIALS, timeout_s)
+
+
 @dataclass
 class Graph:
     """A register_node process and the probe that talks to it."""

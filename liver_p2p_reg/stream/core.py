@@ -396,5 +396,7 @@ class NodeCore:
             "received_clouds": str(self.received),
             "registered_clouds": str(self.processed),
             "dropped_clouds": str(self.dropped),
+            # an oracle method (or a TRE) needs them: an operator sees they came before the first cloud does
+            "preop_fiducials": str(len(fid)) if (fid := self.fiducials.preop_mm) is not None else "0",
             **self._recording.status(),
         }

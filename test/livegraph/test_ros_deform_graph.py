@@ -17,7 +17,7 @@ rclpy = require_rclpy()
 
 from builtin_interfaces.msg import Time  # noqa: E402
 from geometry_msgs.msg import Point  # noqa: E402
-from ros_support import clean_stderr  # noqa: E402
+from ros_support import clean_stderr, wait_for_fiducial_paths  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
@@ -122,9 +122,11 @@ def test_register_node_publishes_the_deformed_preop_after_the_pose_only_with_def
             return [v for v in found if v.get("deform_surface") == "mesh" and v.get("deform_model") == "ready"]
 
         assert probe.wait_for(on_mesh, 120), register.stderr()
+        # the oracle needs the model's fiducials (the loader's own latched topic, discovered on its own: under a
+        # loaded suite they came after the mesh once) and the cloud's (another topic): let both arrive first, or
+        # the cloud is registered before them and procrustes refuses it
+        assert wait_for_fiducial_paths(probe, len(np.load(case["dir"] / "fid.npy"))), register.stderr()
         probe.publish(TOPIC_INTRAOP_FIDUCIALS, case["fiducials"])
-        # the oracle needs the cloud's fiducials, which travel on another topic: let them arrive first (under a
-        # loaded suite the cloud could otherwise be registered before them, and procrustes refuses it)
         time.sleep(1.0)
         probe.publish(TOPIC_INTRAOP, case["view"])
         assert probe.wait_for(lambda: attempts(probe) and probe.count(TOPIC_DEFORMED_PREOP), 60), register.stderr()

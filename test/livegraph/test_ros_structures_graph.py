@@ -10,7 +10,7 @@ from conftest import require_rclpy
 
 rclpy = require_rclpy()
 
-from ros_support import BAG_A, bag_raw, clean_stderr  # noqa: E402
+from ros_support import BAG_A, bag_raw, clean_stderr, wait_for_fiducial_paths  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from liver_p2p_reg.bags.io import read_messages  # noqa: E402
@@ -81,6 +81,8 @@ def test_structures_from_the_loader_move_with_the_published_pose(tmp_path):
         model = probe.wait_for(lambda: [s for s, _ in probe.diagnostics(0, PREOP_DIAG_NAME)], 120)
         assert model and level_of(model[-1]) == OK and "preop model received" in model[-1].message, register.stderr()
         assert probe.wait_for(lambda: "2 structures (50 points)" in register.stderr(), 30), register.stderr()
+        # the oracle needs both fiducial sets in before the cloud (each its own topic, discovered on its own)
+        assert wait_for_fiducial_paths(probe, len(np.load(tmp_path / "fid.npy"))), register.stderr()
         raw = bag_raw(BAG_A)
         probe.publish(TOPIC_INTRAOP_FIDUCIALS, raw[TOPIC_INTRAOP_FIDUCIALS][0])
         probe.publish(TOPIC_INTRAOP, raw[TOPIC_INTRAOP][0])

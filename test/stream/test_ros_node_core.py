@@ -65,6 +65,15 @@ def test_status_is_stale_before_anything():
     assert NodeCore(Config()).status().level == STALE
 
 
+def test_status_counts_the_current_models_preop_fiducials():
+    core = core_with_preop()
+    assert core.status().values["preop_fiducials"] == "0"
+    core.set_preop_fiducials(liver_like(6))
+    assert core.status().values["preop_fiducials"] == "6"
+    core.set_preop(liver_like(seed=1), stamp_ns=7)  # another model: the old one's markers are not its own
+    assert core.status().values["preop_fiducials"] == "0"
+
+
 @pytest.mark.parametrize(
     ("points", "level", "text"),
     [
