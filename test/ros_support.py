@@ -117,7 +117,10 @@ def start_graph(log_dir: Path, params: dict | None = None, wait_loaded: bool = T
     node = NodeProcess("register_node", params or {}, env=env, log_dir=log_dir)
     probe = GraphProbe()
     graph = Graph(node, probe)
-    assert probe.wait_for_subscriber(TOPIC_INTRAOP, 90.0), node.stderr()
+    # /intraop/fiducials is volatile: sent before its own subscription is matched (discovered apart from /intraop)
+    # they would be lost and the cloud's TRE missing
+    for topic in (TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS):
+        assert probe.wait_for_subscriber(topic, 90.0), node.stderr()
     if wait_loaded:
         assert probe.wait_for(lambda: "loaded in" in node.stderr() or not node.alive(), 120.0) and node.alive(), (
             node.stderr()

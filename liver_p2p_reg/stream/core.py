@@ -125,8 +125,7 @@ class NodeCore:
         return config
 
     def preload(self) -> float:
-        """Import the method's modules, load its weights and run it once on a synthetic
-        liver-sized surface, so a real model's warm-up only computes that model's share; ms."""
+        """Load the method (modules, weights) and run it once on a synthetic liver: a model's warm-up does its share only; ms."""
         start = time.perf_counter()
         d = np.random.default_rng(0).normal(size=(3000, 3))
         shell = d / np.linalg.norm(d, axis=1, keepdims=True) * [80.0, 55.0, 40.0]
@@ -396,7 +395,6 @@ class NodeCore:
             "received_clouds": str(self.received),
             "registered_clouds": str(self.processed),
             "dropped_clouds": str(self.dropped),
-            # an oracle method (or a TRE) needs them: an operator sees they came before the first cloud does
-            "preop_fiducials": str(len(fid)) if (fid := self.fiducials.preop_mm) is not None else "0",
+            **self.fiducials.status(),
             **self._recording.status(),
         }

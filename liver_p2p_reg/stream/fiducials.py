@@ -68,6 +68,11 @@ class FiducialStore:
         with self._lock:
             return self._preop.get(0 if self._model_stamp is None else self._model_stamp)
 
+    def status(self) -> dict[str, str]:
+        """For the periodic status: how many preop fiducials the current model has (an oracle, a TRE need them)."""
+        fid = self.preop_mm
+        return {"preop_fiducials": "0" if fid is None else str(len(fid))}
+
     def expected(self) -> bool:
         """Whether a cloud's own intraop fiducials are likely on their way: the current model has
         markers and either intraop fiducials came for it or no cloud of it has been paired yet."""
