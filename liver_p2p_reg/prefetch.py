@@ -6,10 +6,15 @@ only on the source, so the command starts a child that imports Open3D and comput
 the very same function (`features.fpfh.outward_normals`) while this process imports torch;
 `outward_normals` then takes the child's result for exactly those points. Same function, same
 input bits: the same normals. If the child fails, the normals are computed here as before.
+
+`normals_in_child` is the blocking form, for large clouds: Open3D's normal estimation holds the GIL
+(1.5 s for 300 k points), which would stall a node's signal handling and callbacks; waiting on a child's
+pipe does not.
 """
 
 from __future__ import annotations
 
+import io
 import shutil
 import subprocess
 import sys
@@ -19,13 +24,25 @@ from pathlib import Path
 import numpy as np
 
 PACKAGE_PARENT = str(Path(__file__).resolve().parents[1])
-# The child: read the points, compute the normals with the package's own function, write them.
-CHILD = """import sys
+# The child: read the points (a file, or "-": stdin), compute the normals with the package's own function (in
+# this process: no grandchild), write them (a file, or "-": stdout). On Linux it dies with the thread that
+# started it, so a node stopped mid-warm-up leaves no orphan computing on.
+CHILD = """import ctypes, io, sys
+try:
+    ctypes.CDLL(None).prctl(1, 9)  # PR_SET_PDEATHSIG, SIGKILL
+except (OSError, AttributeError):
+    pass
 sys.path.insert(0, sys.argv[1])
 import numpy as np
-from liver_p2p_reg.registration.features.fpfh import outward_normals
-points = np.load(sys.argv[2])
-np.save(sys.argv[3], outward_normals(points, float(sys.argv[4]), int(sys.argv[5])))
+from liver_p2p_reg.registration.features.fpfh import local_outward_normals
+src = io.BytesIO(sys.stdin.buffer.read()) if sys.argv[2] == "-" else sys.argv[2]
+normals = local_outward_normals(np.load(src), float(sys.argv[4]), int(sys.argv[5]))
+if sys.argv[3] == "-":
+    out = io.BytesIO()
+    np.save(out, normals)
+    sys.stdout.buffer.write(out.getvalue())
+else:
+    np.save(sys.argv[3], normals)
 """
 _PENDING: list[BackgroundNormals] = []
 
@@ -84,3 +101,18 @@ def take_prefetched(points: np.ndarray, radius: float, max_nn: int) -> np.ndarra
         if job.matches(points, radius, max_nn):
             return job.result()
     return None
+
+
+def normals_in_child(points: np.ndarray, radius: float, max_nn: int = 30) -> np.ndarray | None:
+    """`outward_normals(points, radius, max_nn)` computed by a child process and waited for here without
+    holding the GIL (through pipes, no files); None when the child fails."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    sent = io.BytesIO()
+    np.save(sent, points)
+    args = [sys.executable, "-c", CHILD, PACKAGE_PARENT, "-", "-", repr(float(radius)), str(int(max_nn))]
+    try:
+        done = subprocess.run(args, input=sent.getvalue(), capture_output=True, check=False)
+        normals = np.load(io.BytesIO(done.stdout)) if done.returncode == 0 else None
+    except (OSError, ValueError):
+        return None
+    return normals if normals is not None and normals.shape == points.shape else None

@@ -6,6 +6,7 @@ import json
 import logging
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -122,6 +123,39 @@ def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
     child = take_prefetched(points.copy(), 0.1, 30)
     assert child is not None and child.tobytes() == outward_normals(points, 0.1).tobytes()
     assert not job.folder.exists()  # cleaned up once taken
+
+
+def test_a_large_clouds_normals_come_from_a_child_and_leave_the_gil_free() -> None:
+    """Open3D holds the GIL while it estimates normals: for a node's warm-up of a large model that stalled its
+    signal handling (a SIGTERM waited for it). From OFF_PROCESS_POINTS up a child computes them: bit for bit the
+    in-process normals, while another thread of this process keeps running."""
+    import threading
+
+    from liver_p2p_reg.registration.features.fpfh import OFF_PROCESS_POINTS, local_outward_normals, outward_normals
+
+    d = np.random.default_rng(0).normal(size=(OFF_PROCESS_POINTS, 3))
+    points = d / np.linalg.norm(d, axis=1, keepdims=True) * [1.0, 0.7, 0.5]
+
+    def largest_gap_s(work) -> tuple[float, float, np.ndarray]:
+        """(the longest a ticking thread waited between ticks, the work's duration, its result) while `work` runs
+        on another thread."""
+        out, gaps, done = [], [0.0], threading.Event()
+        worker = threading.Thread(target=lambda: (out.append(work()), done.set()))
+        start = last = time.perf_counter()
+        worker.start()
+        while not done.is_set():
+            time.sleep(0.002)
+            now = time.perf_counter()
+            gaps.append(now - last)
+            last = now
+        worker.join()
+        return max(gaps), last - start, out[0]
+
+    gap_local_s, local_s, here = largest_gap_s(lambda: local_outward_normals(points, 0.1))
+    gap_child_s, _, child = largest_gap_s(lambda: outward_normals(points, 0.1))
+    assert child.tobytes() == here.tobytes()
+    assert gap_local_s > 0.5 * local_s  # the stall this avoids: in process, the ticks wait for Open3D
+    assert gap_child_s < 0.5 * local_s, (gap_child_s, local_s)
 
 
 def test_the_method_table_is_explicit_and_plugins_are_added_by_a_call() -> None:

@@ -12,20 +12,33 @@ if TYPE_CHECKING:  # only `describe` needs torch; the Open3D baselines use `raw`
 from liver_p2p_reg.o3d import o3d_module
 from liver_p2p_reg.registration.context import remember_latest
 
+# Clouds this large get their normals from a child process: Open3D holds the GIL while it estimates them
+# (~0.5 s per 100 k points here), which would stall a node's signal handling and callbacks (prefetch.py).
+OFF_PROCESS_POINTS = 100_000
+
 
 def outward_normals(points: np.ndarray, radius: float, max_nn: int = 30) -> np.ndarray:
-    """Unit normals by local PCA, flipped to point away from the cloud's centroid.
+    """Unit normals by local PCA, flipped to point away from the cloud's centroid (`local_outward_normals`).
+
+    A one-shot command may have had them computed by a child process already, and a cloud of
+    OFF_PROCESS_POINTS or more is handed to one (prefetch.py): the same function on the same points,
+    the same normals; if the child fails they are computed here.
+    """
+    from liver_p2p_reg.prefetch import normals_in_child, take_prefetched
+
+    ready = take_prefetched(points, radius, max_nn)
+    if ready is None and len(points) >= OFF_PROCESS_POINTS:
+        ready = normals_in_child(points, radius, max_nn)
+    return ready if ready is not None else local_outward_normals(points, radius, max_nn)
+
+
+def local_outward_normals(points: np.ndarray, radius: float, max_nn: int = 30) -> np.ndarray:
+    """Unit normals by local PCA in this process, flipped to point away from the cloud's centroid.
 
     A liver surface is mostly convex, so "away from the centroid" is outward for the whole
     source and for a partial cap (its centroid lies on the concave side). This makes the
-    normals — and so FPFH — independent of the cloud's pose. A one-shot command may have had
-    them computed by a child process already (prefetch.py): the same function on the same points.
+    normals — and so FPFH — independent of the cloud's pose.
     """
-    from liver_p2p_reg.prefetch import take_prefetched
-
-    ready = take_prefetched(points, radius, max_nn)
-    if ready is not None:
-        return ready
     o3d = o3d_module()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
