@@ -42,7 +42,7 @@ def weighted_procrustes(
     U, S, Vh = torch.linalg.svd(H)
     V = Vh.transpose(1, 2)
     # Reflection guard: flip the axis of the smallest singular value if det < 0.
-    d = torch.sign(torch.linalg.det(V @ U.transpose(1, 2)))
+    d = torch.sign(det3(V @ U.transpose(1, 2)))
     d = torch.where(d == 0, torch.ones_like(d), d)
     D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
     R = V @ D @ U.transpose(1, 2)
@@ -56,6 +56,14 @@ def weighted_procrustes(
     if squeeze:
         return R[0], t[0], ok[0]
     return R, t, ok
+
+
+def det3(M: torch.Tensor) -> torch.Tensor:
+    """Determinants of (B, 3, 3) matrices by cofactors. Idle, torch.linalg.det costs the same (~0.02 ms), but its
+    threaded LU stalls when the CPUs are shared (3.6 ms vs 0.04 ms per call with the test suite running, 16 calls
+    per registration); for the rotations here (det +-1) both give the same sign, and only the sign is used."""
+    m = M.flatten(-2).unbind(-1)
+    return m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) + m[2] * (m[3] * m[7] - m[4] * m[6])
 
 
 def to_homogeneous(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -14,7 +14,7 @@ from liver_p2p_reg.registration.matching import (
     mutual_nearest,
     score_matrix,
 )
-from liver_p2p_reg.registration.procrustes import to_homogeneous, weighted_procrustes
+from liver_p2p_reg.registration.procrustes import det3, to_homogeneous, weighted_procrustes
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -62,6 +62,15 @@ def test_procrustes_never_returns_a_reflection(rng: np.random.Generator) -> None
     R, _, ok = weighted_procrustes(torch.as_tensor(src), torch.as_tensor(mirrored))
     assert bool(ok)
     assert np.linalg.det(R.numpy()) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_cofactor_determinant_equals_lu_and_keeps_the_sign_of_rotations(rng: np.random.Generator) -> None:
+    M = torch.as_tensor(rng.normal(size=(500, 3, 3)))
+    torch.testing.assert_close(det3(M), torch.linalg.det(M), rtol=0, atol=1e-12)
+    Q = torch.linalg.qr(M).Q.clone()  # orthogonal
+    Q[::2, :, 2] *= -1  # every other one a reflection: det +-1, both signs
+    assert torch.equal(torch.sign(det3(Q)), torch.sign(torch.linalg.det(Q)))
+    assert set(torch.sign(det3(Q)).tolist()) == {-1.0, 1.0}
 
 
 def test_batched_equals_looped(rng: np.random.Generator) -> None:
