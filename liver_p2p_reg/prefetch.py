@@ -47,6 +47,20 @@ else:
 _PENDING: list[BackgroundNormals] = []
 
 
+def child_command(points_in: str | Path, normals_out: str | Path, radius: float, max_nn: int) -> list[str]:
+    """The command line of a CHILD reading `points_in` and writing `normals_out` ("-": stdin / stdout)."""
+    return [
+        sys.executable,
+        "-c",
+        CHILD,
+        PACKAGE_PARENT,
+        str(points_in),
+        str(normals_out),
+        repr(float(radius)),
+        str(int(max_nn)),
+    ]
+
+
 class BackgroundNormals:
     """`outward_normals(points, radius, max_nn)` being computed by a child process."""
 
@@ -55,9 +69,8 @@ class BackgroundNormals:
         self.radius, self.max_nn = float(radius), int(max_nn)
         self.folder = Path(tempfile.mkdtemp(prefix="liver_p2p_normals_"))
         np.save(self.folder / "points.npy", self.points)
-        args = [PACKAGE_PARENT, str(self.folder / "points.npy"), str(self.folder / "normals.npy")]
         self.child = subprocess.Popen(
-            [sys.executable, "-c", CHILD, *args, repr(self.radius), str(self.max_nn)],
+            child_command(self.folder / "points.npy", self.folder / "normals.npy", self.radius, self.max_nn),
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -109,9 +122,10 @@ def normals_in_child(points: np.ndarray, radius: float, max_nn: int = 30) -> np.
     points = np.ascontiguousarray(points, dtype=np.float64)
     sent = io.BytesIO()
     np.save(sent, points)
-    args = [sys.executable, "-c", CHILD, PACKAGE_PARENT, "-", "-", repr(float(radius)), str(int(max_nn))]
     try:
-        done = subprocess.run(args, input=sent.getvalue(), capture_output=True, check=False)
+        done = subprocess.run(
+            child_command("-", "-", radius, max_nn), input=sent.getvalue(), capture_output=True, check=False
+        )
         normals = np.load(io.BytesIO(done.stdout)) if done.returncode == 0 else None
     except (OSError, ValueError):
         return None

@@ -47,10 +47,15 @@ def clean_stderr(text: str) -> list[str]:
     return bad
 
 
+def latest_status(probe: GraphProbe, since: int = 0) -> dict[str, str]:
+    """The values of register_node's latest periodic status since `since` ({} before one)."""
+    statuses = [values_of(s) for s, _ in probe.diagnostics(since, DIAG_NAME) if "received_clouds" in values_of(s)]
+    return statuses[-1] if statuses else {}
+
+
 def preop_fiducials_held(probe: GraphProbe) -> str:
     """How many preop fiducials register_node holds, by its latest periodic status ('' before one)."""
-    statuses = [values_of(s) for s, _ in probe.diagnostics(0, DIAG_NAME) if "received_clouds" in values_of(s)]
-    return statuses[-1].get("preop_fiducials", "") if statuses else ""
+    return latest_status(probe).get("preop_fiducials", "")
 
 
 def wait_for_fiducial_paths(probe: GraphProbe, n_preop: int, timeout_s: float = 60.0) -> bool:
@@ -79,10 +84,7 @@ class Graph:
 
     def counters(self, since: int = 0) -> dict[str, int]:
         """The node's own cloud counters (received, registered, dropped) in its latest periodic status."""
-        statuses = [
-            values_of(s) for s, _ in self.probe.diagnostics(since, DIAG_NAME) if "received_clouds" in values_of(s)
-        ]
-        return {k: int(v) for k, v in statuses[-1].items() if k.endswith("_clouds")} if statuses else {}
+        return {k: int(v) for k, v in latest_status(self.probe, since).items() if k.endswith("_clouds")}
 
     def preop_diags(self, since: int) -> list:
         return [s for s, _ in self.probe.diagnostics(since, PREOP_DIAG_NAME)]
