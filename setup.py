@@ -87,6 +87,7 @@ setup(
     install_requires=[
         "numpy>=1.24",
         "scipy>=1.10",
+        "pykdtree>=1.3",  # the ICP loops' closest-point search (registration/nearest.py)
         "torch>=2.2",
         "rosbags>=0.10",
         "mcap>=1.1",

@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from liver_p2p_reg.config import P2PSection
 from liver_p2p_reg.registration.matching import (
@@ -16,6 +15,7 @@ from liver_p2p_reg.registration.matching import (
     matches_per_row,
     score_matrix,
 )
+from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.registration.procrustes import weighted_procrustes
 
 MIN_REFIT_MATCHES = 6  # a re-fit on fewer matches than this keeps the previous pose
@@ -69,7 +69,7 @@ def closest_point_residuals(
     Moves the target into the source frame (R^T (y - t)) so one k-d tree over the source
     serves every candidate: O(C M log N) instead of a (C, M, N) distance tensor.
     """
-    tree = cKDTree(source.detach().cpu().double().numpy())
+    tree = NearestIndex(source.detach().cpu().double().numpy())
     R_np, t_np, tgt = R.cpu().double().numpy(), t.cpu().double().numpy(), target.cpu().double().numpy()
     out = np.full(len(R_np), np.inf)
     # Candidates that converged to the same pose (a consensus-started twin often ends where its
@@ -86,7 +86,7 @@ def closest_point_residuals(
     if good:
         # All candidates' queries in one call: y_s = R^T (y - t), as row vectors (y - t) @ R.
         queries = np.einsum("cmi,cij->cmj", tgt[None] - t_np[good][:, None], R_np[good])
-        dist, _ = tree.query(queries.reshape(-1, 3), k=1, workers=max(1, torch.get_num_threads()))
+        dist, _ = tree.query(queries.reshape(-1, 3))
         out[good] = dist.reshape(len(good), -1).mean(axis=1)
         out = out[first]  # failed candidates point at themselves and stay inf
     return torch.as_tensor(out, dtype=target.dtype, device=target.device)

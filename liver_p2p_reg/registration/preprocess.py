@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.context import remember_latest
+from liver_p2p_reg.registration.nearest import NearestIndex
 
 if TYPE_CHECKING:
     from liver_p2p_reg.config import Config
@@ -110,7 +111,7 @@ class PreprocessedPair:
     target_full: np.ndarray
     source: np.ndarray  # (N, 3) voxelized
     target: np.ndarray  # (M, 3) voxelized
-    source_tree: cKDTree  # of `source`, built once per model (residuals are measured against it)
+    source_tree: NearestIndex  # of `source`, built once per model (residuals are measured against it)
     # What this registration already looked up in the Registrar's cache (the ICP's source index):
     # its key hashes the whole source, and screening refines up to seven poses per registration.
     memo: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
@@ -129,11 +130,11 @@ def preprocess_pair(
     With a cache, the source's share (normalization, voxelization) is computed once per model.
     """
 
-    def source_part() -> tuple[Normalization, np.ndarray, np.ndarray, cKDTree]:
+    def source_part() -> tuple[Normalization, np.ndarray, np.ndarray, NearestIndex]:
         norm = source_normalization(source_mm)
         full = norm.apply(source_mm)
         voxels = voxel_downsample(full, config.voxel_size_norm)
-        return norm, full, voxels, cKDTree(voxels)
+        return norm, full, voxels, NearestIndex(voxels)
 
     if cache is None:
         ns, src_full, src, src_tree = source_part()
@@ -163,7 +164,7 @@ def residual_norm(T_norm: np.ndarray, prep: PreprocessedPair) -> float:
     the source's k-d tree is built once per model, not once per evaluated pose.
     """
     T_inv = np.linalg.inv(T_norm)
-    dist, _ = prep.source_tree.query(transform_points(T_inv, prep.target), k=1)
+    dist, _ = prep.source_tree.query(transform_points(T_inv, prep.target))
     return float(dist.mean())
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from liver_p2p_reg.registration.context import remember_latest
 from liver_p2p_reg.registration.features.fpfh import outward_normals
+from liver_p2p_reg.registration.nearest import NearestIndex
 
 if TYPE_CHECKING:
     from liver_p2p_reg.config import Config
@@ -40,9 +40,9 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def source_search_index(source: np.ndarray, normal_radius: float) -> tuple[cKDTree, np.ndarray]:
-    """The k-d tree and outward normals of the source: built once per preoperative model."""
-    return cKDTree(source), outward_normals(source, normal_radius)
+def source_search_index(source: np.ndarray, normal_radius: float) -> tuple[NearestIndex, np.ndarray]:
+    """The closest-point index and outward normals of the source: built once per preoperative model."""
+    return NearestIndex(source), outward_normals(source, normal_radius)
 
 
 def trimmed_icp(
@@ -56,7 +56,7 @@ def trimmed_icp(
     normal_radius: float = 0.1,
     max_target_points: int = 4000,
     tol: float = 1e-3,
-    source_index: tuple[cKDTree, np.ndarray] | None = None,
+    source_index: tuple[NearestIndex, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Refine T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.
 
@@ -75,7 +75,7 @@ def trimmed_icp(
     for _ in range(max_iterations):
         q = target @ T_inv[:3, :3].T + T_inv[:3, 3]  # target in the source frame
         # The bound prunes the tree search; pairs beyond it are dropped anyway (dist = inf).
-        dist, idx = tree.query(q, k=1, distance_upper_bound=max_corr)
+        dist, idx = tree.query(q, distance_upper_bound=max_corr)
         keep = np.flatnonzero(dist < max_corr)
         if len(keep) < 6:
             break

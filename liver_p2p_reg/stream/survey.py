@@ -15,12 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.confidence import pose_warnings
+from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.registration.preprocess import statistical_inliers, voxel_keys
 from liver_p2p_reg.registration.refine import source_search_index, trimmed_icp
 from liver_p2p_reg.registration.registrar import Registrar
@@ -93,7 +93,7 @@ class Survey:
         self.reason = reason
         self.T_mm: np.ndarray | None = None  # T_sensor_ct of the last accepted frame
         self.fused = FusedSurface(self.config.survey_voxel_mm, self.config.survey_max_points)
-        self._index: tuple[cKDTree, np.ndarray] | None = None  # k-d tree + normals of the fused surface
+        self._index: tuple[NearestIndex, np.ndarray] | None = None  # closest-point index + normals of the fused surface
         self.frames = 0  # frames fused
         self.registrations = 0  # global registrations of the fused surface (the first frame's included)
         self.visibility = 0.0  # of the fused surface
