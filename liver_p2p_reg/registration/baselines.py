@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import ThreadpoolController
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import RegistrationError
@@ -91,6 +92,23 @@ def feature_correspondences(f_source: np.ndarray, f_target: np.ndarray) -> np.nd
     return np.stack([src_of_tgt[mutual], tgt_idx[mutual]], axis=1).astype(np.int32)
 
 
+_OPENMP: ThreadpoolController | None = None  # the process's OpenMP runtimes, found at the first global estimate
+
+
+def open3d_threads(config: Config):
+    """Run Open3D's randomized global estimates on `config.ransac_threads` OpenMP threads, then restore.
+
+    Why: Open3D's RANSAC threads draw their samples from one mutex-guarded generator, so with two
+    threads the interleaving (the scheduler's, not the seed's) decides which thread gets which
+    sample, and a hard case can end on another pose run to run. torch's thread count is set per
+    registration and Open3D shares its OpenMP runtime, so without this the count would be torch's.
+    """
+    global _OPENMP
+    if _OPENMP is None:  # found once, after Open3D is loaded: a fresh search costs ~4 ms a call
+        _OPENMP = ThreadpoolController()
+    return _OPENMP.limit(limits=config.ransac_threads, user_api="openmp")
+
+
 def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: dict) -> np.ndarray:
     """FPFH + RANSAC (Open3D) on mutual feature matches, max correspondence distance 0.05 normalized (paper).
 
@@ -103,16 +121,17 @@ def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: d
     o3d.utility.random.seed(config.seed)  # Open3D's RANSAC draws from its own generator
     corres = feature_correspondences(*_fpfh_raw(source, target, config, cache))
     dist = config.ransac_max_corr_norm
-    result = reg.registration_ransac_based_on_correspondence(
-        _cloud(source),
-        _cloud(target),
-        o3d.utility.Vector2iVector(corres),
-        dist,
-        reg.TransformationEstimationPointToPoint(False),
-        3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
-        reg.RANSACConvergenceCriteria(config.ransac_max_iterations, config.ransac_confidence),
-    )
+    with open3d_threads(config):
+        result = reg.registration_ransac_based_on_correspondence(
+            _cloud(source),
+            _cloud(target),
+            o3d.utility.Vector2iVector(corres),
+            dist,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
+            reg.RANSACConvergenceCriteria(config.ransac_max_iterations, config.ransac_confidence),
+        )
     return _checked(result, "FPFH + RANSAC")
 
 
@@ -123,7 +142,8 @@ def fast_global_registration(source: np.ndarray, target: np.ndarray, config: Con
     o3d.utility.random.seed(config.seed)  # FGR's tuple test samples from Open3D's generator too
     f_src, f_tgt = _fpfh_features(source, target, config, cache)
     option = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=config.ransac_max_corr_norm)
-    result = reg.registration_fgr_based_on_feature_matching(_cloud(source), _cloud(target), f_src, f_tgt, option)
+    with open3d_threads(config):
+        result = reg.registration_fgr_based_on_feature_matching(_cloud(source), _cloud(target), f_src, f_tgt, option)
     # FGR reports no fitness of its own: measure it at the same distance threshold.
     evaluation = reg.evaluate_registration(
         _cloud(source), _cloud(target), config.ransac_max_corr_norm, result.transformation

@@ -36,9 +36,9 @@ def case_dir(tmp_path_factory):
             },
         )
     config = folder.parent / "fast.yaml"
-    # one thread: Open3D's RANSAC draws from one generator across its OpenMP threads, so with two the same seed
-    # gives another pose about one run in seven (the bitwise reproduction below holds single-threaded)
-    config.write_text("method: fpfh-ransac-icp\nnum_threads: 1\n")
+    # two torch threads, as a node runs: Open3D's RANSAC draws from one generator across its OpenMP threads, so on
+    # two of them the same seed gave another pose about one run in seven; `ransac_threads: 1` keeps it reproducible
+    config.write_text("method: fpfh-ransac-icp\nnum_threads: 2\n")
     return folder, config
 
 

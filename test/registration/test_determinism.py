@@ -56,3 +56,27 @@ def test_the_same_frames_give_bitwise_the_same_output_everywhere(fresh_process_o
 def test_pinning_sets_the_count_it_says():
     assert pin_threads(1) == 1 and torch.get_num_threads() == 1
     assert pin_threads(0) == default_threads() == torch.get_num_threads()
+
+
+def test_open3d_global_estimates_run_on_the_configured_openmp_threads():
+    # Open3D's RANSAC threads share one sample generator: on more than one thread the seed alone no longer
+    # decides the pose, so the estimate runs on `ransac_threads` whatever torch's count is, and torch's comes back
+    from threadpoolctl import threadpool_info
+
+    from liver_p2p_reg.o3d import o3d_module
+    from liver_p2p_reg.registration.baselines import open3d_threads
+
+    o3d_module()  # Open3D's OpenMP runtime loaded, as before any global estimate
+    pin_threads(2)
+
+    def openmp_counts():
+        return {info["filepath"]: info["num_threads"] for info in threadpool_info() if info["user_api"] == "openmp"}
+
+    before = openmp_counts()
+    assert before and any(count == 2 for count in before.values())
+    with open3d_threads(Config()):
+        assert set(openmp_counts().values()) == {1}
+    with open3d_threads(Config(ransac_threads=2)):
+        assert set(openmp_counts().values()) == {2}
+    assert openmp_counts() == before and torch.get_num_threads() == 2
+    pin_threads(0)
