@@ -87,8 +87,8 @@ setup(
     install_requires=[
         "numpy>=1.24",
         "scipy>=1.10",
-        "pykdtree>=1.3",
-        "threadpoolctl>=3.1",  # Open3D's RANSAC on a set number of OpenMP threads (registration/baselines.py)  # the ICP loops' closest-point search (registration/nearest.py)
+        "pykdtree>=1.3",  # the ICP loops' closest-point search (registration/nearest.py)
+        "threadpoolctl>=3.1",  # Open3D's registration calls on a set number of OpenMP threads (registration/baselines.py)
         "torch>=2.2",
         "rosbags>=0.10",
         "mcap>=1.1",

@@ -28,7 +28,7 @@ DEVICES = ("cpu", "cuda")
 # Lower bounds of the numeric fields that have nothing but a lower bound.
 MINIMUMS: dict[str, float] = {
     "k": 1,
-    "ransac_threads": 1,
+    "open3d_threads": 1,
     "min_points": 3,
     "outlier_neighbors": 3,
     "max_patch_rows": 0,
@@ -108,9 +108,10 @@ class FeatureSection:
     ransac_max_corr_norm: float = 0.05  # FPFH+RANSAC max correspondence distance (paper)
     ransac_max_iterations: int = 100000
     ransac_confidence: float = 0.999
-    # OpenMP threads of Open3D's RANSAC and FGR. Its threads draw from one shared generator, so with
-    # more than 1 the same seed can give another pose run to run; 1 is reproducible (~7 % slower)
-    ransac_threads: int = 1
+    # OpenMP threads of Open3D's RANSAC, FGR and ICP (methods fpfh-ransac*, fgr*, icp). RANSAC's threads
+    # draw from one shared generator, so on more than 1 the same seed can give another pose run to run;
+    # 1 is reproducible (RANSAC ~7 % slower, docs/results/speed.md)
+    open3d_threads: int = 1
 
 
 @dataclass

@@ -32,7 +32,7 @@ from liver_p2p_reg.registration.registrar import Registrar
 
 BINS = ((0.05, 0.1), (0.1, 0.15), (0.15, 0.2), (0.2, 0.3))
 MARK = "SPEED"  # the README block this script owns
-# The baseline also on two OpenMP threads: faster, though not reproducible from its seed (config `ransac_threads`),
+# The baseline also on two OpenMP threads: faster, though not reproducible from its seed (config `open3d_threads`),
 # so that the ratio is also stated against the fastest form of the classical path.
 RANSAC_THREADS_FAST = 2
 
@@ -49,7 +49,7 @@ def pick_cases(dataset: str, per_bin: int) -> list:
 
 
 def registrar_for(spec: str, threads: int) -> Registrar:
-    """A Registrar for `METHOD` or `METHOD:key=value` (one setting changed, e.g. `fpfh-ransac-icp:ransac_threads=2`)."""
+    """A Registrar for `METHOD` or `METHOD:key=value` (one setting changed, e.g. `fpfh-ransac-icp:open3d_threads=2`)."""
     name, _, setting = spec.partition(":")
     changes = {}
     if setting:
@@ -137,7 +137,7 @@ def main() -> int:
     ap.add_argument("--dataset", default="real-val-v2")
     ap.add_argument(
         "--methods",
-        default=f"fpfh-ransac-icp:ransac_threads={RANSAC_THREADS_FAST},fpfh-ransac-icp,learned-p2p-icp",
+        default=f"fpfh-ransac-icp:open3d_threads={RANSAC_THREADS_FAST},fpfh-ransac-icp,learned-p2p-icp",
         help="references first, the default last; METHOD:key=value changes one setting of that row",
     )
     ap.add_argument("--per-bin", type=int, default=8)

@@ -4,7 +4,7 @@
         [--repeats 4] [--threads 2] [--readme docs/results/speed.md]
 
 The cases of scripts/bench_paths.py (hidden real-liver views below visibility 0.3, 2 mm noise), each
-registered `--repeats` times with the same seed, with Open3D's RANSAC on one OpenMP thread (`ransac_threads:
+registered `--repeats` times with the same seed, with Open3D's RANSAC on one OpenMP thread (`open3d_threads:
 1`, the default) and on two. Counts the cases whose poses are not bitwise the same every time, and how far
 apart they land (largest RMS-TRE difference between two repeats of a case).
 """
@@ -27,11 +27,11 @@ from liver_p2p_reg.registration.registrar import Registrar
 MARK = "RANSAC-REPEAT"  # the block of docs/results/speed.md this script owns
 
 
-def repeat_cases(cases: list, ransac_threads: int, threads: int, repeats: int) -> list[dict]:
+def repeat_cases(cases: list, open3d_threads: int, threads: int, repeats: int) -> list[dict]:
     """Per case: whether every repeat gave bitwise the same pose, and the spread of their RMS-TRE (mm)."""
-    registrar = Registrar(Config(method="fpfh-ransac-icp", num_threads=threads, ransac_threads=ransac_threads))
+    registrar = Registrar(Config(method="fpfh-ransac-icp", num_threads=threads, open3d_threads=open3d_threads))
     out = []
-    for case in tqdm(cases, desc=f"ransac_threads={ransac_threads}", unit="case"):
+    for case in tqdm(cases, desc=f"open3d_threads={open3d_threads}", unit="case"):
         data = read_case(case.path)
         source, target = data["src_pcd"], add_target_noise(np.asarray(data["tgt_pcd"], float), case)
         fid = {"source_fiducials_mm": data["src_marker"], "target_fiducials_mm": data["tgt_marker"]}
@@ -50,14 +50,14 @@ def report(results: dict[int, list[dict]], command: str, repeats: int) -> list[s
         "",
         f"Command: `{command}`",
         "",
-        "| `ransac_threads` | cases | cases not bitwise the same every repeat | largest RMS-TRE spread in a case (mm) "
+        "| `open3d_threads` | cases | cases not bitwise the same every repeat | largest RMS-TRE spread in a case (mm) "
         "| mean RMS-TRE over repeats (mm) |",
         "|---|---|---|---|---|",
     ]
-    for ransac_threads, rows in results.items():
+    for open3d_threads, rows in results.items():
         moved = sum(not r["same"] for r in rows)
         lines.append(
-            f"| {ransac_threads} | {len(rows)} | {moved} | {max(r['tre_spread_mm'] for r in rows):.2f} | "
+            f"| {open3d_threads} | {len(rows)} | {moved} | {max(r['tre_spread_mm'] for r in rows):.2f} | "
             f"{np.mean([r['tre_mm'] for r in rows]):.2f} |"
         )
     return lines

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
-from threadpoolctl import ThreadpoolController
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import RegistrationError
@@ -42,14 +41,15 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, T_init: np.ndarra
     """Open3D point-to-plane ICP (target normals), normalized units."""
     o3d = o3d_module()
     reg = o3d.pipelines.registration
-    result = reg.registration_icp(
-        _cloud(source),
-        _cloud(target, config.normal_radius_norm),
-        config.icp_max_corr_norm,
-        T_init,
-        reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(max_iteration=config.icp_max_iterations),
-    )
+    with on_open3d_threads(config):
+        result = reg.registration_icp(
+            _cloud(source),
+            _cloud(target, config.normal_radius_norm),
+            config.icp_max_corr_norm,
+            T_init,
+            reg.TransformationEstimationPointToPlane(),
+            reg.ICPConvergenceCriteria(max_iteration=config.icp_max_iterations),
+        )
     return _checked(result, "ICP")
 
 
@@ -92,21 +92,24 @@ def feature_correspondences(f_source: np.ndarray, f_target: np.ndarray) -> np.nd
     return np.stack([src_of_tgt[mutual], tgt_idx[mutual]], axis=1).astype(np.int32)
 
 
-_OPENMP: ThreadpoolController | None = None  # the process's OpenMP runtimes, found at the first global estimate
+_OPENMP = None  # the process's OpenMP runtimes (a threadpoolctl controller), found at the first Open3D call
 
 
-def open3d_threads(config: Config):
-    """Run Open3D's randomized global estimates on `config.ransac_threads` OpenMP threads, then restore.
+def on_open3d_threads(config: Config):
+    """Run an Open3D registration call on `config.open3d_threads` OpenMP threads, then restore the count.
 
-    Why: Open3D's RANSAC threads draw their samples from one mutex-guarded generator, so with two
+    Why: Open3D's RANSAC threads draw their samples from one mutex-guarded generator, so on two
     threads the interleaving (the scheduler's, not the seed's) decides which thread gets which
-    sample, and a hard case can end on another pose run to run. torch's thread count is set per
-    registration and Open3D shares its OpenMP runtime, so without this the count would be torch's.
+    sample, and a hard case can end on another pose run to run; its ICP sums per-thread partial
+    results in whichever order the threads finish. torch's count is set per registration and
+    Open3D shares its OpenMP runtime, so without this the count would be torch's.
     """
     global _OPENMP
     if _OPENMP is None:  # found once, after Open3D is loaded: a fresh search costs ~4 ms a call
-        _OPENMP = ThreadpoolController()
-    return _OPENMP.limit(limits=config.ransac_threads, user_api="openmp")
+        from threadpoolctl import ThreadpoolController  # ~30 ms to import: only where Open3D runs
+
+        _OPENMP = ThreadpoolController().select(user_api="openmp")  # BLAS pools are process-wide: left alone
+    return _OPENMP.limit(limits=config.open3d_threads)
 
 
 def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: dict) -> np.ndarray:
@@ -121,7 +124,7 @@ def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: d
     o3d.utility.random.seed(config.seed)  # Open3D's RANSAC draws from its own generator
     corres = feature_correspondences(*_fpfh_raw(source, target, config, cache))
     dist = config.ransac_max_corr_norm
-    with open3d_threads(config):
+    with on_open3d_threads(config):
         result = reg.registration_ransac_based_on_correspondence(
             _cloud(source),
             _cloud(target),
@@ -142,10 +145,10 @@ def fast_global_registration(source: np.ndarray, target: np.ndarray, config: Con
     o3d.utility.random.seed(config.seed)  # FGR's tuple test samples from Open3D's generator too
     f_src, f_tgt = _fpfh_features(source, target, config, cache)
     option = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=config.ransac_max_corr_norm)
-    with open3d_threads(config):
+    with on_open3d_threads(config):
         result = reg.registration_fgr_based_on_feature_matching(_cloud(source), _cloud(target), f_src, f_tgt, option)
-    # FGR reports no fitness of its own: measure it at the same distance threshold.
-    evaluation = reg.evaluate_registration(
-        _cloud(source), _cloud(target), config.ransac_max_corr_norm, result.transformation
-    )
+        # FGR reports no fitness of its own: measure it at the same distance threshold.
+        evaluation = reg.evaluate_registration(
+            _cloud(source), _cloud(target), config.ransac_max_corr_norm, result.transformation
+        )
     return _checked(evaluation, "FGR")

@@ -37,7 +37,7 @@ def case_dir(tmp_path_factory):
         )
     config = folder.parent / "fast.yaml"
     # two torch threads, as a node runs: Open3D's RANSAC draws from one generator across its OpenMP threads, so on
-    # two of them the same seed gave another pose about one run in seven; `ransac_threads: 1` keeps it reproducible
+    # two of them the same seed gave another pose about one run in seven; `open3d_threads: 1` keeps it reproducible
     config.write_text("method: fpfh-ransac-icp\nnum_threads: 2\n")
     return folder, config
 

@@ -6,6 +6,7 @@ import sys
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from determinism_frames import PARAMS, REFERENCE_FRAMES, frame_output, reference_outputs
@@ -58,25 +59,36 @@ def test_pinning_sets_the_count_it_says():
     assert pin_threads(0) == default_threads() == torch.get_num_threads()
 
 
-def test_open3d_global_estimates_run_on_the_configured_openmp_threads():
+@pytest.mark.parametrize("method", ["fpfh-ransac", "fgr", "icp"])
+def test_open3d_registration_runs_on_the_configured_openmp_threads(method, monkeypatch):
     # Open3D's RANSAC threads share one sample generator: on more than one thread the seed alone no longer
-    # decides the pose, so the estimate runs on `ransac_threads` whatever torch's count is, and torch's comes back
+    # decides the pose, so every Open3D registration call runs on `open3d_threads` whatever torch's count is
+    from synthetic_cases import partial_case
     from threadpoolctl import threadpool_info
 
     from liver_p2p_reg.o3d import o3d_module
-    from liver_p2p_reg.registration.baselines import open3d_threads
+    from liver_p2p_reg.registration.registrar import Registrar
 
-    o3d_module()  # Open3D's OpenMP runtime loaded, as before any global estimate
-    pin_threads(2)
+    reg = o3d_module().pipelines.registration
+    name = {
+        "fpfh-ransac": "registration_ransac_based_on_correspondence",
+        "fgr": "registration_fgr_based_on_feature_matching",
+        "icp": "registration_icp",
+    }[method]
+    seen, original = [], getattr(reg, name)
 
-    def openmp_counts():
-        return {info["filepath"]: info["num_threads"] for info in threadpool_info() if info["user_api"] == "openmp"}
+    def recording(*args, **kwargs):  # Open3D's own call, with the OpenMP count of the runtime it shares
+        seen.append({i["num_threads"] for i in threadpool_info() if i["filepath"].endswith("/libgomp.so.1")})
+        return original(*args, **kwargs)
 
-    before = openmp_counts()
-    assert before and any(count == 2 for count in before.values())
-    with open3d_threads(Config()):
-        assert set(openmp_counts().values()) == {1}
-    with open3d_threads(Config(ransac_threads=2)):
-        assert set(openmp_counts().values()) == {2}
-    assert openmp_counts() == before and torch.get_num_threads() == 2
-    pin_threads(0)
+    monkeypatch.setattr(reg, name, recording)
+    source, target, *_ = partial_case(np.random.default_rng(3), share=0.3)
+    try:
+        for open3d_threads in (1, 2):
+            Registrar(Config(method=method, num_threads=2, open3d_threads=open3d_threads)).register(source, target)
+            assert seen[-1] == {open3d_threads}
+            assert torch.get_num_threads() == 2  # torch's own count is not what Open3D runs on
+        outside = {i["num_threads"] for i in threadpool_info() if i["filepath"].endswith("/libgomp.so.1")}
+        assert outside == {2}  # restored after the call
+    finally:
+        pin_threads(0)
