@@ -110,7 +110,7 @@ class FeatureSection:
     ransac_confidence: float = 0.999
     # OpenMP threads of Open3D's RANSAC, FGR and ICP (methods fpfh-ransac*, fgr*, icp). RANSAC's threads
     # draw from one shared generator, so on more than 1 the same seed can give another pose run to run;
-    # 1 is reproducible (RANSAC ~7 % slower, docs/results/speed.md)
+    # 1 is reproducible (RANSAC ~8 % slower, docs/results/speed.md)
     open3d_threads: int = 1
 
 
