@@ -97,9 +97,15 @@ def test_structures_from_the_loader_move_with_the_published_pose(tmp_path):
             moved_mm = points @ R.T + np.array([t.x, t.y, t.z]) * 1e3
             np.testing.assert_allclose(points_m[ids == label_id] * 1e3, moved_mm, rtol=0, atol=1e-3)
         assert len(ids) == 50 and np.isfinite(bounds_m).all() and (bounds_m > 0).all()
+
         # the verdict follows the structures' bounds: the widest named when above the 10 mm margin
-        verdicts = [s for s, _ in probe.diagnostics(0, DIAG_NAME) if "received_clouds" not in values_of(s)]
-        (verdict,) = [s for s in verdicts if "structures" in values_of(s)]
+        # (its own topic: it may arrive after the pose and the structures, so it is waited for too)
+        def verdicts():
+            statuses = [s for s, _ in probe.diagnostics(0, DIAG_NAME) if "received_clouds" not in values_of(s)]
+            return [s for s in statuses if "structures" in values_of(s)]  # (the periodic status has received_clouds)
+
+        assert probe.wait_for(verdicts, 30), register.stderr()
+        (verdict,) = verdicts()
         assert values_of(verdict)["structures"] == "2"
         widest_mm = {"tumour": bounds_m[ids == 0].max() * 1e3, "vessel": bounds_m[ids == 1].max() * 1e3}
         worst = max(widest_mm, key=widest_mm.get)
