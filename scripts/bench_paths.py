@@ -22,7 +22,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from liver_p2p_reg.bench.cases import add_target_noise, case_info, read_case, resolve_dataset
@@ -51,11 +50,20 @@ def pick_cases(dataset: str, per_bin: int) -> list:
 def registrar_for(spec: str, threads: int) -> Registrar:
     """A Registrar for `METHOD` or `METHOD:key=value` (one setting changed, e.g. `fpfh-ransac-icp:open3d_threads=2`)."""
     name, _, setting = spec.partition(":")
-    changes = {}
-    if setting:
-        key, _, value = setting.partition("=")
-        changes[key] = yaml.safe_load(value)
-    return Registrar(Config(method=name, num_threads=threads).replace(**changes))
+    key, _, value = setting.partition("=")
+    config = Config(method=name, num_threads=threads)
+    return Registrar(config.replace(**{key: value}) if setting else config)  # replace() coerces the text to the type
+
+
+def load_case(case) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A picked case's source, noisy target (mm) and the fiducials as Registrar.register's keywords."""
+    data = read_case(case.path)
+    target = add_target_noise(np.asarray(data["tgt_pcd"], float), case)
+    return (
+        data["src_pcd"],
+        target,
+        {"source_fiducials_mm": data["src_marker"], "target_fiducials_mm": data["tgt_marker"]},
+    )
 
 
 def time_cases(cases: list, methods: list[str], threads: int, repeats: int) -> dict[str, list[dict]]:
@@ -63,9 +71,7 @@ def time_cases(cases: list, methods: list[str], threads: int, repeats: int) -> d
     registrars = {m: registrar_for(m, threads) for m in methods}
     out: dict[str, list[dict]] = {m: [] for m in methods}
     for case in tqdm(cases, desc="cases", unit="case"):
-        data = read_case(case.path)
-        source, target = data["src_pcd"], add_target_noise(np.asarray(data["tgt_pcd"], float), case)
-        fid = {"source_fiducials_mm": data["src_marker"], "target_fiducials_mm": data["tgt_marker"]}
+        source, target, fid = load_case(case)
         runs: dict[str, list] = {m: [] for m in methods}
         for m in methods:  # untimed: the source's own work (voxels, tree, features, network encoding) cached
             registrars[m].register(source, target, **fid)

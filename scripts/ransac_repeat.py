@@ -16,10 +16,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_paths import pick_cases
+from bench_paths import load_case, pick_cases
 from tqdm import tqdm
 
-from liver_p2p_reg.bench.cases import add_target_noise, read_case
 from liver_p2p_reg.bench.readme import replace_readme_block
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.registrar import Registrar
@@ -32,9 +31,7 @@ def repeat_cases(cases: list, open3d_threads: int, threads: int, repeats: int) -
     registrar = Registrar(Config(method="fpfh-ransac-icp", num_threads=threads, open3d_threads=open3d_threads))
     out = []
     for case in tqdm(cases, desc=f"open3d_threads={open3d_threads}", unit="case"):
-        data = read_case(case.path)
-        source, target = data["src_pcd"], add_target_noise(np.asarray(data["tgt_pcd"], float), case)
-        fid = {"source_fiducials_mm": data["src_marker"], "target_fiducials_mm": data["tgt_marker"]}
+        source, target, fid = load_case(case)
         runs = [registrar.register(source, target, **fid) for _ in range(repeats)]
         tre = [r.rms_tre_mm for r in runs]
         same = all(np.array_equal(r.T_target_source, runs[0].T_target_source) for r in runs)
