@@ -6,11 +6,11 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.freespace import penalized
+from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.result import Candidate
 
 MIN_PAIRS = 6  # fewer usable closest-point pairs than this: the pose is not constrained at all
@@ -25,6 +25,7 @@ def pose_uncertainty(
     *,
     max_corr: float,
     trim_ratio: float,
+    source_index: NearestIndex | None = None,
 ) -> float:
     """Expected displacement of the organ's points under the fit's own misfit, normalized units.
 
@@ -36,10 +37,11 @@ def pose_uncertainty(
     misfit is treated as one error per pair, not as independent noise (which would shrink it
     by sqrt(pairs)): deformation errors are spatially correlated. Inf when nothing constrains.
     """
-    tree = cKDTree(source)  # the voxelized source: ~3000 points, built in about a millisecond
+    # the voxelized source's index (the pipelines keep one per model); ~3000 points, built in about a millisecond
+    tree = source_index if source_index is not None else NearestIndex(source)
     T = np.asarray(T_norm, dtype=np.float64)
     q = (target - T[:3, 3]) @ T[:3, :3]  # target in the source frame: R^T (y - t)
-    dist, idx = tree.query(q, k=1)
+    dist, idx = tree.query(q)
     keep = dist < max_corr
     if keep.sum() < MIN_PAIRS:
         return float("inf")
@@ -73,9 +75,9 @@ def motion_jacobian(x: np.ndarray) -> np.ndarray:
     return A
 
 
-def pca_normals(points: np.ndarray, tree: cKDTree, at: np.ndarray) -> np.ndarray:
+def pca_normals(points: np.ndarray, tree: NearestIndex, at: np.ndarray) -> np.ndarray:
     """Unit normals at points[at] (sign arbitrary: covariances are quadratic in them) by PCA of neighbours."""
-    _, nb = tree.query(points[at], k=min(NORMAL_NEIGHBORS, len(points)))
+    _, nb = tree.query_k(points[at], min(NORMAL_NEIGHBORS, len(points)))
     local = points[nb] - points[nb].mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
     return vectors[:, :, 0]  # eigenvector of the smallest eigenvalue

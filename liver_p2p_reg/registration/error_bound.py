@@ -6,10 +6,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.confidence import motion_jacobian, pca_normals
+from liver_p2p_reg.registration.nearest import NearestIndex
 
 MAX_SOURCE = 3000  # preop points the fit's Hessian is built on (a stride sample: ~1 ms tree)
 MAX_VIEW = 2000  # intraop points kept to measure each point's distance from the visible patch
@@ -34,7 +34,7 @@ class PoseEvidence:
     residual_mm: float
     visibility: float
     interior_mm: np.ndarray  # (K, 3) where the pose-level bound is taken: fiducials or the shrunk surface
-    view_tree: cKDTree | None = None  # over view_mm, built once
+    view_tree: NearestIndex | None = None  # over view_mm, built once
     # the best-fitting rival hypothesis (another basin): its pose and residual / the best residual
     rival_T: np.ndarray | None = None
     rival_ratio: float = RIVAL_RATIO_CAP
@@ -50,8 +50,8 @@ class PoseEvidence:
 
     def lever_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """Distance of each point from the visible patch (mm): deformation the view cannot see grows with it."""
-        tree = self.view_tree if self.view_tree is not None else cKDTree(self.view_mm)
-        dist, _ = tree.query(np.asarray(points_mm, float), k=1)
+        tree = self.view_tree if self.view_tree is not None else NearestIndex(self.view_mm)
+        dist, _ = tree.query(np.asarray(points_mm, float))
         return dist
 
     def features(self, points_mm: np.ndarray) -> np.ndarray:
@@ -103,8 +103,8 @@ def pose_evidence(
     if interior_mm is None or len(interior_mm) == 0:
         centroid = source.mean(axis=0)
         interior_mm = centroid + INTERIOR_SHRINK * (source[:: max(1, len(source) // 300)] - centroid)
-    tree = cKDTree(source)
-    dist, idx = tree.query(view, k=1)
+    tree = NearestIndex(source)
+    dist, idx = tree.query(view)
     centre = view.mean(axis=0)
     cov, sigma = np.full((6, 6), np.inf), float("nan")
     keep = np.flatnonzero(dist <= 3.0 * max(float(np.median(dist)), 1e-6))
@@ -132,7 +132,7 @@ def pose_evidence(
         residual_mm=float(residual_mm),
         visibility=float(visibility),
         interior_mm=np.asarray(interior_mm, float).reshape(-1, 3),
-        view_tree=cKDTree(view),
+        view_tree=NearestIndex(view),
         **_rival(T, hypotheses, interior_mm, residual_mm),
     )
 

@@ -23,7 +23,12 @@ def uncertainty_mm(T_norm: np.ndarray, prep: PreprocessedPair, config: Config, t
     """
     t = time.perf_counter()
     value = pose_uncertainty(
-        T_norm, prep.source, prep.target, max_corr=config.icp_max_corr_norm, trim_ratio=config.icp_trim_ratio
+        T_norm,
+        prep.source,
+        prep.target,
+        max_corr=config.icp_max_corr_norm,
+        trim_ratio=config.icp_trim_ratio,
+        source_index=prep.source_tree,
     )
     times["confidence"] = lap_ms(t)
     return value * prep.source_norm.scale_mm

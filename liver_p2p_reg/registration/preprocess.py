@@ -6,7 +6,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
@@ -95,7 +94,7 @@ def statistical_inliers(points: np.ndarray, neighbors: int, std_ratio: float) ->
     k = min(neighbors, len(points) - 1)
     if k < 3 or std_ratio <= 0:
         return np.ones(len(points), dtype=bool)
-    dist, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+    dist, _ = NearestIndex(points).query_k(points, k + 1)
     mean_dist = dist[:, 1:].mean(axis=1)
     keep = mean_dist <= mean_dist.mean() + std_ratio * mean_dist.std()
     return keep if keep.sum() >= 0.5 * len(points) else np.ones(len(points), dtype=bool)

@@ -34,6 +34,22 @@ def test_distances_and_indices_equal_scipy_bit_for_bit(rng: np.random.Generator,
         assert far.any() and np.isinf(dist[far]).all() and (idx[far] == len(cloud)).all()
 
 
+@pytest.mark.parametrize("backend", ["pykdtree", "scipy"])
+def test_k_nearest_distances_equal_scipy_bit_for_bit(rng: np.random.Generator, backend: str) -> None:
+    cloud = rng.normal(size=(3000, 3))
+    dist, idx = NearestIndex(cloud, backend=backend).query_k(cloud[:700], 21)
+    want_dist, want_idx = cKDTree(cloud).query(cloud[:700], k=21)
+    assert dist.shape == idx.shape == (700, 21) and idx.dtype == np.intp
+    np.testing.assert_array_equal(dist, want_dist)  # what the outlier filter and the descriptors average
+    np.testing.assert_array_equal(idx, want_idx)  # no exactly equidistant points in a random cloud
+    np.testing.assert_array_equal(idx[:, 0], np.arange(700))  # each cloud point is its own nearest
+    one_dist, one_idx = NearestIndex(cloud, backend=backend).query_k(cloud[:5] + 0.01, 1)
+    assert one_dist.shape == one_idx.shape == (5, 1)
+    for bad_k in (0, 3001):
+        with pytest.raises(ValueError, match="1 <= k <= 3000"):
+            NearestIndex(cloud, backend=backend).query_k(cloud[:5], bad_k)
+
+
 def test_scipy_backend_and_edge_cases(rng: np.random.Generator) -> None:
     cloud = rng.normal(size=(50, 3))
     index = NearestIndex(cloud, backend="scipy")

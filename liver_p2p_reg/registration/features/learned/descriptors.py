@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from liver_p2p_reg.registration.nearest import NearestIndex
 
 # Gaussian neighbourhood scales in normalized units (voxel 0.04): fine, medium, coarse.
 SCALES_NORM = (0.05, 0.09, 0.16)
@@ -22,9 +23,7 @@ def local_features(points: np.ndarray, scales: tuple[float, ...] = SCALES_NORM) 
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
     k = min(NEIGHBOURS, n)
-    dist, idx = cKDTree(pts).query(pts, k=k, workers=-1)
-    dist = dist.reshape(n, k)
-    idx = idx.reshape(n, k)
+    dist, idx = NearestIndex(pts).query_k(pts, k)
     offs = pts[idx] - pts[:, None, :]  # (N, k, 3) neighbour offsets
     # Second moments once for all scales: each scale is then one weighted sum (a matmul).
     outer = (offs[:, :, :, None] * offs[:, :, None, :]).reshape(n, k, 9)
