@@ -167,8 +167,9 @@ def _info(args: argparse.Namespace, config: Config, bags: list[Path], minute_s: 
     return {
         "command": ("" if omp is None else f"OMP_NUM_THREADS={omp} ") + "liver-p2p soak " + " ".join(parts),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        # the nodes inherit this process's environment; importing the ROS adapters set the wait policy's default
         "machine": f"{cpu_model()}, {usable} usable cores, OMP_NUM_THREADS={omp or 'unset'}, "
-        f"liver_p2p_reg {code_version()}",
+        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, liver_p2p_reg {code_version()}",
         "load_start": load,
         "node": f"method `{config.method}`",
         "bags": [b.name.removesuffix(".mcap") for b in bags],
