@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -87,3 +91,43 @@ def test_icp_on_either_backend_gives_the_same_pose_bits(rng: np.random.Generator
         return 100.0 * float(np.abs(transform_points(T, source) - transform_points(T_true, source)).max())
 
     assert worst_mm(start) > 6.0 and worst_mm(poses[0]) < 2.0
+
+
+def test_a_forked_child_searches_without_blocking_and_gets_the_same_answers(rng: np.random.Generator) -> None:
+    # pykdtree's libgomp is not fork-safe: after the parent's first query, a forked child's query
+    # blocked forever (a DataLoader worker after a registration in the same process did, in CI)
+    cloud = rng.normal(size=(20000, 3))
+    queries = rng.normal(size=(5000, 3))
+    inherited = NearestIndex(cloud)
+    want_dist, want_idx = inherited.query_k(queries, 8)  # the parent's libgomp now has its threads
+    pid = os.fork()
+    if pid == 0:  # the child: an index it inherited, one it builds, both kinds of search
+        ok = False
+        try:
+            fresh = NearestIndex(cloud)
+            answers = []
+            for index in (inherited, fresh):
+                (dist, idx), (one_dist, one_idx) = index.query_k(queries, 8), index.query(queries)
+                answers.append(
+                    index.backend == "scipy"
+                    and np.array_equal(dist, want_dist)
+                    and np.array_equal(idx, want_idx)
+                    and np.array_equal(one_dist, want_dist[:, 0])
+                    and np.array_equal(one_idx, want_idx[:, 0])
+                )
+            ok = all(answers)
+        finally:
+            code = 0 if ok else 1
+            os._exit(code)
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            assert os.waitstatus_to_exitcode(status) == 0, "the child's answers differ from the parent's"
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        pytest.fail("a forked child's nearest-point search blocked for 60 s")
+    assert inherited.backend == "pykdtree"  # the parent keeps the fast path
