@@ -27,6 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from liver_p2p_reg.bench.cases import add_target_noise, case_info, read_case, resolve_dataset
+from liver_p2p_reg.bench.sysinfo import cpu_model
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.phantom.testset import testset_cases
 from liver_p2p_reg.registration.registrar import Registrar
@@ -107,7 +108,7 @@ def report(records: dict[str, list[dict]], methods: list[str], command: str, thr
     """The markdown block: medians per method and stage, per bin, and the per-case ratio."""
     ref, default = methods[0], methods[-1]
     lines = [
-        f"Generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {os.cpu_count()} CPUs "
+        f"Generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {os.cpu_count()} CPUs ({cpu_model()}) "
         f"(load average at the end {os.getloadavg()[0]:.2f}), {threads} torch threads, "
         f"{len(records[ref])} cases, source cached.",
         "",

@@ -37,6 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from liver_p2p_reg.bags.player import read_raw  # noqa: E402
+from liver_p2p_reg.bench.sysinfo import cpu_model  # noqa: E402
 from liver_p2p_reg.livegraph.demo import model_files, run_bag  # noqa: E402
 from liver_p2p_reg.livegraph.graph import GraphProbe, NodeProcess, set_isolated_environment, values_of  # noqa: E402
 from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m, points_to_cloud  # noqa: E402
@@ -156,6 +157,7 @@ def measure(out: Path, idle_s: float, flood_s: float) -> dict:
         "sigint_exit_s": round(stop_s, 2),
         "omp_num_threads": os.environ.get("OMP_NUM_THREADS", "unset"),
         "cpus": os.cpu_count(),
+        "cpu": cpu_model(),
     }
 
 
@@ -184,7 +186,7 @@ def main() -> int:
     if args.readme:
         command = f"OMP_NUM_THREADS=2 .venv/bin/python scripts/bench_ros_graph.py --readme {args.readme}"
         block = (
-            f"{BEGIN}\nMeasured with `{command}` on {report['cpus']} CPUs, OMP_NUM_THREADS={report['omp_num_threads']}, "
+            f"{BEGIN}\nMeasured with `{command}` on {report['cpus']} CPUs ({report['cpu']}), OMP_NUM_THREADS={report['omp_num_threads']}, "
             f"{report['poses']}/{report['clouds']} clouds of {report['bags']} bags got a pose, "
             f"{report['full_registrations']} full registrations, "
             f"{report['flood_clouds_1M_points_10Hz']} clouds of 1 M points in the flood; SIGINT: exit "
