@@ -169,7 +169,9 @@ def _info(args: argparse.Namespace, config: Config, bags: list[Path], minute_s: 
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         # the nodes inherit this process's environment; importing the ROS adapters set the wait policy's default
         "machine": f"{cpu_model()}, {usable} usable cores, OMP_NUM_THREADS={omp or 'unset'}, "
-        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, liver_p2p_reg {code_version()}",
+        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
+        + (f"GOMP_SPINCOUNT={spin}, " if (spin := os.environ.get("GOMP_SPINCOUNT")) else "")
+        + f"liver_p2p_reg {code_version()}",
         "load_start": load,
         "node": f"method `{config.method}`",
         "bags": [b.name.removesuffix(".mcap") for b in bags],

@@ -29,6 +29,7 @@ from liver_p2p_reg.bags.recorder import recording_path
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.registration.methods import check_method_name
+from liver_p2p_reg.ros import openmp_wait_warning
 from liver_p2p_reg.ros.messages import (
     feed_intraop_fiducials_msg,
     feed_intraop_msg,
@@ -123,6 +124,8 @@ class RegisterWiring(RegisterOutputs):
             self.tf_broadcaster = TransformBroadcaster(self)
         except ImportError:
             self.get_logger().info("tf2_ros not importable: publishing /registration/transform only, no /tf")
+        if (spinning := openmp_wait_warning()) is not None:
+            self.get_logger().warning(spinning)
         self._worker = threading.Thread(target=self._work, name="registration", daemon=True)
         self._worker.start()
 
