@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
 import zipfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -272,7 +273,9 @@ def generate_dataset(
             rows_by_liver[job[1]] = _generate_liver(job)
             bar.update(1)
     else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        # spawned, not forked: torch's, Open3D's and pykdtree's OpenMP threads do not survive a fork, and a
+        # forked child's first parallel region blocks forever once the parent has used them
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
             for job, rows in zip(jobs, pool.map(_generate_liver, jobs), strict=True):
                 rows_by_liver[job[1]] = rows
                 bar.update(1)

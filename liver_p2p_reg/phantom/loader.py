@@ -10,6 +10,7 @@ and target, then a fresh crop, pose and noise: the same target pipeline as the t
 from __future__ import annotations
 
 import json
+import multiprocessing
 from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -121,7 +122,8 @@ def _run_jobs(fn, jobs: list, workers: int, progress: bool) -> None:
                 fn(job)
                 bar.update(1)
         else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            # spawned, not forked: OpenMP runtimes the parent has used block a forked child (dataset.py)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
                 for _ in pool.map(fn, jobs):
                     bar.update(1)
 

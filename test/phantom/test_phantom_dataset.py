@@ -112,6 +112,23 @@ def test_pair_sampler_draws_valid_pairs(tmp_path) -> None:
         PairSampler(tmp_path / "nowhere", seed=0)
 
 
+def test_a_store_built_by_worker_processes_equals_one_built_in_process(tmp_path) -> None:
+    # the parent's torch threads are started first, as in a process that registered before: a forked child's
+    # first OpenMP region would block forever (the workers are spawned; today's store code uses no OpenMP)
+    import torch
+
+    torch.ones(256, 256) @ torch.ones(256, 256)
+    kwargs = dict(livers=2, deformations=1, seed=5, target_tets=1500, progress=False)
+    one = build_store(tmp_path / "one", workers=1, **kwargs)
+    two = build_store(tmp_path / "two", workers=2, **kwargs)
+    names = sorted(p.name for p in one.glob("liver_*.npz"))
+    assert len(names) == 2 and names == sorted(p.name for p in two.glob("liver_*.npz"))
+    for name in names:
+        with np.load(one / name) as a, np.load(two / name) as b:
+            assert sorted(a.files) == sorted(b.files)
+            assert all(np.array_equal(a[k], b[k]) for k in a.files)
+
+
 def _cli(argv: list[str]) -> int:
     parser = argparse.ArgumentParser()
     dataset_cmd.add_parser(parser.add_subparsers())
