@@ -51,7 +51,13 @@ class NearestIndex:
     def _fork_safe(self) -> None:
         """Swap an index inherited across a fork to scipy before its first search in the child."""
         if _in_forked_child and self.backend == "pykdtree":
-            self.backend, self._tree = "scipy", cKDTree(self.points)
+            # the tree before the name: another thread that reads "scipy" must find a cKDTree there
+            self._tree = cKDTree(self.points)
+            self.backend = "scipy"
+
+    def __reduce__(self) -> tuple:
+        """Pickled as its cloud and backend (pykdtree's tree cannot be): rebuilt where it is unpickled."""
+        return NearestIndex, (self.points, self.backend)
 
     def __len__(self) -> int:
         return len(self.points)

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
 
 from liver_p2p_reg.cli import dataset_cmd
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.phantom import dataset as dataset_module
+from liver_p2p_reg.phantom import loader as loader_module
 from liver_p2p_reg.phantom.casefile import read_case, write_case
 from liver_p2p_reg.phantom.dataset import DatasetSpec, generate_dataset, make_case
 from liver_p2p_reg.phantom.loader import PairSampler, build_store
@@ -76,10 +80,26 @@ def test_bad_case_arguments(sim, tmp_path) -> None:
         read_case(tmp_path / "junk.npz")
 
 
-def test_generation_is_identical_for_any_worker_count_and_resumes(tmp_path) -> None:
+def _record_start_methods(monkeypatch, module) -> list[str]:
+    """Have `module`'s process pools note how they start their workers (then start them as asked)."""
+    methods: list[str] = []
+
+    class Recording(ProcessPoolExecutor):
+        def __init__(self, *args, mp_context=None, **kwargs) -> None:
+            methods.append(mp_context.get_start_method() if mp_context else multiprocessing.get_start_method())
+            super().__init__(*args, mp_context=mp_context, **kwargs)
+
+    monkeypatch.setattr(module, "ProcessPoolExecutor", Recording)
+    return methods
+
+
+def test_generation_is_identical_for_any_worker_count_and_resumes(tmp_path, monkeypatch) -> None:
     spec = dict(livers=2, deformations=1, targets=2, seed=3, target_tets=1500)
     m1 = generate_dataset(tmp_path / "w1", DatasetSpec(**spec), workers=1, progress=False)
+    methods = _record_start_methods(monkeypatch, dataset_module)
     m2 = generate_dataset(tmp_path / "w2", DatasetSpec(**spec), workers=2, progress=False)
+    # spawned, never forked: a forked child blocks in its first OpenMP region once the parent has used it
+    assert methods == ["spawn"]
     rows1, rows2 = read_manifest(m1.parent), read_manifest(m2.parent)
     assert rows1 == rows2 and len(rows1) == 4
     for row in rows1:
@@ -112,15 +132,12 @@ def test_pair_sampler_draws_valid_pairs(tmp_path) -> None:
         PairSampler(tmp_path / "nowhere", seed=0)
 
 
-def test_a_store_built_by_worker_processes_equals_one_built_in_process(tmp_path) -> None:
-    # the parent's torch threads are started first, as in a process that registered before: a forked child's
-    # first OpenMP region would block forever (the workers are spawned; today's store code uses no OpenMP)
-    import torch
-
-    torch.ones(256, 256) @ torch.ones(256, 256)
+def test_a_store_built_by_worker_processes_equals_one_built_in_process(tmp_path, monkeypatch) -> None:
     kwargs = dict(livers=2, deformations=1, seed=5, target_tets=1500, progress=False)
     one = build_store(tmp_path / "one", workers=1, **kwargs)
+    methods = _record_start_methods(monkeypatch, loader_module)
     two = build_store(tmp_path / "two", workers=2, **kwargs)
+    assert methods == ["spawn"]  # as generate_dataset's pool
     names = sorted(p.name for p in one.glob("liver_*.npz"))
     assert len(names) == 2 and names == sorted(p.name for p in two.glob("liver_*.npz"))
     for name in names:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 import signal
 import time
 
@@ -131,3 +132,14 @@ def test_a_forked_child_searches_without_blocking_and_gets_the_same_answers(rng:
         os.waitpid(pid, 0)
         pytest.fail("a forked child's nearest-point search blocked for 60 s")
     assert inherited.backend == "pykdtree"  # the parent keeps the fast path
+
+
+@pytest.mark.parametrize("backend", ["pykdtree", "scipy"])
+def test_an_index_pickles_as_its_cloud_and_answers_the_same(rng: np.random.Generator, backend: str) -> None:
+    # what a spawned worker process receives: pykdtree's tree itself has no pickled form
+    index = NearestIndex(rng.normal(size=(500, 3)), backend=backend)
+    queries = rng.normal(size=(50, 3))
+    again = pickle.loads(pickle.dumps(index))
+    assert again.backend == backend and np.array_equal(again.points, index.points)
+    for a, b in zip(again.query_k(queries, 4), index.query_k(queries, 4), strict=True):
+        np.testing.assert_array_equal(a, b)
