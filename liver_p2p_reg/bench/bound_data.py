@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +14,7 @@ from liver_p2p_reg.bench.harness import omp_threads
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import transform_points
+from liver_p2p_reg.pools import spawn_pool
 from liver_p2p_reg.registration.error_bound import FEATURES
 
 # Verdict reasons recorded per pose besides the bound itself (which the calibration decides afterwards).
@@ -37,7 +36,7 @@ def collect_set(folder: Path, noise_mm: float, config: Config, workers: int, pro
             rows.append(collect_case(info, config_dict))
             bar.update()
     else:
-        with omp_threads(1), ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with omp_threads(1), spawn_pool(workers) as pool:
             for row in pool.map(collect_case, infos, [config_dict] * len(infos), chunksize=4):
                 rows.append(row)
                 bar.update()

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import logging
 import math
-import multiprocessing
 import os
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from contextlib import contextmanager
 from typing import Any
 
@@ -29,6 +28,7 @@ from liver_p2p_reg.bench.jobs import (
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm, tre_mm
+from liver_p2p_reg.pools import spawn_pool
 from liver_p2p_reg.registration.registrar import Registrar
 
 log = logging.getLogger(__name__)
@@ -217,8 +217,7 @@ def _run_parallel(spec: BenchmarkSpec, todo: list, config_dict: dict, store: Csv
     # Spawned workers each get 1 torch / BLAS thread so W workers use W cores, not W x cores.
     threads = spec.config.num_threads or 1
     with omp_threads(threads):
-        ctx = multiprocessing.get_context("spawn")
-        pool = ProcessPoolExecutor(spec.workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,))
+        pool = spawn_pool(spec.workers, initializer=_init_worker, initargs=(threads,))
         try:
             futures = [pool.submit(run_one, case, variant, config_dict) for case, variant in todo]
             for fut in as_completed(futures):

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import zipfile
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +24,7 @@ from liver_p2p_reg.phantom.casefile import SENSOR_ORIGIN_KEY, TRIANGLES_KEY, rea
 from liver_p2p_reg.phantom.crop import CROP_MODES, make_target
 from liver_p2p_reg.phantom.manifest import manifest_row, read_manifest, write_manifest
 from liver_p2p_reg.phantom.simulate import DEFORMATION_FAMILIES, SimulatedLiver, simulate_liver
+from liver_p2p_reg.pools import spawn_pool
 from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 log = logging.getLogger(__name__)
@@ -273,9 +272,7 @@ def generate_dataset(
             rows_by_liver[job[1]] = _generate_liver(job)
             bar.update(1)
     else:
-        # spawned, not forked: torch's, Open3D's and pykdtree's OpenMP threads do not survive a fork, and a
-        # forked child's first parallel region blocks forever once the parent has used them
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with spawn_pool(workers) as pool:
             for job, rows in zip(jobs, pool.map(_generate_liver, jobs), strict=True):
                 rows_by_liver[job[1]] = rows
                 bar.update(1)

@@ -10,10 +10,8 @@ and target, then a fresh crop, pose and noise: the same target pipeline as the t
 from __future__ import annotations
 
 import json
-import multiprocessing
 from collections import OrderedDict
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +28,7 @@ from liver_p2p_reg.phantom.dataset import (
     liver_id_for,
 )
 from liver_p2p_reg.phantom.simulate import SimulatedLiver, simulate_liver
+from liver_p2p_reg.pools import spawn_pool
 from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 STORE_VERSION = 1
@@ -122,8 +121,7 @@ def _run_jobs(fn, jobs: list, workers: int, progress: bool) -> None:
                 fn(job)
                 bar.update(1)
         else:
-            # spawned, not forked: OpenMP runtimes the parent has used block a forked child (dataset.py)
-            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            with spawn_pool(workers) as pool:
                 for _ in pool.map(fn, jobs):
                     bar.update(1)
 

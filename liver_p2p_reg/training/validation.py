@@ -8,8 +8,6 @@ validation costs seconds while the data-loading workers wait anyway.
 from __future__ import annotations
 
 import contextlib
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +15,7 @@ import numpy as np
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import rms_tre_mm
+from liver_p2p_reg.pools import spawn_pool
 
 FAILED_MM = 1e3  # a failed registration counts as this error
 LOW_VISIBILITY = 0.35
@@ -115,8 +114,7 @@ class Validator:
         self.version = 0
         self.pool = None
         if workers > 1:
-            ctx = multiprocessing.get_context("spawn")
-            self.pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(cases,))
+            self.pool = spawn_pool(workers, initializer=_init_worker, initargs=(cases,))
 
     def __call__(self, model: Any) -> dict[str, float]:
         from liver_p2p_reg.registration.features.learned.weights import save_weights

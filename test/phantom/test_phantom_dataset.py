@@ -9,10 +9,9 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import pytest
 
+from liver_p2p_reg import pools
 from liver_p2p_reg.cli import dataset_cmd
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.phantom import dataset as dataset_module
-from liver_p2p_reg.phantom import loader as loader_module
 from liver_p2p_reg.phantom.casefile import read_case, write_case
 from liver_p2p_reg.phantom.dataset import DatasetSpec, generate_dataset, make_case
 from liver_p2p_reg.phantom.loader import PairSampler, build_store
@@ -80,8 +79,8 @@ def test_bad_case_arguments(sim, tmp_path) -> None:
         read_case(tmp_path / "junk.npz")
 
 
-def _record_start_methods(monkeypatch, module) -> list[str]:
-    """Have `module`'s process pools note how they start their workers (then start them as asked)."""
+def _record_start_methods(monkeypatch) -> list[str]:
+    """Have the package's process pools note how they start their workers (then start them as asked)."""
     methods: list[str] = []
 
     class Recording(ProcessPoolExecutor):
@@ -89,14 +88,14 @@ def _record_start_methods(monkeypatch, module) -> list[str]:
             methods.append(mp_context.get_start_method() if mp_context else multiprocessing.get_start_method())
             super().__init__(*args, mp_context=mp_context, **kwargs)
 
-    monkeypatch.setattr(module, "ProcessPoolExecutor", Recording)
+    monkeypatch.setattr(pools, "ProcessPoolExecutor", Recording)
     return methods
 
 
 def test_generation_is_identical_for_any_worker_count_and_resumes(tmp_path, monkeypatch) -> None:
     spec = dict(livers=2, deformations=1, targets=2, seed=3, target_tets=1500)
     m1 = generate_dataset(tmp_path / "w1", DatasetSpec(**spec), workers=1, progress=False)
-    methods = _record_start_methods(monkeypatch, dataset_module)
+    methods = _record_start_methods(monkeypatch)
     m2 = generate_dataset(tmp_path / "w2", DatasetSpec(**spec), workers=2, progress=False)
     # spawned, never forked: a forked child blocks in its first OpenMP region once the parent has used it
     assert methods == ["spawn"]
@@ -135,7 +134,7 @@ def test_pair_sampler_draws_valid_pairs(tmp_path) -> None:
 def test_a_store_built_by_worker_processes_equals_one_built_in_process(tmp_path, monkeypatch) -> None:
     kwargs = dict(livers=2, deformations=1, seed=5, target_tets=1500, progress=False)
     one = build_store(tmp_path / "one", workers=1, **kwargs)
-    methods = _record_start_methods(monkeypatch, loader_module)
+    methods = _record_start_methods(monkeypatch)
     two = build_store(tmp_path / "two", workers=2, **kwargs)
     assert methods == ["spawn"]  # as generate_dataset's pool
     names = sorted(p.name for p in one.glob("liver_*.npz"))
