@@ -1,4 +1,4 @@
-"""Process pools for the parallel commands: their workers are spawned, never forked."""
+"""Process pools and worker processes for the parallel commands: spawned, never forked."""
 
 from __future__ import annotations
 
@@ -7,10 +7,15 @@ from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 
-def spawn_pool(workers: int, **kwargs: Any) -> ProcessPoolExecutor:
-    """A pool of `workers` fresh interpreter processes; other keywords as ProcessPoolExecutor's.
+def spawn_context() -> multiprocessing.context.SpawnContext:
+    """The start method of every worker process the package starts (pools, the training loader's workers).
 
     Why spawn: torch's, Open3D's and pykdtree's OpenMP (libgomp) threads do not survive a fork, and
     a forked child blocks forever in its first parallel region of a runtime its parent has used.
     """
-    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), **kwargs)
+    return multiprocessing.get_context("spawn")
+
+
+def spawn_pool(workers: int, **kwargs: Any) -> ProcessPoolExecutor:
+    """A pool of `workers` fresh interpreter processes (spawn_context); other keywords as ProcessPoolExecutor's."""
+    return ProcessPoolExecutor(workers, mp_context=spawn_context(), **kwargs)

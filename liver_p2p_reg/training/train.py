@@ -18,6 +18,7 @@ import torch.nn.functional as F
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.pools import spawn_context
 from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
 from liver_p2p_reg.registration.features.learned.weights import load_weights, save_weights
 from liver_p2p_reg.registration.matching import dual_softmax, score_matrix
@@ -128,8 +129,15 @@ def train(
     scratch = tempfile.mkdtemp(prefix="liver_p2p_val_")  # the weights the validation workers read
     validator = Validator(validation_cases(cfg, val_files, real_dev), device, cfg.val_workers, Path(scratch))
     stream = PairStream(cfg, train_files, state["step"], voxel, real_train)
+    workers = cfg.loader_workers
     loader = torch.utils.data.DataLoader(
-        stream, batch_size=None, num_workers=cfg.loader_workers, prefetch_factor=4 if cfg.loader_workers else None
+        stream,
+        batch_size=None,
+        num_workers=workers,
+        prefetch_factor=4 if workers else None,
+        # spawned like every worker of the package (pools.py): a forked one would block in its first
+        # OpenMP region of a runtime this process has used (torch, Open3D, pykdtree)
+        multiprocessing_context=spawn_context() if workers else None,
     )
     csv_path = out / "log.csv"
     new_csv = not csv_path.exists()

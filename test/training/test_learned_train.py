@@ -94,6 +94,31 @@ def test_training_reproduces_its_first_steps_bitwise_from_the_seed(store: Path, 
     assert not all(torch.equal(weights[0][k], other[k]) for k in other)
 
 
+def test_a_loader_worker_process_trains_to_the_in_process_weights(
+    store: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = TrainConfig(
+        store_dir=str(store), val_livers=1, val_pairs=1, steps=2, val_every=2, checkpoint_every=2,
+        loader_workers=0, warmup_steps=1, crop_modes=["random"], model=dict(SMALL), seed=3,
+    )  # fmt: skip
+    train(cfg, tmp_path / "in_process", progress=False)
+    contexts: list = []
+    real_loader = torch.utils.data.DataLoader
+
+    def recording_loader(*args, **kwargs):  # torch's own loader, noting how it starts its workers
+        contexts.append(kwargs.get("multiprocessing_context"))
+        return real_loader(*args, **kwargs)
+
+    monkeypatch.setattr(torch.utils.data, "DataLoader", recording_loader)
+    cfg.loader_workers = 1
+    train(cfg, tmp_path / "worker", progress=False)
+    # spawned, never forked: a forked worker blocks in its first OpenMP region of a runtime the trainer used
+    assert [c.get_start_method() for c in contexts] == ["spawn"]
+    # worker 0 draws the in-process stream: the same pairs, so the same weights, bit for bit
+    a, b = (load_weights(tmp_path / run / "last.safetensors").state_dict() for run in ("in_process", "worker"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_bad_training_config_is_an_input_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     bad = tmp_path / "train.yaml"
     bad.write_text("stepz: 3\n")
