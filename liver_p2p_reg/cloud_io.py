@@ -19,8 +19,10 @@ LOG = logging.getLogger("liver_p2p_reg")
 POINT_FORMATS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".stl", ".obj", ".off", ".npy", ".npz")
 MESH_FORMATS = (".stl", ".obj", ".off", ".ply")
 TEXT_FORMATS = (".xyz", ".xyzn", ".pts")  # x y z [more columns] per line; .pts may start with a point count
-# NPZ keys tried in order when the caller names none (public P2P dataset names first).
-NPZ_POINT_KEYS = ("points", "src_pcd", "tgt_pcd", "xyz", "vertices")
+# The NPZ array read when the caller names none; without it an NPZ must hold one (N, 3) array of
+# coordinates. A dataset case holds two (src_pcd, tgt_pcd): picking one by a list of names read
+# the complete surface where the partial view was meant, so several arrays are refused instead.
+NPZ_POINTS_KEY = "points"
 MESH_SAMPLES_PER_MM2 = 0.5  # surface sampling density for meshes (about 1.4 mm spacing)
 MAX_MESH_SAMPLES = 200_000
 
@@ -30,7 +32,8 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0, samp
 
     Meshes (files with triangles) are sampled uniformly over their surface, together with
     their vertices, so coarse meshes still give a dense surface (sample_meshes=False: the
-    vertices only). Raises InputError.
+    vertices only). An NPZ gives its array `key`, else its array 'points', else its one (N, 3)
+    array of coordinates; with several it raises InputError naming them. Raises InputError.
     """
     path = check_point_file(path)
     suffix = path.suffix.lower()
@@ -64,14 +67,22 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0, samp
 
 def check_point_file(path: str | Path) -> Path:
     """The path, if it names an existing file of a format `load_points` reads; else InputError (reads nothing)."""
+    path = require_regular_file(path)
+    suffix = path.suffix.lower()
+    if suffix not in POINT_FORMATS:
+        raise InputError(f"unsupported format {suffix or '(none)'!r} for {path}; use one of {', '.join(POINT_FORMATS)}")
+    return path
+
+
+def require_regular_file(path: str | Path) -> Path:
+    """The path, if it names an existing regular file (or a link to one); else InputError (opens nothing)."""
     path = Path(path)
     if not path.exists():
         raise InputError(f"file not found: {path}")
     if path.is_dir():
         raise InputError(f"expected a file, got a directory: {path}")
-    suffix = path.suffix.lower()
-    if suffix not in POINT_FORMATS:
-        raise InputError(f"unsupported format {suffix or '(none)'!r} for {path}; use one of {', '.join(POINT_FORMATS)}")
+    if not path.is_file():  # opening a named pipe blocks until a writer comes; a device may never end
+        raise InputError(f"not a regular file: {path} (a pipe, socket or device cannot be read as points)")
     return path
 
 
@@ -81,10 +92,8 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     PLY and PCD are read in numpy (the same values Open3D gives, without its import); STL, OBJ,
     OFF and PLY/PCD layouts those readers leave out are read by Open3D.
     """
-    path = Path(path)
+    path = require_regular_file(path)
     suffix = path.suffix.lower()
-    if not path.exists():
-        raise InputError(f"file not found: {path}")
     if suffix == ".ply" and (mesh := read_ply(path)) is not None and len(mesh[0]) > 0:
         return mesh
     if suffix == ".pcd" and (cloud := read_pcd(path)) is not None and len(cloud) > 0:
@@ -203,17 +212,50 @@ def _load_text(path: Path) -> np.ndarray:
 
 
 def _load_numpy(path: Path, key: str | None) -> np.ndarray:
+    """The array of an NPY file, or the named / `NPZ_POINTS_KEY` / only point array of an NPZ; numbers only."""
     if path.suffix.lower() == ".npy":
-        return np.load(path, allow_pickle=False)
+        return _numeric(np.load(path, allow_pickle=False), str(path))
     with np.load(path, allow_pickle=False) as data:
         if key is not None:
             if key not in data:
                 raise InputError(f"{path}: no array named {key!r} (has: {', '.join(data.files)})")
-            return data[key]
-        for candidate in NPZ_POINT_KEYS:
-            if candidate in data:
-                return data[candidate]
-        for name in data.files:
-            if data[name].ndim == 2 and data[name].shape[1] == 3:
-                return data[name]
-    raise InputError(f"{path}: no (N, 3) array found")
+            return _numeric(data[key], f"{path} ({key})")
+        if NPZ_POINTS_KEY in data:
+            return _numeric(data[NPZ_POINTS_KEY], f"{path} ({NPZ_POINTS_KEY})")
+        name, array = _only_point_array(path, data)
+        return _numeric(array, f"{path} ({name})")
+
+
+def _only_point_array(path: Path, data: Any) -> tuple[str, np.ndarray]:
+    """The one (N, 3) array of an NPZ; coordinates (floats) win over integer (F, 3) arrays, a mesh's triangles."""
+    shaped: dict[str, np.ndarray] = {}
+    for name in data.files:
+        try:
+            array = data[name]
+        except ValueError:  # an object array: pickles are never loaded, and it holds no coordinates
+            continue
+        if array.ndim == 2 and array.shape[1] == 3:
+            shaped[name] = array
+    floats = [name for name, array in shaped.items() if array.dtype.kind == "f"]
+    choice = floats or list(shaped)
+    if len(choice) == 1:
+        return choice[0], shaped[choice[0]]
+    if not choice:
+        raise InputError(f"{path}: no (N, 3) array found (has: {', '.join(data.files) or 'none'})")
+    raise InputError(
+        f"{path} holds several point arrays ({', '.join(choice)}); save the one to read as "
+        f"{NPZ_POINTS_KEY!r} or alone (a dataset case: `liver-p2p bag make --case`)"
+    )
+
+
+def _numeric(array: np.ndarray, name: str) -> np.ndarray:
+    """`array` if it holds real numbers; InputError for complex, text, boolean or other values."""
+    kind = array.dtype.kind
+    if kind == "c":  # converting would drop the imaginary part with only a warning
+        raise InputError(f"{name}: complex numbers are not coordinates")
+    if kind not in "iuf":
+        what = {"U": "text", "S": "bytes", "b": "true/false values", "M": "dates", "m": "time spans"}.get(
+            kind, "records"
+        )
+        raise InputError(f"{name}: holds {what} ({array.dtype}), not coordinates")
+    return array

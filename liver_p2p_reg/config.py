@@ -58,6 +58,8 @@ MINIMUMS: dict[str, float] = {
     "deform_max_displacement_mm": 0,
     "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
 }
+# Open3D's random.seed() (RANSAC, FGR) takes a C int: a larger seed would pass NumPy and fail mid-registration.
+MAX_SEED = 2**31 - 1
 
 
 @dataclass
@@ -294,6 +296,8 @@ class Config(
             value = getattr(self, name)
             if not value >= minimum:  # `not >=` also catches NaN
                 raise InputError(f"{name} must be >= {minimum}, got {value}")
+        if not self.seed <= MAX_SEED:
+            raise InputError(f"seed must be in [0, {MAX_SEED}] (Open3D takes a 32-bit seed), got {self.seed}")
         if not 0 < self.voxel_size_norm <= 0.5:  # in a unit sphere a larger voxel leaves a handful of points
             raise InputError(f"voxel_size_norm must be in (0, 0.5], got {self.voxel_size_norm}")
         if not self.max_target_ratio >= 1:  # below 1 would refuse a full view of an undeformed liver

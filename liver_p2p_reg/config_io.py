@@ -11,33 +11,78 @@ import yaml
 from liver_p2p_reg.errors import InputError
 
 
+class UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML silently keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base`: its keys may be overridden below
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                duplicate = key in seen
+            except TypeError:  # an unhashable key: the base class reports it
+                break
+            if duplicate:
+                raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml_text(path: Path, what: str) -> Any:
+    """The YAML document in a file, parsed with `UniqueKeyLoader`; InputError (one line) if it cannot be."""
+    try:
+        return yaml.load(path.read_text(encoding="utf-8"), Loader=UniqueKeyLoader)  # a SafeLoader: no Python objects
+    except OSError as exc:
+        raise InputError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"{what} {path} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
+        ) from None
+    except yaml.YAMLError as exc:
+        raise InputError(f"{what} {path} is not valid YAML: {yaml_error_line(exc)}") from None
+
+
+def yaml_error_line(exc: yaml.YAMLError) -> str:
+    """A YAML error in one line, its problem and where ("duplicate key 'seed' (line 2)"), not PyYAML's excerpt."""
+    problem = getattr(exc, "problem", None)
+    mark = getattr(exc, "problem_mark", None)
+    if problem is None:
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    problem = " ".join(str(problem).split())
+    return f"{problem} (line {mark.line + 1})" if mark is not None else problem
+
+
 def read_yaml_mapping(path: str | Path, what: str = "config") -> dict[str, Any]:
     """The mapping in a YAML file: a plain one or a ROS 2 parameter file (`<node>: ros__parameters: ...`).
 
     `what` names the file in the one-line errors ("config", "training config").
     """
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as exc:
-        raise InputError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise InputError(f"{what} {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+    data = load_yaml_text(path, what) or {}
     if not isinstance(data, dict):
         raise InputError(f"{what} {path} must be a mapping of key: value lines")
-    return _flatten_ros_params(data)
+    return _flatten_ros_params(data, f"{what} {path}")
 
 
-def _flatten_ros_params(data: dict[str, Any]) -> dict[str, Any]:
-    """Accept `{node: {ros__parameters: {...}}}` as well as a plain mapping."""
-    for value in data.values():
-        if isinstance(value, dict) and "ros__parameters" in value:
-            merged: dict[str, Any] = {}
-            for node_block in data.values():
-                if isinstance(node_block, dict):
-                    merged.update(node_block.get("ros__parameters", {}))
-            return merged
-    return data
+def _flatten_ros_params(data: dict[str, Any], where: str) -> dict[str, Any]:
+    """Accept `{node: {ros__parameters: {...}}}` as well as a plain mapping; `where` names the file in errors."""
+    if not any(isinstance(value, dict) and "ros__parameters" in value for value in data.values()):
+        return data
+    merged: dict[str, Any] = {}
+    for node, block in data.items():
+        # In a ROS parameter file every top-level entry is a node's block: a plain `key: value`
+        # beside them would be ignored by ROS and by this merge, so it is refused, not dropped.
+        if not isinstance(block, dict) or "ros__parameters" not in block:
+            raise InputError(f"{where}: {node!r} is not a node's `ros__parameters:` block (in a ROS parameter file)")
+        params = block["ros__parameters"]
+        if params is None:  # `ros__parameters:` with nothing under it
+            continue
+        if not isinstance(params, dict):
+            raise InputError(f"{where}: {node}.ros__parameters must be a mapping of key: value lines, got {params!r}")
+        merged.update(params)
+    return merged
 
 
 def _coerce(name: str, value: Any, kind: type) -> Any:

@@ -4,7 +4,9 @@ Open3D's own PLY (rply) and PCD readers hand every coordinate over as a float64:
 float32 values widened, ASCII words parsed as doubles whatever the declared type. These
 readers do the same, so a cloud loads to the same bits with or without Open3D. Layouts they do
 not cover (polygons other than triangles, list properties on vertices, compressed PCD, ...)
-return None, and the caller falls back to Open3D.
+return None, and the caller falls back to Open3D. A file that cannot hold what its header declares
+(truncated, or a point without x, y or z) is refused with an InputError before either reader runs:
+Open3D would fill the missing values with zeros or leave them uninitialized.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
+from liver_p2p_reg.errors import InputError
 
 PLY_SCALARS = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -28,12 +32,29 @@ class _Unsupported(Exception):
     """A layout these readers leave to Open3D."""
 
 
+class _Truncated(Exception):
+    """The body ends inside row `index` of element `name` (of `count` declared)."""
+
+    def __init__(self, name: str, count: int, index: int) -> None:
+        super().__init__(name, count, index)
+        self.name, self.count, self.index = name, count, index
+
+
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(vertices (V, 3) float64, triangles (F, 3) int64) of a PLY file; None: let Open3D read it."""
+    """(vertices (V, 3) float64, triangles (F, 3) int64) of a PLY file; None: let Open3D read it.
+
+    Raises InputError for a file whose body is shorter than its header declares or whose
+    vertices lack x, y or z, whichever reader would have read it.
+    """
     data = path.read_bytes()
     try:
         header, body = _split_header(data, b"end_header")
-        fmt, elements = _ply_header(header)
+        fmt, elements = _ply_elements(header)
+    except (_Unsupported, ValueError, IndexError, KeyError):
+        return None
+    _check_ply(path, fmt, elements, body)
+    try:
+        _check_supported(elements)
         if fmt == "ascii":
             return _ply_ascii(body, elements)
         return _ply_binary(body, elements, PLY_FORMATS[fmt])
@@ -52,8 +73,8 @@ def _split_header(data: bytes, end: bytes) -> tuple[list[str], bytes]:
     return lines, data[newline + 1 :]
 
 
-def _ply_header(lines: list[str]) -> tuple[str, list[tuple[str, int, list[tuple[str, ...]]]]]:
-    """Format and [(element, count, [(kind, name, dtype[, index dtype]), ...]), ...]."""
+def _ply_elements(lines: list[str]) -> tuple[str, list[tuple[str, int, list[tuple[str, ...]]]]]:
+    """Format and [(element, count, [(kind, name, dtype[, count dtype]), ...]), ...] of any PLY header."""
     if not lines or lines[0].strip() != "ply":
         raise _Unsupported("not a PLY header")
     fmt = ""
@@ -75,22 +96,148 @@ def _ply_header(lines: list[str]) -> tuple[str, list[tuple[str, int, list[tuple[
                 elements[-1][2].append(("scalar", words[2], PLY_SCALARS[words[1]]))
         else:
             raise _Unsupported(line)
+    if not fmt:
+        raise _Unsupported("no format line")
+    return fmt, elements
+
+
+def _check_ply(path: Path, fmt: str, elements: list, body: bytes) -> None:
+    """InputError unless the vertices have scalar x, y, z and the body holds every declared row."""
+    vertex = next((e for e in elements if e[0] == "vertex"), None)
+    if vertex is None:
+        raise InputError(f"cannot read {path}: its PLY header declares no vertex element")
+    scalars = [p[1] for p in vertex[2] if p[0] == "scalar"]
+    for axis in "xyz":
+        if axis not in scalars:
+            raise InputError(f"cannot read {path}: its vertices have no {axis!r} property (x, y and z are needed)")
+    for name, count, _ in elements:
+        if count < 0:
+            raise InputError(f"cannot read {path}: its PLY header declares {count} {name} elements")
+    try:
+        if fmt == "ascii":
+            _ascii_rows_end(body.split(), elements, vertex[1])
+        else:
+            _binary_rows_end(body, elements, PLY_FORMATS[fmt], vertex[1])
+    except _Truncated as cut:
+        raise InputError(
+            f"cannot read {path}: truncated: its header declares {cut.count} {cut.name} elements, "
+            f"the file ends in {cut.name} {cut.index}"
+        ) from None
+    except (ValueError, OverflowError) as exc:  # a bad list length or face: Open3D crashes on some
+        raise InputError(f"cannot read {path}: malformed PLY body ({exc})") from None
+
+
+def _check_faces(name: str, prop: tuple[str, ...], first: int, indices: np.ndarray, n_vertices: int) -> None:
+    """ValueError unless these faces (rows from `first`) have >= 3 indices, each of an existing vertex.
+
+    Open3D's reader crashes the process (segmentation fault) on a face of no index.
+    """
+    if name != "face" or prop[1] not in FACE_LISTS:
+        return
+    if indices.shape[-1] < 3:
+        raise ValueError(f"face {first} has {indices.shape[-1]} vertex indices, a face needs 3 or more")
+    bad = (indices < 0) | (indices >= n_vertices)
+    if bad.any():
+        row = int(np.argmax(bad.any(axis=-1)))
+        raise ValueError(f"face {first + row} refers to vertex {indices[row][bad[row]][0]} of {n_vertices}")
+
+
+def _binary_rows_end(body: bytes, elements: list, order: str, n_vertices: int) -> int:
+    """Byte offset where the declared rows of all elements end; _Truncated if the body ends before."""
+    offset = 0
+    for name, count, props in elements:
+        start, index = offset, 0
+        if all(p[0] == "scalar" for p in props):  # fixed-size rows: no walk needed
+            size = np.dtype([(f"p{i}", order + p[2]) for i, p in enumerate(props)]).itemsize
+            offset += count * size
+            if offset > len(body):
+                raise _Truncated(name, count, (len(body) - start) // max(size, 1))
+            continue
+        # Rows with lists: read as one record type while the lists keep one row's lengths (all
+        # triangles, all quads), so only a change of length costs a step. Each step looks at twice
+        # the last run's rows at most: mixed polygons stay linear.
+        limit = count
+        while index < count:
+            row_type = _binary_row_type(body, offset, props, order, name, count, index)
+            fit = min(count - index, (len(body) - offset) // row_type.itemsize, limit)
+            table = np.frombuffer(body, dtype=row_type, count=fit, offset=offset)
+            same = np.ones(fit, bool)
+            for i, p in enumerate(props):
+                if p[0] == "list":
+                    same &= table[f"n{i}"] == table[f"n{i}"][:1]
+            run = fit if same.all() else int(np.argmin(same))  # row 0 always matches itself: run >= 1
+            for i, p in enumerate(props):
+                if p[0] == "list":
+                    _check_faces(name, p, index, table[f"v{i}"][:run], n_vertices)
+            index, offset = index + run, offset + run * row_type.itemsize
+            limit = max(2 * run, 16)
+    return offset
+
+
+def _binary_row_type(body: bytes, offset: int, props: list, order: str, name: str, count: int, index: int) -> np.dtype:
+    """The record type of the row at `offset` (its lists' lengths read from it); _Truncated if it does not fit."""
+    fields, end = [], offset
+    for i, p in enumerate(props):
+        if p[0] == "scalar":
+            fields.append((f"p{i}", order + p[2]))
+            end += np.dtype(p[2]).itemsize
+            continue
+        count_type = np.dtype(order + p[3])
+        if end + count_type.itemsize > len(body):
+            raise _Truncated(name, count, index)
+        length = int(np.frombuffer(body, dtype=count_type, count=1, offset=end)[0])
+        if length < 0:
+            raise ValueError(f"{name} {index} has a list of length {length}")
+        fields += [(f"n{i}", count_type), (f"v{i}", order + p[2], (length,))]
+        end += count_type.itemsize + length * np.dtype(p[2]).itemsize
+    if end > len(body):
+        raise _Truncated(name, count, index)
+    return np.dtype(fields)
+
+
+def _ascii_rows_end(words: list[bytes], elements: list, n_vertices: int) -> int:
+    """Word index where the declared rows of all elements end; _Truncated if the body ends before."""
+    position = 0
+    for name, count, props in elements:
+        start = position
+        if all(p[0] == "scalar" for p in props):
+            position += count * len(props)
+            if position > len(words):
+                raise _Truncated(name, count, (len(words) - start) // max(len(props), 1))
+            continue
+        for index in range(count):  # ASCII is read word by word anyway: a row walk costs no more
+            for p in props:
+                if p[0] == "list":
+                    if position >= len(words):
+                        raise _Truncated(name, count, index)
+                    length = int(float(words[position]))
+                    if length < 0:
+                        raise ValueError(f"{name} {index} has a list of length {length}")
+                    if position + 1 + length > len(words):
+                        raise _Truncated(name, count, index)
+                    if name == "face" and p[1] in FACE_LISTS:
+                        row = [int(float(w)) for w in words[position + 1 : position + 1 + length]]
+                        _check_faces(name, p, index, np.array([row], np.int64), n_vertices)
+                    position += length
+                position += 1
+            if position > len(words):
+                raise _Truncated(name, count, index)
+    return position
+
+
+def _check_supported(elements: list) -> None:
+    """_Unsupported unless the layout is one vertex element (scalars) and at most one triangle-list face element."""
     names = [e[0] for e in elements]
-    if (
-        not fmt
-        or names[:1] != ["vertex"]
-        or any(n not in ("vertex", "face") for n in names)
-        or len(set(names)) < len(names)
-    ):
+    if names[:1] != ["vertex"] or any(n not in ("vertex", "face") for n in names) or len(set(names)) < len(names):
         raise _Unsupported("elements other than one vertex and one face element")
     vertex_props = elements[0][2]
-    if any(p[0] != "scalar" for p in vertex_props) or [p[1] for p in vertex_props if p[1] in "xyz"] != ["x", "y", "z"]:
-        raise _Unsupported("vertex without scalar x, y, z")
+    axes = [p[1] for p in vertex_props if p[1] in ("x", "y", "z")]
+    if any(p[0] != "scalar" for p in vertex_props) or axes != ["x", "y", "z"]:
+        raise _Unsupported("vertex without scalar x, y, z in this order")
     if len(elements) == 2:
         face_props = elements[1][2]
         if len(face_props) != 1 or face_props[0][0] != "list" or face_props[0][1] not in FACE_LISTS:
             raise _Unsupported("face element other than one vertex index list")
-    return fmt, elements
 
 
 def _xyz_columns(props: list[tuple[str, ...]]) -> list[int]:
@@ -136,7 +283,10 @@ def _ply_binary(body: bytes, elements: list, order: str) -> tuple[np.ndarray, np
 
 
 def read_pcd(path: Path) -> np.ndarray | None:
-    """(N, 3) float64 x, y, z of an ASCII or binary PCD file; None: let Open3D read it."""
+    """(N, 3) float64 x, y, z of an ASCII or binary PCD file; None: let Open3D read it.
+
+    Raises InputError for a file without x, y or z fields or with fewer points than its header declares.
+    """
     data = path.read_bytes()
     try:
         stop = data.find(b"DATA", 0, MAX_HEADER_BYTES)
@@ -152,15 +302,22 @@ def read_pcd(path: Path) -> np.ndarray | None:
         counts = fields.get("COUNT", ["1"] * len(names))
         n_points = int(fields["POINTS"][0])
         body = data[newline + 1 :]
-        if any(c != "1" for c in counts) or [n for n in names if n in "xyz"] != ["x", "y", "z"]:
+        record_bytes = sum(int(s) * int(c) for s, c in zip(sizes, counts, strict=True))
+        words_per_point = sum(int(c) for c in counts)
+        storage = fields["DATA"][0]
+    except (ValueError, IndexError, KeyError, TypeError, UnicodeDecodeError):
+        return None
+    _check_pcd(path, names, n_points, storage, body, record_bytes, words_per_point)
+    try:
+        if any(c != "1" for c in counts) or [n for n in names if n in ("x", "y", "z")] != ["x", "y", "z"]:
             return None
         columns = [names.index(axis) for axis in "xyz"]
-        if fields["DATA"][0] == "ascii":
+        if storage == "ascii":
             rows = [line.split() for line in body.decode("ascii").splitlines() if line.strip()][:n_points]
             if len(rows) != n_points or any(len(r) != len(names) for r in rows):
                 return None
             return np.array([[float(r[i]) for i in columns] for r in rows], dtype=np.float64).reshape(-1, 3)
-        if fields["DATA"][0] != "binary":
+        if storage != "binary":
             return None  # binary_compressed (LZF)
         kinds = {"F": "f", "I": "i", "U": "u"}
         record = np.dtype([(f"p{i}", "<" + kinds[t] + s) for i, (t, s) in enumerate(zip(types, sizes, strict=True))])
@@ -168,6 +325,25 @@ def read_pcd(path: Path) -> np.ndarray | None:
         return np.stack([table[f"p{i}"].astype(np.float64) for i in columns], axis=1)
     except (ValueError, IndexError, KeyError, TypeError, UnicodeDecodeError):
         return None
+
+
+def _check_pcd(
+    path: Path, names: list[str], n_points: int, storage: str, body: bytes, record_bytes: int, words_per_point: int
+) -> None:
+    """InputError unless the points have x, y, z fields and the body holds the declared points (ASCII, binary)."""
+    for axis in "xyz":
+        if axis not in names:
+            raise InputError(f"cannot read {path}: its points have no {axis!r} field (x, y and z are needed)")
+    if n_points < 0:
+        raise InputError(f"cannot read {path}: its PCD header declares {n_points} points")
+    if storage == "binary":
+        held = len(body) // max(record_bytes, 1)
+    elif storage == "ascii":  # one point per line; a line cut short is no point
+        held = sum(1 for line in body.splitlines() if len(line.split()) >= words_per_point)
+    else:
+        return  # binary_compressed: its own sizes are checked by Open3D's LZF reader
+    if held < n_points:
+        raise InputError(f"cannot read {path}: truncated: its header declares {n_points} points, the file holds {held}")
 
 
 def write_ply(path: Path, points: np.ndarray) -> None:

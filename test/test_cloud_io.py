@@ -30,10 +30,20 @@ def test_npz_keys(tmp_path: Path, rng: np.random.Generator) -> None:
     pts = _blob(rng)
     path = tmp_path / "case.npz"
     np.savez(path, src_pcd=pts, tgt_pcd=pts[:100])
-    np.testing.assert_array_equal(load_points(path), pts)
+    # A dataset case holds the complete surface and the partial view: no array is picked by name
+    # (the target used to be read as src_pcd, the complete surface), the choice is the user's.
+    with pytest.raises(InputError, match=r"case.npz holds several point arrays \(src_pcd, tgt_pcd\)") as info:
+        load_points(path)
+    assert "\n" not in str(info.value)
     np.testing.assert_array_equal(load_points(path, key="tgt_pcd"), pts[:100])
     with pytest.raises(InputError, match="no array named"):
         load_points(path, key="nope")
+    np.savez(path, src_pcd=pts, points=pts[:50])  # the documented key wins
+    np.testing.assert_array_equal(load_points(path), pts[:50])
+    np.savez(path, surface=pts[:70], labels=np.arange(70))  # the one (N, 3) array, whatever its name
+    np.testing.assert_array_equal(load_points(path), pts[:70])
+    np.savez(path, vertices=pts, triangles=np.zeros((9, 3), np.int32))  # a mesh: its triangles are no points
+    np.testing.assert_array_equal(load_points(path), pts)
 
 
 def test_mesh_is_sampled_over_its_surface(tmp_path: Path) -> None:
@@ -185,3 +195,145 @@ def test_pts_with_a_point_count_line(tmp_path: Path, rng: np.random.Generator) -
     path = tmp_path / "cloud.pts"
     path.write_text(f"{len(pts)}\n" + "".join(f"{x!r} {y!r} {z!r} 0.5\n" for x, y, z in pts.tolist()))
     np.testing.assert_array_equal(load_points(path), pts)
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+@pytest.mark.parametrize("with_faces", [True, False])
+def test_truncated_ply_is_refused_not_zero_filled(
+    tmp_path: Path, rng: np.random.Generator, capfd: pytest.CaptureFixture, fmt: str, with_faces: bool
+) -> None:
+    """The first half of a PLY used to load with the missing points as (0, 0, 0) (Open3D's fallback)."""
+    faces = rng.integers(0, 300, size=(400, 3)) if with_faces else None
+    whole = _ply(tmp_path / "whole.ply", fmt, "float", _blob(rng, 300), faces, extra=False).read_bytes()
+    half = tmp_path / "half.ply"
+    half.write_bytes(whole[: len(whole) // 2])
+    # ASCII vertices take more bytes than its faces: the half ends in the vertices there
+    element = "400 face" if with_faces and fmt != "ascii" else "300 vertex"
+    with pytest.raises(
+        InputError, match=rf"cannot read .*half.ply: truncated: its header declares {element} elements"
+    ) as info:
+        load_points(half)
+    assert "\n" not in str(info.value) and capfd.readouterr().err == ""
+
+
+def test_ply_header_declaring_more_points_than_the_file_holds(tmp_path: Path, rng: np.random.Generator) -> None:
+    whole = tmp_path / "cloud.ply"
+    save_points(whole, _blob(rng, 200))
+    more = tmp_path / "more.ply"
+    more.write_bytes(whole.read_bytes().replace(b"element vertex 200", b"element vertex 300", 1))
+    with pytest.raises(
+        InputError, match="truncated: its header declares 300 vertex elements, the file ends in vertex 200"
+    ):
+        load_points(more)
+
+
+def test_truncated_polygon_ply_left_to_open3d_is_refused_too(tmp_path: Path) -> None:
+    """Layouts the numpy reader leaves to Open3D (quads here) are checked for truncation as well."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    vertices = np.array([[0, 0, 0], [100, 0, 0], [100, 100, 0], [0, 100, 0]], "<f4").tobytes()
+    quads = np.array([(4, (0, 1, 2, 3))] * 2, dtype=[("n", "u1"), ("v", "<i4", (4,))]).tobytes()
+    whole = tmp_path / "quads.ply"
+    whole.write_bytes(header.encode() + vertices + quads)
+    assert len(load_points(whole)) > 1000  # the whole file: Open3D triangulates the quads
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(whole.read_bytes()[:-5])
+    with pytest.raises(InputError, match="truncated: its header declares 2 face elements, the file ends in face 1"):
+        load_points(cut)
+
+
+def test_ply_without_z_says_so(tmp_path: Path, rng: np.random.Generator) -> None:
+    """x, y only: Open3D's fallback used to give uninitialized z values (4.7e-310 ...)."""
+    xy = np.ascontiguousarray(_blob(rng, 100)[:, :2], "<f8")
+    path = tmp_path / "xy.ply"
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty double x\nproperty double y\n"
+    path.write_bytes((header + "end_header\n").encode() + xy.tobytes())
+    with pytest.raises(InputError, match="its vertices have no 'z' property"):
+        load_points(path)
+
+
+@pytest.mark.parametrize("ascii", [True, False])
+def test_truncated_pcd_is_refused(tmp_path: Path, rng: np.random.Generator, ascii: bool) -> None:
+    from liver_p2p_reg.o3d import o3d_module
+
+    o3d = o3d_module()
+    whole = tmp_path / "whole.pcd"
+    o3d.io.write_point_cloud(
+        str(whole), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_blob(rng, 200))), write_ascii=ascii
+    )
+    half = tmp_path / "half.pcd"
+    half.write_bytes(whole.read_bytes()[: -len(whole.read_bytes()) // 3])
+    with pytest.raises(InputError, match=r"truncated: its header declares 200 points, the file holds \d+$"):
+        load_points(half)
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        (np.ones((20, 3), complex), "complex numbers are not coordinates"),
+        (np.array([["a", "b", "c"]] * 20), r"holds text \(<U1\), not coordinates"),
+        (np.ones((20, 3), bool), "holds true/false values"),
+    ],
+)
+def test_npy_of_other_than_real_numbers_is_refused(
+    tmp_path: Path, recwarn: pytest.WarningsRecorder, values: np.ndarray, message: str
+) -> None:
+    """Complex values lost their imaginary part with a ComplexWarning; text was an internal ValueError."""
+    path = tmp_path / "cloud.npy"
+    np.save(path, values)
+    with pytest.raises(InputError, match=message):
+        load_points(path)
+    np.savez(tmp_path / "cloud.npz", points=values)
+    with pytest.raises(InputError, match=message):
+        load_points(tmp_path / "cloud.npz")
+    assert len(recwarn) == 0
+
+
+def test_a_named_pipe_is_refused_without_opening_it(tmp_path: Path) -> None:
+    """Opening a FIFO blocks until a writer comes: it used to hang `register` forever."""
+    import os
+    import signal
+
+    from liver_p2p_reg.cloud_io import check_point_file, load_mesh
+
+    fifo = tmp_path / "fifo.ply"
+    os.mkfifo(fifo)
+
+    def hang(*_: object) -> None:
+        raise TimeoutError("blocked on the pipe")
+
+    previous = signal.signal(signal.SIGALRM, hang)
+    signal.alarm(10)
+    try:
+        for read in (load_points, load_mesh, check_point_file):
+            with pytest.raises(InputError, match="not a regular file: .*fifo.ply"):
+                read(fifo)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.mark.parametrize(
+    ("faces", "message"),
+    [
+        ("0\n3 0 1 2\n", "face 0 has 0 vertex indices"),  # Open3D's reader crashed the process (SIGSEGV) on it
+        ("3 0 1 2\n2 0 1\n", "face 1 has 2 vertex indices"),
+        ("3 0 1 2\n3 0 1 7\n", "face 1 refers to vertex 7 of 3"),
+    ],
+)
+def test_ply_faces_that_are_no_triangles_of_its_vertices_are_refused(tmp_path: Path, faces: str, message: str) -> None:
+    header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    header += "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+    path = tmp_path / "faces.ply"
+    path.write_text(header + "0 0 0\n100 0 0\n0 100 0\n" + faces)
+    with pytest.raises(InputError, match=f"malformed PLY body \\({message}"):
+        load_points(path)
+    binary = tmp_path / "faces_binary.ply"  # the same faces in binary
+    rows = [[int(w) for w in line.split()] for line in faces.splitlines()]
+    body = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0]], "<f4").tobytes()
+    body += b"".join(bytes([r[0]]) + np.array(r[1:], "<i4").tobytes() for r in rows)
+    binary.write_bytes(header.replace("ascii", "binary_little_endian").encode() + body)
+    with pytest.raises(InputError, match=f"malformed PLY body \\({message}"):
+        load_points(binary)

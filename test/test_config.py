@@ -88,6 +88,7 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"consensus_seeds": -1}, "consensus_seeds must be >= 0"),
         ({"consensus_sigma_norm": 0}, "consensus_sigma_norm must be > 0"),
         ({"seed": -1}, "seed must be >= 0"),
+        ({"seed": 2**31}, r"seed must be in \[0, 2147483647\]"),  # Open3D's seed() takes a C int
         ({"expected_extent_min_mm": 700.0}, "expected_extent_min_mm < expected_extent_max_mm"),
     ],
 )
@@ -118,3 +119,52 @@ def test_bad_yaml_file_is_reported(tmp_path: Path) -> None:
         Config.from_yaml(bad)
     with pytest.raises(InputError, match="cannot read config"):
         Config.from_yaml(tmp_path / "missing.yaml")
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        # Each used to be an internal error (UnicodeDecodeError, TypeError) or to pass silently.
+        pytest.param(
+            b"\xff\xfe\x00garbage", r"config .*bad.yaml is not UTF-8 text \(byte 0xff at offset 0\)", id="utf8"
+        ),
+        pytest.param(
+            b"register_node:\n  ros__parameters: 5\n",
+            "register_node.ros__parameters must be a mapping .* got 5",
+            id="ros-int",
+        ),
+        pytest.param(b"seed: 1\nk: 3\nseed: 2\n", r"not valid YAML: duplicate key 'seed' \(line 3\)", id="duplicate"),
+        pytest.param(
+            b"register_node:\n  ros__parameters:\n    k: 3\n    k: 4\n",
+            r"duplicate key 'k' \(line 4\)",
+            id="ros-duplicate",
+        ),
+        pytest.param(
+            b"register_node:\n  ros__parameters:\n    k: 3\nseed: 4\n",
+            "'seed' is not a node's `ros__parameters:` block",
+            id="ros-stray-key",
+        ),
+        pytest.param(b"k: [1, 2\n", r"not valid YAML: expected ',' or '\]', but got .* \(line 2\)", id="syntax"),
+    ],
+)
+def test_malformed_config_files_are_one_line_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture, content: bytes, message: str
+) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(content)
+    with pytest.raises(InputError, match=message) as info:
+        Config.from_yaml(bad)
+    assert "\n" not in str(info.value)
+    assert main(["config", "--config", str(bad)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_yaml_merge_keys_may_override_and_empty_ros_blocks_are_defaults(tmp_path: Path) -> None:
+    path = tmp_path / "merged.yaml"
+    path.write_text("base: &base {k: 3, seed: 1}\nregister_node:\n  ros__parameters:\n    <<: *base\n    k: 5\n")
+    with pytest.raises(InputError, match="'base' is not a node's"):  # a ROS file holds node blocks only
+        Config.from_yaml(path)
+    path.write_text("register_node:\n  ros__parameters:\n    <<: {k: 3, seed: 1}\n    k: 5\n")
+    assert (Config.from_yaml(path).k, Config.from_yaml(path).seed) == (5, 1)
+    path.write_text("register_node:\n  ros__parameters:\n")
+    assert Config.from_yaml(path) == Config()

@@ -101,6 +101,36 @@ def is_bag_path(path: Path) -> bool:
     return path.is_dir() and ((path / "metadata.yaml").is_file() or any(path.glob("*.mcap")))
 
 
+def check_replaceable_bag(path: Path) -> None:
+    """InputError unless `path` is a bag --force may replace: a .mcap file, or a folder holding only a bag's files.
+
+    Anything else (a folder with other files, the current folder, another file) is refused with one
+    line: --force replaces a bag, it never deletes what merely stands at the bag's path.
+    """
+    path = Path(path)
+    if path.is_file() or path.is_symlink():
+        if path.suffix != ".mcap":
+            raise InputError(f"{path} exists and is not a bag (.mcap); not replacing it: choose another path")
+        return
+    if Path.cwd().resolve().is_relative_to(path.resolve()):
+        raise InputError(f"{path} holds the current folder; not replacing it: choose another path")
+    entries = sorted(path.iterdir())
+    foreign = [e.name for e in entries if not (e.is_file() and (e.name == "metadata.yaml" or e.suffix == ".mcap"))]
+    if foreign:
+        raise InputError(
+            f"{path} holds {foreign[0]!r}, which is not a bag's file; not replacing it: choose another path"
+        )
+
+
+def remove_bag(path: Path) -> None:
+    """Delete an existing bag that is to be overwritten (check_replaceable_bag first)."""
+    check_replaceable_bag(path)
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)  # an empty folder too: nothing in it is lost
+    else:
+        path.unlink()
+
+
 @dataclass
 class BagMessage:
     """One deserialized message in log-time order."""
@@ -111,34 +141,62 @@ class BagMessage:
     msg: Any
 
 
+# Packages whose exceptions, raised while a bag is opened or read, mean "this is no readable bag":
+# rosbags (per storage backend), the MCAP and YAML parsers, the chunk decompressors, struct unpacking.
+_BAG_ERROR_PACKAGES = ("rosbags", "mcap", "yaml", "zstandard", "backports", "lz4", "struct")
+
+
 def read_messages(path: str | Path, topics: list[str] | None = None) -> Iterator[BagMessage]:
     """Yield the messages of a rosbag2 directory or bare .mcap file in timestamp order.
 
-    Raises InputError for a missing or unreadable bag.
+    Raises InputError (one line naming the bag) for a missing or unreadable bag.
     """
-    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.highlevel import AnyReader
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"bag not found: {path}")
-    if path.is_dir() and not (path / "metadata.yaml").is_file():
-        mcaps = sorted(path.glob("*.mcap"))
-        if len(mcaps) != 1:  # a folder of one MCAP without metadata.yaml: read the file itself
-            raise InputError(f"{path} is not a rosbag2 directory (no metadata.yaml)")
-        path = mcaps[0]
+    source = bag_source(Path(path))
     try:
-        with AnyReader([path], default_typestore=typestore()) as reader:
+        with AnyReader([source], default_typestore=typestore()) as reader:
             conns = [c for c in reader.connections if topics is None or c.topic in topics]
             for conn, timestamp, raw in reader.messages(connections=conns):
                 yield BagMessage(conn.topic, conn.msgtype, int(timestamp), reader.deserialize(raw, conn.msgtype))
-    except (AnyReaderError, ValueError, KeyError, OSError) as exc:
-        raise InputError(
-            f"cannot read bag {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
-        ) from None
-    except Exception as exc:  # rosbags raises its own error classes per storage backend
-        if type(exc).__module__.startswith("rosbags"):
-            raise InputError(f"cannot read bag {path}: {exc}") from None
-        raise
+    except Exception as exc:
+        if not _is_bag_error(exc):
+            raise
+        raise _unreadable(path, exc) from None
+
+
+def bag_source(path: Path) -> Path:
+    """What rosbags opens for a bag: a rosbag2 folder, the one .mcap of a folder without metadata.yaml, a .mcap file.
+
+    InputError for anything else, and for a folder whose metadata.yaml is malformed (rosbags would
+    report PyYAML's multi-line excerpt).
+    """
+    if not path.exists():
+        raise InputError(f"bag not found: {path}")
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            _bag_information(path)
+            return path
+        mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) != 1:  # a folder of one MCAP without metadata.yaml: read the file itself
+            raise InputError(f"{path} is not a rosbag2 directory (no metadata.yaml)")
+        return mcaps[0]
+    if not path.is_file() or path.suffix != ".mcap":  # a pipe would block; another file is no bag
+        raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
+    return path
+
+
+def _is_bag_error(exc: Exception) -> bool:
+    """Whether an exception raised by the bag readers says the bag's bytes are unreadable (not a bug of ours)."""
+    if isinstance(exc, (ValueError, KeyError, IndexError, OSError, EOFError)):
+        return True
+    return type(exc).__module__.split(".")[0] in _BAG_ERROR_PACKAGES
+
+
+def _unreadable(path: str | Path, exc: Exception) -> InputError:
+    """The one-line InputError for a bag rosbags cannot read: its path and the first line of the reason."""
+    reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return InputError(f"cannot read bag {path}: {reason}")
 
 
 def model_and_clouds(path: str | Path, *, metres: bool = False) -> tuple[np.ndarray | None, list[np.ndarray]]:
@@ -157,12 +215,17 @@ def model_and_clouds(path: str | Path, *, metres: bool = False) -> tuple[np.ndar
 
 
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
-    """topic -> (msgtype, message count) of a bag."""
+    """topic -> (msgtype, message count) of a bag; InputError (one line) for a missing or unreadable bag."""
     from rosbags.highlevel import AnyReader
 
-    path = Path(path)
-    with AnyReader([path], default_typestore=typestore()) as reader:
-        return {name: (info.msgtype, info.msgcount) for name, info in reader.topics.items()}
+    source = bag_source(Path(path))
+    try:
+        with AnyReader([source], default_typestore=typestore()) as reader:
+            return {name: (info.msgtype, info.msgcount) for name, info in reader.topics.items()}
+    except Exception as exc:
+        if not _is_bag_error(exc):
+            raise
+        raise _unreadable(path, exc) from None
 
 
 def _qos(*, latched: bool, best_effort: bool = False, depth: int = 1) -> Any:
@@ -197,10 +260,7 @@ class BagWriter:
         if self.path.exists():
             if not overwrite:
                 raise InputError(f"output bag {self.path} exists (use --force to overwrite)")
-            if self.path.is_dir():
-                shutil.rmtree(self.path)
-            else:
-                self.path.unlink()
+            remove_bag(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
         for key, value in (custom_data or {}).items():  # shown by `ros2 bag info`, read back by replay
@@ -235,14 +295,28 @@ class BagWriter:
 
 
 def bag_custom_data(path: str | Path) -> dict[str, str]:
-    """The custom_data mapping of a rosbag2 directory's metadata.yaml ({} for bare MCAP files)."""
-    import yaml
+    """The custom_data mapping of a rosbag2 directory's metadata.yaml ({} for bare MCAP files).
 
-    meta = Path(path) / "metadata.yaml"
+    Raises InputError (one line) for a malformed metadata.yaml.
+    """
+    custom = _bag_information(Path(path)).get("custom_data") or {}
+    if not isinstance(custom, dict):
+        raise InputError(f"bag metadata {Path(path) / 'metadata.yaml'}: custom_data is not a mapping")
+    return {str(k): str(v) for k, v in custom.items()}
+
+
+def _bag_information(path: Path) -> dict[str, Any]:
+    """The rosbag2_bagfile_information mapping of a bag folder's metadata.yaml ({} without one)."""
+    from liver_p2p_reg.config_io import load_yaml_text
+
+    meta = path / "metadata.yaml"
     if not meta.is_file():
         return {}
-    info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information", {})
-    return {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
+    data = load_yaml_text(meta, "bag metadata")
+    info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
+    if not isinstance(info, dict):
+        raise InputError(f"bag metadata {meta} holds no rosbag2_bagfile_information mapping")
+    return info
 
 
 def bag_size_bytes(path: str | Path) -> int:

@@ -1,10 +1,15 @@
 """Bag making/import, reading back with rosbags (dirs and bare .mcap), replay output bags and CLI errors."""
 
+import os
+import re
+import shutil
+import signal
+
 import numpy as np
 import pytest
 import yaml
 
-from liver_p2p_reg.bags.io import bag_topics, read_messages
+from liver_p2p_reg.bags.io import bag_custom_data, bag_topics, read_messages
 from liver_p2p_reg.bags.make import CASE_KEY, make_case_bag
 from liver_p2p_reg.bags.replay import format_table, replay_bag
 from liver_p2p_reg.bags.replay_outputs import OUTPUT_TOPICS
@@ -188,3 +193,75 @@ def test_replay_plots_the_last_registered_frame_and_keeps_existing_plots(tmp_pat
     assert not (tmp_path / "none" / "bare_bag.png").exists()
     # Which frame the message (and its RMS-TRE) is: the first at the bag's worst status.
     assert "bare_bag: ERROR (frame 1 of 5, the first at ERROR): " in capsys.readouterr().out
+
+
+def _broken_bag(tmp_path, case_bag, kind):
+    """A path that is no readable bag, made from a real one."""
+    mcap = (case_bag / "case_bag.mcap").read_bytes()
+    path = tmp_path / {"garbage": "x.mcap", "truncated": "cut.mcap", "ply": "cloud.ply", "pipe": "pipe.mcap"}.get(
+        kind, kind
+    )
+    if kind == "garbage":
+        path.write_bytes(bytes(range(256)) * 20)
+    elif kind == "truncated":
+        path.write_bytes(mcap[: len(mcap) // 2])
+    elif kind == "ply":
+        path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    elif kind == "pipe":
+        os.mkfifo(path)
+    elif kind == "empty-folder":
+        path.mkdir()
+    else:
+        shutil.copytree(case_bag, path)
+        if kind == "bad-metadata":
+            (path / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 9\n  files: [a\n  : : {\n")
+        elif kind == "metadata-not-a-mapping":
+            (path / "metadata.yaml").write_text("rosbag2_bagfile_information: 5\n")
+        elif kind == "missing-mcap":
+            (path / "case_bag.mcap").unlink()
+    return path
+
+
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("garbage", "cannot read bag .*x.mcap: File magic is invalid"),
+        ("truncated", "cannot read bag .*cut.mcap: File end magic is invalid"),
+        ("ply", "not a rosbag2 directory or .mcap file: .*cloud.ply"),
+        ("pipe", "not a rosbag2 directory or .mcap file: .*pipe.mcap"),
+        ("empty-folder", r"empty-folder is not a rosbag2 directory \(no metadata.yaml\)"),
+        ("bad-metadata", r"bag metadata .*metadata.yaml is not valid YAML: .* \(line 4\)"),
+        ("metadata-not-a-mapping", "metadata.yaml holds no rosbag2_bagfile_information mapping"),
+        ("missing-mcap", "cannot read bag .*missing-mcap: Some database files are missing"),
+    ],
+)
+def test_unreadable_bags_are_one_line_input_errors(tmp_path, case_bag, capsys, kind, message):
+    """`bag info` on these was an internal error (AnyReaderError, FileNotFoundError) or a 5-line YAML excerpt."""
+    path = _broken_bag(tmp_path, case_bag, kind)
+
+    def hang(*_):
+        raise TimeoutError("blocked opening the bag")  # a pipe: open() waits for a writer
+
+    previous = signal.signal(signal.SIGALRM, hang)
+    signal.alarm(10)
+    try:
+        for read in (bag_topics, lambda p: list(read_messages(p))):
+            with pytest.raises(InputError, match=message) as info:
+                read(path)
+            assert "\n" not in str(info.value)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    capsys.readouterr()
+    assert main(["bag", "info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("liver-p2p: error: ") and err.count("\n") == 1 and re.search(message, err)
+
+
+def test_replay_of_a_bag_with_malformed_metadata_is_one_line(tmp_path, case_bag, capsys):
+    path = _broken_bag(tmp_path, case_bag, "bad-metadata")
+    with pytest.raises(InputError, match=r"is not valid YAML: .* \(line 4\)"):
+        bag_custom_data(path)
+    assert main(["-q", "replay", str(path), "--method", "procrustes"]) == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("liver-p2p: error: bag metadata") and last.endswith("(line 4)")
