@@ -78,6 +78,7 @@ def make_case_bag(
     the cloud's header stamp. source_triangles (indices into source_mm as given): the preop mesh,
     written on /preop/mesh decimated to at most max_mesh_triangles.
     """
+    _check_frame_ids(frame_id, preop_frame)
     mesh = _mesh(source_mm, source_triangles, max_mesh_triangles)
     source_mm = _points(source_mm, "source")
     target_mm = _points(target_mm, "target")
@@ -164,6 +165,7 @@ def make_sweep_bag(
     Frame k is stamped START_NS + (k + 1) x period; its ground-truth fiducials (same frame) carry its stamp.
     source_triangles: the preop mesh, as in make_case_bag.
     """
+    _check_frame_ids(frame_id, preop_frame)
     mesh = _mesh(source_mm, source_triangles, max_mesh_triangles)
     source_mm = _points(source_mm, "source")
     frames = [_points(f, f"frame {k}") for k, f in enumerate(frames_mm)]
@@ -248,14 +250,14 @@ def write_frames(
 
 def load_case_npz(path: str | Path) -> dict[str, Any]:
     """A case NPZ (ours or the public P2P layout: src_pcd, tgt_pcd, src_marker|src_vol, tgt_marker|tgt_vol), mm."""
-    from liver_p2p_reg.phantom.casefile import read_case, source_triangles  # the one reader of case files
+    from liver_p2p_reg.phantom.casefile import read_case  # the one reader of case files
 
     path = Path(path)
     if not path.is_file():
         raise InputError(f"case file not found: {path}")
     raw = read_case(path)
     case: dict[str, Any] = {"source_mm": raw["src_pcd"], "target_mm": raw["tgt_pcd"], "info": {"case": path.stem}}
-    triangles = source_triangles(raw)
+    triangles = _case_triangles(raw, path)
     if triangles is not None:  # a generated case's preop mesh
         case["source_triangles"] = triangles
     if "src_marker" in raw and "tgt_marker" in raw:
@@ -265,6 +267,45 @@ def load_case_npz(path: str | Path) -> dict[str, Any]:
         if key in raw and isinstance(raw[key], (int, float, str)):
             case["info"][key] = raw[key]
     return case
+
+
+def _case_triangles(raw: dict[str, Any], path: Path) -> np.ndarray | None:
+    """The case's preop triangles, None when it stores none; InputError when they do not index src_pcd.
+
+    casefile.source_triangles reads a bad mesh as no mesh; a bag would then lack /preop/mesh without a word.
+    """
+    from liver_p2p_reg.phantom.casefile import TRIANGLES_KEY, source_triangles
+
+    stored = raw.get(TRIANGLES_KEY)
+    if stored is None or np.size(stored) == 0:
+        return None
+    try:
+        triangles = source_triangles(raw)
+    except (TypeError, ValueError):  # not numbers at all: the shape message below
+        triangles = None
+    if triangles is not None:
+        return triangles
+    tris = np.asarray(stored)
+    if tris.ndim != 2 or tris.shape[1] != 3 or tris.dtype.kind not in "iuf":
+        raise InputError(f"{path}: {TRIANGLES_KEY} must be an (F, 3) index array, got shape {tris.shape} {tris.dtype}")
+    n_vertices = len(raw["src_pcd"])
+    raise InputError(
+        f"{path}: {TRIANGLES_KEY} index vertices {tris.min()}..{tris.max()}, "
+        f"but src_pcd has {n_vertices} (valid: 0..{n_vertices - 1})"
+    )
+
+
+def _check_frame_ids(frame_id: str, preop_frame: str) -> None:
+    """InputError unless both are frame ids the node and tf2 accept: the node refuses every intraop cloud
+    without one, so a bag with an empty id would replay as nothing but errors."""
+    for what, value in (("frame id", frame_id), ("preop frame id", preop_frame)):
+        if not isinstance(value, str) or not value or value.startswith("/") or not _is_plain(value):
+            raise InputError(f"{what} {value!r} is not a ROS frame id (non-empty, no spaces, no leading '/')")
+
+
+def _is_plain(text: str) -> bool:
+    """Printable, without whitespace."""
+    return text.isprintable() and not any(c.isspace() for c in text)
 
 
 def _mesh(source_mm: np.ndarray, triangles: np.ndarray | None, max_triangles: int) -> Mesh | None:

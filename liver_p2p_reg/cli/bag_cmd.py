@@ -88,9 +88,24 @@ def _make(args: argparse.Namespace, case: dict) -> int:
     return 0
 
 
+def _check_out(args: argparse.Namespace, *inputs: str | None) -> None:
+    """OUT checked before any work: never an input, nor a folder holding one; an existing OUT only with --force,
+    and only when it is a bag (--force replaces a bag; it never deletes what merely stands at OUT)."""
+    from liver_p2p_reg.bags.io import check_replaceable_bag
+    from liver_p2p_reg.cli.output_paths import given_paths, refuse_inputs
+
+    out = Path(args.out)
+    refuse_inputs(out, "OUT", given_paths(*inputs), contains=True)
+    if out.exists() or out.is_symlink():
+        if not args.force:
+            raise InputError(f"output bag {out} exists (use --force to overwrite)")
+        check_replaceable_bag(out)
+
+
 def run_make(args: argparse.Namespace) -> int:
     from liver_p2p_reg.bags.make import load_case_npz
 
+    _check_out(args, args.case, args.source, args.target, args.fiducials)
     if args.case:
         if args.source or args.target:
             raise InputError("give either --case or --source/--target, not both")
@@ -113,6 +128,7 @@ def run_make(args: argparse.Namespace) -> int:
 def run_import(args: argparse.Namespace) -> int:
     from liver_p2p_reg.bags.make import load_case_npz
 
+    _check_out(args, args.npz)
     return _make(args, load_case_npz(args.npz))
 
 
@@ -123,8 +139,9 @@ def run_play(args: argparse.Namespace) -> int:
         raise InputError(f"bag play needs rclpy ({exc}): pip install -e '.[ros]' or source ROS 2 Jazzy") from None
     if not args.rate > 0:
         raise InputError(f"--rate must be > 0, got {args.rate}")
-    if not Path(args.bag).exists():
-        raise InputError(f"bag not found: {args.bag}")
+    from liver_p2p_reg.bags.io import bag_source
+
+    bag_source(Path(args.bag))  # not found, a pipe, no bag, a malformed metadata.yaml: one line
     return main_play(args.bag, args.rate, args.loop, args.wait_s, clock=args.clock)
 
 

@@ -178,6 +178,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--ablation-cases-per-bin must be >= 1, got {args.ablation_cases_per_bin}")
     if args.workers < 1:  # here too (the harness checks it), before the test set is generated
         raise InputError(f"--workers must be >= 1, got {args.workers}")
+    from liver_p2p_reg.cli.output_paths import given_paths, output_folder
+
+    output_folder(args.out, "--out", inputs=given_paths(args.config, args.dataset))
     noise_levels = _noise_levels(args.noise_levels)
     if args.prepare_minutes < 0:
         raise InputError(f"--prepare-minutes must be >= 0, got {args.prepare_minutes}")

@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from liver_p2p_reg.registration.weights_id import weights_sha256
 
+    _check_args(args)
     config = (Config.from_yaml(args.config) if args.config else Config()).validate()
     # the rigid bound is fitted on the pose's errors whatever the --config says about the stage
     config = config.replace(deform=bool(args.deformed)).validate()
@@ -105,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         },
     )
     text = json.dumps(cal, indent=1) + "\n"
-    if out.exists() and out.read_text() == text:
+    if out.exists() and out.read_bytes() == text.encode():
         print(f"{out}: unchanged (the calibration was reproduced bitwise)")
     elif out.exists() and not args.force:
         raise InputError(f"{out} exists and differs from this calibration; give --force to replace it")
@@ -116,6 +117,25 @@ def run(args: argparse.Namespace) -> int:
     if args.judge:
         _judge(args, config, weights, read_calibration(out))
     return 0
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    """The numbers and paths checked before any registration: one line each, not an error after minutes of work."""
+    import math
+
+    from liver_p2p_reg.cli.output_paths import given_paths, output_folder, refuse_inputs
+
+    if not (math.isfinite(args.noise_mm) and args.noise_mm >= 0):
+        raise InputError(f"--noise-mm must be a finite number >= 0, got {args.noise_mm}")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    inputs = given_paths(args.val, args.judge, args.config)
+    output_folder(args.cache, "--cache", inputs=inputs)
+    if args.out:
+        out = Path(args.out)
+        if out.is_dir():
+            raise InputError(f"--out {out} is a folder; give the calibration file's path (.json)")
+        refuse_inputs(out, "--out", inputs)
 
 
 def _applied(data: dict, args: argparse.Namespace) -> dict:

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import yaml
 
+from liver_p2p_reg.cli.output_paths import given_paths, output_file
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import InputError
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -24,10 +23,8 @@ def run(args: argparse.Namespace) -> int:
     config = Config.from_yaml(args.config) if args.config else Config()
     text = config.to_ros_yaml() if args.ros else yaml.safe_dump(config.to_dict(), sort_keys=False)
     if args.write:
-        path = Path(args.write)
-        if path.exists() and not args.force:
-            raise InputError(f"{path} exists; pass --force to overwrite it")
-        path.write_text(text)
+        inputs = given_paths(args.config)
+        output_file(args.write, args.force, "--write", inputs=inputs).write_text(text)
     else:
         print(text, end="")
     return 0

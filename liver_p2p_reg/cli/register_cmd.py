@@ -12,7 +12,8 @@ import logging
 import sys
 from pathlib import Path
 
-from liver_p2p_reg.cli.register_inputs import load_initial_transform, sensor_origin
+from liver_p2p_reg.cli.output_paths import distinct_outputs, given_paths, output_file
+from liver_p2p_reg.cli.register_inputs import load_fiducials, load_initial_transform, sensor_origin, warn_unused_weights
 from liver_p2p_reg.config import SELECTION_RULES
 from liver_p2p_reg.errors import InputError, LiverP2PError
 
@@ -55,7 +56,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--initial-transform",
         metavar="FILE",
-        help="prior pose for --method track (ICP from it, no global search): a 4x4 matrix as text or NPY, "
+        help="prior pose for --method track (ICP from it, no global search) or --method evaluate (scored as is): "
+        "a 4x4 matrix as text or NPY, "
         "or a JSON result of an earlier registration",
     )
     p.add_argument(
@@ -134,28 +136,21 @@ def _config(args: argparse.Namespace):
     return config.replace(**overrides) if overrides else config
 
 
-def _output_path(value: str | None, force: bool, option: str, suffixes: tuple[str, ...] = ()) -> Path | None:
-    """Checked before registering, so a bad path costs nothing and nothing is half-written."""
-    if not value:
-        return None
-    path = Path(value)
-    if suffixes and path.suffix.lower() not in suffixes:
-        raise InputError(f"{option} {path}: use one of {', '.join(suffixes)}")
-    if path.exists() and not force:
-        raise InputError(f"{path} exists; pass --force to overwrite it")
-    if not path.parent.exists():
-        raise InputError(f"output folder does not exist: {path.parent}")
-    return path
-
-
 def _output_paths(
-    value: str | None, targets: list[Path], force: bool, option: str, suffixes: tuple[str, ...], default_suffix: str
+    value: str | None,
+    targets: list[Path],
+    force: bool,
+    option: str,
+    suffixes: tuple[str, ...],
+    default_suffix: str,
+    inputs: list[Path],
 ) -> list[Path | None]:
-    """One output path per target: the path itself for one target, FOLDER/<target name><suffix> for several."""
+    """One output path per target, checked before registering (a bad path costs nothing, nothing is half-written):
+    the path itself for one target, FOLDER/<target name><suffix> for several."""
     if not value:
         return [None] * len(targets)
     if len(targets) == 1:
-        return [_output_path(value, force, option, suffixes)]
+        return [output_file(value, force, option, inputs=inputs, suffixes=suffixes)]
     folder = Path(value)
     if folder.suffix or (folder.exists() and not folder.is_dir()):
         raise InputError(f"{option} {folder}: with several targets, give a folder (one <target name> file each)")
@@ -167,31 +162,40 @@ def _output_paths(
         if path in seen:
             raise InputError(f"{seen[path]} and {target} would both write {path}; register them in separate calls")
         seen[path] = target
-        if path.exists() and not force:
-            raise InputError(f"{path} exists; pass --force to overwrite it")
+        if folder.is_dir():  # else the folder is made when the first result is written, and holds nothing yet
+            output_file(path, force, option, inputs=inputs)
     return paths
 
 
 def run(args: argparse.Namespace) -> int:
-    from liver_p2p_reg.registration.methods import check_method_name
+    from liver_p2p_reg.registration.methods import METHODS, Method, check_method_name
 
     args.sensor_origin_mm = sensor_origin(args.sensor_origin)
     targets = [Path(t) for t in args.targets]
     several = len(targets) > 1
-    outputs = _output_paths(args.output, targets, args.force, "--output", (), ".json")
-    plots = _output_paths(args.plot, targets, args.force, "--plot", PLOT_SUFFIXES, ".png")
-    moved = _output_paths(args.moved, targets, args.force, "--moved", MOVED_SUFFIXES, ".ply")
-    args.record_path = _output_path(getattr(args, "record", None), args.force, "--record", (".mcap",))
+    # --force replaces earlier outputs, never a file this command reads
+    inputs = given_paths(
+        args.source, targets, args.source_fiducials, args.target_fiducials, args.config, args.initial_transform,
+        args.weights_path, args.structures,
+    )  # fmt: skip
+    outputs = _output_paths(args.output, targets, args.force, "--output", (), ".json", inputs)
+    plots = _output_paths(args.plot, targets, args.force, "--plot", PLOT_SUFFIXES, ".png", inputs)
+    moved = _output_paths(args.moved, targets, args.force, "--moved", MOVED_SUFFIXES, ".ply", inputs)
+    record = getattr(args, "record", None)
+    args.record_path = output_file(record, args.force, "--record", inputs=inputs, suffixes=(".mcap",))
+    distinct_outputs({"--output": outputs, "--plot": plots, "--moved": moved, "--record": [args.record_path]})
     if (args.source_fiducials is None) != (args.target_fiducials is None):
         raise InputError("give both --source-fiducials and --target-fiducials, or neither")
     if several and args.target_fiducials is not None:
         raise InputError("--source-fiducials/--target-fiducials go with a single TARGET")
     config = _config(args)
     check_method_name(config.method)
-    if config.method == "track" and args.initial_transform is None:
-        raise InputError("--method track refines a prior pose: give it with --initial-transform FILE")
-    if args.initial_transform is not None and config.method != "track":
-        raise InputError("--initial-transform is used by --method track only")
+    warn_unused_weights(config.method, config.weights_path)
+    prior = METHODS.get(config.method, Method("")).prior  # track (ICP from it) and evaluate (as is)
+    if prior and args.initial_transform is None:
+        raise InputError(f"--method {config.method} starts from a prior pose: give it with --initial-transform FILE")
+    if args.initial_transform is not None and not prior:
+        raise InputError("--initial-transform is used by --method track and --method evaluate only")
     from liver_p2p_reg.cli.register_outputs import source_mesh
     from liver_p2p_reg.cloud_io import check_point_file, load_points
 
@@ -208,7 +212,11 @@ def run(args: argparse.Namespace) -> int:
     views = [load_points(t, seed=config.seed) for t in targets]  # every file is read before any work
     fiducials = (None, None)
     if args.source_fiducials is not None:  # the Registrar refuses NaN/inf pairs
-        fiducials = (load_points(args.source_fiducials), load_points(args.target_fiducials))
+        extent_max_mm = config.expected_extent_max_mm
+        fiducials = (
+            load_fiducials(args.source_fiducials, "--source-fiducials", extent_max_mm),
+            load_fiducials(args.target_fiducials, "--target-fiducials", extent_max_mm),
+        )
     slicer = None
     if args.slicer:  # connected before registering: no Slicer is one line, not a lost registration
         from liver_p2p_reg.cli.slicer import connect_to_slicer

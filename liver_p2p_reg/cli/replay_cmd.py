@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if changes:
         config = config.replace(**changes)
     check_method_name(config.method)  # before reading any bag or importing torch
-    from liver_p2p_reg.bags.io import is_bag_path
+    from liver_p2p_reg.bags.io import bag_source, is_bag_path
     from liver_p2p_reg.bags.replay import format_flags, format_table, replay_bags
 
     paths = [Path(b) for b in args.bags]
@@ -89,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"bag not found: {path}")
         if not is_bag_path(path):
             raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
+        bag_source(path)  # a malformed metadata.yaml: one line before the progress bar, not after it
+    if args.max_frames < 0:
+        raise InputError(f"--max-frames must be >= 0 (0: all frames), got {args.max_frames}")
+    _check_outputs(args, paths)
     from liver_p2p_reg.structures_io import load_structures
 
     structures = load_structures(args.structures or [])  # a bad file: one line, exit 2, before any work
@@ -98,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
 
         slicer = serve_replay(args.slicer, args.slicer_wait)
     if args.record:
-        _check_record(args.record, args.force, several=len(paths) > 1)
+        _check_record(args.record, args.force, several=len(paths) > 1, inputs=paths)
     rows = replay_bags(
         paths,
         config,
@@ -121,18 +125,39 @@ def run(args: argparse.Namespace) -> int:
     return 1 if any(row.status == "ERROR" for row in rows) else 0
 
 
-def _check_record(record: str, force: bool, several: bool) -> None:
+def _check_outputs(args: argparse.Namespace, bags: list[Path]) -> None:
+    """--out, --plots and --json checked before any work: none of them is, or (a bag to replace) holds, an input."""
+    from liver_p2p_reg.bags.io import check_replaceable_bag
+    from liver_p2p_reg.cli.output_paths import given_paths, output_file, output_folder, refuse_inputs
+
+    inputs = given_paths(bags, args.config, args.structures)
+    out = output_folder(args.out, "--out", inputs=inputs)
+    if out is not None:
+        for bag in bags:  # each replayed bag is written to OUT/<bag name>, replacing a bag there with --force
+            written = out / bag.name.removesuffix(".mcap")
+            refuse_inputs(written, "--out", inputs, contains=True)
+            if written.exists() and args.force:
+                check_replaceable_bag(written)
+    output_folder(args.plots, "--plots", inputs=inputs)
+    output_file(args.json, args.force, "--json", inputs=inputs)
+
+
+def _check_record(record: str, force: bool, several: bool, inputs: list[Path] = ()) -> None:
     """--record checked before any work: a file that exists is refused unless --force; several bags want a folder."""
+    from liver_p2p_reg.cli.output_paths import output_file, output_folder, refuse_inputs
+
     path = Path(record)
     if several:
         if path.suffix == ".mcap" or (path.exists() and not path.is_dir()):
             raise InputError(f"--record {path}: with several bags, give a folder (one <bag>.mcap each)")
+        output_folder(path, "--record", inputs=inputs)
+        for bag in inputs:  # one recording per bag, RECORD/<bag name>.mcap
+            refuse_inputs(path / f"{bag.name.removesuffix('.mcap')}.mcap", "--record", inputs)
         path.mkdir(parents=True, exist_ok=True)
         return
-    if path.exists() and not force:
-        raise InputError(f"{path} exists; pass --force to overwrite it")
     if path.suffix != ".mcap":
         raise InputError(f"--record {path}: a flight recording is an .mcap file")
+    output_file(path, force, "--record", inputs=inputs)
 
 
 def _rerun(args: argparse.Namespace) -> int:
@@ -147,7 +172,10 @@ def _rerun(args: argparse.Namespace) -> int:
     if given:
         raise InputError(f"{', '.join(given)}: a flight recording is re-run under its recorded parameters only")
     if args.record:
-        _check_record(args.record, args.force, several=False)
+        _check_record(args.record, args.force, several=False, inputs=[Path(args.bags[0])])
+    from liver_p2p_reg.cli.output_paths import output_file
+
+    output_file(args.json, args.force, "--json", inputs=[Path(args.bags[0])])
     report = rerun_recording(args.bags[0], record_path=args.record, overwrite=args.force)
     for note in report.notes:
         print(f"note: {note}")

@@ -226,6 +226,8 @@ def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InputError("initial_T_mm must be a rigid transform (its 3x3 block is not a rotation)")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):  # a projective matrix moves points non-rigidly
+        raise InputError(f"initial_T_mm must be a rigid transform (its bottom row is {T[3].tolist()}, not 0 0 0 1)")
     return T
 
 

@@ -139,7 +139,7 @@ def test_track_refines_an_initial_transform(case: dict, tmp_path: Path, capsys: 
     ("extra", "message"),
     [
         (["--method", "track"], "give it with --initial-transform"),
-        (["--method", "fpfh-p2p", "--initial-transform", "T.txt"], "used by --method track only"),
+        (["--method", "fpfh-p2p", "--initial-transform", "T.txt"], "used by --method track and --method evaluate only"),
         (["--method", "track", "--initial-transform", "missing.txt"], "file not found"),
         (["--method", "track", "--initial-transform", "T3.txt"], "expected a 4x4 matrix"),
     ],

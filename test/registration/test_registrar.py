@@ -114,6 +114,10 @@ def test_track_method_needs_a_rigid_prior_pose():
         registrar.register(source, source[:200], method="track", initial_T_mm=np.eye(3))
     with pytest.raises(InputError, match="not a rotation"):
         registrar.register(source, source[:200], method="track", initial_T_mm=np.diag([2.0, 1, 1, 1]))
+    projective = np.eye(4)
+    projective[3] = [1.0, 2.0, 3.0, 4.0]
+    with pytest.raises(InputError, match="bottom row"):
+        registrar.register(source, source[:200], method="track", initial_T_mm=projective)
     result = registrar.register(source, source[:200], method="track", initial_T_mm=np.eye(4))
     assert result.method == "track" and result.residual_mm < 1.0  # voxel means vs points
     np.testing.assert_allclose(result.T_target_source, np.eye(4), atol=1e-6)

@@ -1,0 +1,92 @@
+"""The commands' output paths, checked before any work: never an input, never one path twice, --force to replace."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+from liver_p2p_reg.errors import InputError
+
+
+def _same(a: Path, b: Path) -> bool:
+    """True when two paths name one file or folder (symlinks and `..` resolved)."""
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except OSError:
+        return False
+
+
+def given_paths(*values: str | Path | Iterable[str | Path] | None) -> list[Path]:
+    """The input files and folders a command was given, as paths: None skipped, lists flattened, FILE:LABEL cut."""
+    paths: list[Path] = []
+    for value in values:
+        if value is None:
+            continue
+        for item in [value] if isinstance(value, str | Path) else value:
+            text = str(item)
+            # a structures argument may be FILE:LABEL; the file is what must not be overwritten
+            head, sep, _ = text.rpartition(":")
+            paths.append(Path(head if sep and not Path(text).exists() and head else text))
+    return paths
+
+
+def refuse_inputs(path: Path, option: str, inputs: Iterable[Path], contains: bool = False) -> None:
+    """--force replaces what earlier runs wrote, never what this command reads: an output is no input, lies in no
+    input folder (a bag's) and, for a folder it will replace (`contains`), holds no input."""
+    for given in inputs:
+        if _same(path, given):
+            raise InputError(f"{option} {path} is an input of this command; choose another path")
+        if given.is_dir() and path.resolve().is_relative_to(given.resolve()):
+            raise InputError(f"{option} {path} is inside {given}, an input of this command; choose another path")
+        if contains and given.exists() and given.resolve().is_relative_to(path.resolve()):
+            raise InputError(f"{option} {path} holds {given}, an input of this command; choose another path")
+
+
+def output_file(
+    value: str | Path | None,
+    force: bool,
+    option: str,
+    *,
+    inputs: Iterable[Path] = (),
+    suffixes: tuple[str, ...] = (),
+) -> Path | None:
+    """A file the command will write: the right suffix, not a folder, not an input, in a folder that exists;
+    an existing file only with --force."""
+    if not value:
+        return None
+    path = Path(value)
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise InputError(f"{option} {path}: use one of {', '.join(suffixes)}")
+    if path.is_dir():
+        raise InputError(f"{option} {path} is a folder; give a file path")
+    refuse_inputs(path, option, inputs)
+    if path.exists() and not force:
+        raise InputError(f"{path} exists; pass --force to overwrite it")
+    if not path.parent.is_dir():
+        raise InputError(f"output folder does not exist: {path.parent}")
+    return path
+
+
+def output_folder(value: str | Path | None, option: str, *, inputs: Iterable[Path] = ()) -> Path | None:
+    """A folder the command writes files into (made if missing): not an existing file, not an input."""
+    if not value:
+        return None
+    path = Path(value)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{option} {path} is a file; give a folder")
+    refuse_inputs(path, option, inputs)
+    return path
+
+
+def distinct_outputs(outputs: dict[str, Iterable[Path | None]]) -> None:
+    """Two options never write one path (the second would replace the first's file without a word)."""
+    seen: dict[Path, str] = {}
+    for option, paths in outputs.items():
+        for path in paths:
+            if path is None:
+                continue
+            key = path.resolve()
+            if key in seen:
+                raise InputError(f"{seen[key]} and {option} would both write {path}; give each its own path")
+            seen[key] = option
