@@ -19,10 +19,11 @@ LOG = logging.getLogger("liver_p2p_reg")
 POINT_FORMATS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".stl", ".obj", ".off", ".npy", ".npz")
 MESH_FORMATS = (".stl", ".obj", ".off", ".ply")
 TEXT_FORMATS = (".xyz", ".xyzn", ".pts")  # x y z [more columns] per line; .pts may start with a point count
-# The NPZ array read when the caller names none; without it an NPZ must hold one (N, 3) array of
-# coordinates. A dataset case holds two (src_pcd, tgt_pcd): picking one by a list of names read
-# the complete surface where the partial view was meant, so several arrays are refused instead.
-NPZ_POINTS_KEY = "points"
+# The NPZ arrays read when the caller names none (the first present); without them an NPZ must hold
+# one (N, 3) array of coordinates. A dataset case holds two (src_pcd, tgt_pcd): picking one by a
+# list of names read the complete surface where the partial view was meant, so it is refused instead.
+NPZ_POINT_KEYS = ("points", "xyz", "vertices")
+NPZ_POINTS_KEY = NPZ_POINT_KEYS[0]
 MESH_SAMPLES_PER_MM2 = 0.5  # surface sampling density for meshes (about 1.4 mm spacing)
 MAX_MESH_SAMPLES = 200_000
 
@@ -212,7 +213,7 @@ def _load_text(path: Path) -> np.ndarray:
 
 
 def _load_numpy(path: Path, key: str | None) -> np.ndarray:
-    """The array of an NPY file, or the named / `NPZ_POINTS_KEY` / only point array of an NPZ; numbers only."""
+    """The array of an NPY file, or the named / first of `NPZ_POINT_KEYS` / only point array of an NPZ; numbers only."""
     if path.suffix.lower() == ".npy":
         return _numeric(np.load(path, allow_pickle=False), str(path))
     with np.load(path, allow_pickle=False) as data:
@@ -220,8 +221,9 @@ def _load_numpy(path: Path, key: str | None) -> np.ndarray:
             if key not in data:
                 raise InputError(f"{path}: no array named {key!r} (has: {', '.join(data.files)})")
             return _numeric(data[key], f"{path} ({key})")
-        if NPZ_POINTS_KEY in data:
-            return _numeric(data[NPZ_POINTS_KEY], f"{path} ({NPZ_POINTS_KEY})")
+        for name in NPZ_POINT_KEYS:  # a cloud saved with its normals, a mesh with its triangles
+            if name in data:
+                return _numeric(data[name], f"{path} ({name})")
         name, array = _only_point_array(path, data)
         return _numeric(array, f"{path} ({name})")
 
@@ -234,7 +236,7 @@ def _only_point_array(path: Path, data: Any) -> tuple[str, np.ndarray]:
             array = data[name]
         except ValueError:  # an object array: pickles are never loaded, and it holds no coordinates
             continue
-        if array.ndim == 2 and array.shape[1] == 3:
+        if array.ndim == 2 and array.shape[1] == 3 and len(array) > 3:  # (3, 3): a rotation, not a cloud
             shaped[name] = array
     floats = [name for name, array in shaped.items() if array.dtype.kind == "f"]
     choice = floats or list(shaped)

@@ -44,6 +44,10 @@ def test_npz_keys(tmp_path: Path, rng: np.random.Generator) -> None:
     np.testing.assert_array_equal(load_points(path), pts[:70])
     np.savez(path, vertices=pts, triangles=np.zeros((9, 3), np.int32))  # a mesh: its triangles are no points
     np.testing.assert_array_equal(load_points(path), pts)
+    np.savez(path, xyz=pts[:60], normals=pts[:60] / 10)  # a cloud with its normals: the named coordinates
+    np.testing.assert_array_equal(load_points(path), pts[:60])
+    np.savez(path, surface=pts[:80], rotation=np.eye(3))  # a (3, 3) matrix is no cloud
+    np.testing.assert_array_equal(load_points(path), pts[:80])
 
 
 def test_mesh_is_sampled_over_its_surface(tmp_path: Path) -> None:

@@ -102,16 +102,24 @@ def is_bag_path(path: Path) -> bool:
 
 
 def check_replaceable_bag(path: Path) -> None:
-    """InputError unless `path` is a bag --force may replace: a .mcap file, or a folder holding only a bag's files.
+    """InputError unless `path` is a bag --force may replace: a .mcap file that is no flight recording, an empty
+    folder, or a rosbag2 folder (metadata.yaml and its .mcap files, nothing else).
 
-    Anything else (a folder with other files, the current folder, another file) is refused with one
-    line: --force replaces a bag, it never deletes what merely stands at the bag's path.
+    Anything else (a folder of other files or of several bare .mcap files, the current folder, a pipe, another
+    file) is refused with one line: --force replaces a bag, it never deletes what merely stands at the bag's path.
     """
     path = Path(path)
-    if path.is_file() or path.is_symlink():
+    refuse = f"{path} exists and is not a bag this command wrote; not replacing it: choose another path"
+    if path.is_symlink() or path.is_file():
         if path.suffix != ".mcap":
-            raise InputError(f"{path} exists and is not a bag (.mcap); not replacing it: choose another path")
+            raise InputError(refuse)
+        from liver_p2p_reg.bags.flight_replay import is_recording
+
+        if is_recording(path):  # evidence of a session: never replaced by a bag
+            raise InputError(f"{path} is a flight recording; not replacing it with a bag: choose another path")
         return
+    if not path.is_dir():
+        raise InputError(refuse)
     if Path.cwd().resolve().is_relative_to(path.resolve()):
         raise InputError(f"{path} holds the current folder; not replacing it: choose another path")
     entries = sorted(path.iterdir())
@@ -119,6 +127,11 @@ def check_replaceable_bag(path: Path) -> None:
     if foreign:
         raise InputError(
             f"{path} holds {foreign[0]!r}, which is not a bag's file; not replacing it: choose another path"
+        )
+    if entries and not (path / "metadata.yaml").is_file():
+        raise InputError(
+            f"{path} holds .mcap files but no metadata.yaml (recordings or bare bags, not one bag); "
+            "not replacing it: choose another path"
         )
 
 

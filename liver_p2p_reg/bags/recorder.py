@@ -153,7 +153,8 @@ def continuation(path: Path, index: int) -> Path:
     return path if index == 0 else path.with_name(f"{path.stem}_{index:03d}{path.suffix}")
 
 
-def _series(path: Path) -> list[Path]:
+def recording_series(path: Path) -> list[Path]:
+    """PATH and the continuations of its rotated recording that exist (PATH_001.mcap, ...): one recording's files."""
     return [path, *sorted(path.parent.glob(f"{path.stem}_[0-9][0-9][0-9]{path.suffix}"))]
 
 
@@ -167,7 +168,7 @@ def recording_path(record_path: str, existing: str) -> Path:
         raise InputError(f"record_path {record_path}: a flight recording is an .mcap file (or a folder for one)")
     if not path.parent.is_dir():
         raise InputError(f"record_path {record_path}: folder {path.parent} does not exist")
-    taken = [p for p in _series(path) if p.exists()]
+    taken = [p for p in recording_series(path) if p.exists()]
     if taken and existing == "refuse":
         raise InputError(f"{taken[0]} exists; pass --force to overwrite it")
     if taken and existing == "overwrite":
@@ -176,7 +177,7 @@ def recording_path(record_path: str, existing: str) -> Path:
     elif taken:  # "new": a recording is evidence, never overwritten
         base, n = path.with_name(f"{path.stem}-{stamp}{path.suffix}"), 1
         path = base
-        while any(p.exists() for p in _series(path)):
+        while any(p.exists() for p in recording_series(path)):
             n += 1
             path = base.with_name(f"{base.stem}-{n}{base.suffix}")
     return path

@@ -13,7 +13,7 @@ def _same(a: Path, b: Path) -> bool:
     """True when two paths name one file or folder (symlinks and `..` resolved)."""
     try:
         return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
-    except OSError:
+    except (OSError, RuntimeError):  # RuntimeError: a symlink loop (Python 3.11)
         return False
 
 
@@ -25,21 +25,34 @@ def given_paths(*values: str | Path | Iterable[str | Path] | None) -> list[Path]
             continue
         for item in [value] if isinstance(value, str | Path) else value:
             text = str(item)
+            if not text:  # `--config ""` means no file (Path("") would be the current folder)
+                continue
             # a structures argument may be FILE:LABEL; the file is what must not be overwritten
             head, sep, _ = text.rpartition(":")
             paths.append(Path(head if sep and not Path(text).exists() and head else text))
     return paths
 
 
-def refuse_inputs(path: Path, option: str, inputs: Iterable[Path], contains: bool = False) -> None:
+def _inside(inner: Path, outer: Path) -> bool:
+    """True when `inner` is `outer` or lies under it (both resolved; a path that cannot be resolved: False)."""
+    try:
+        return inner.resolve().is_relative_to(outer.resolve())
+    except (OSError, RuntimeError):  # RuntimeError: a symlink loop (Python 3.11)
+        return False
+
+
+def refuse_inputs(
+    path: Path, option: str, inputs: Iterable[Path], contains: bool = False, bag_folders: bool = False
+) -> None:
     """--force replaces what earlier runs wrote, never what this command reads: an output is no input, lies in no
-    input folder (a bag's) and, for a folder it will replace (`contains`), holds no input."""
+    input bag folder (`bag_folders`: the inputs are bags) and, for a folder it will replace (`contains`), holds
+    no input."""
     for given in inputs:
         if _same(path, given):
             raise InputError(f"{option} {path} is an input of this command; choose another path")
-        if given.is_dir() and path.resolve().is_relative_to(given.resolve()):
-            raise InputError(f"{option} {path} is inside {given}, an input of this command; choose another path")
-        if contains and given.exists() and given.resolve().is_relative_to(path.resolve()):
+        if bag_folders and given.is_dir() and _inside(path, given):
+            raise InputError(f"{option} {path} is inside {given}, a bag this command reads; choose another path")
+        if contains and given.exists() and _inside(given, path):
             raise InputError(f"{option} {path} holds {given}, an input of this command; choose another path")
 
 

@@ -101,8 +101,6 @@ def run(args: argparse.Namespace) -> int:
         from liver_p2p_reg.cli.slicer import finish_replay, serve_replay
 
         slicer = serve_replay(args.slicer, args.slicer_wait)
-    if args.record:
-        _check_record(args.record, args.force, several=len(paths) > 1, inputs=paths)
     rows = replay_bags(
         paths,
         config,
@@ -135,29 +133,45 @@ def _check_outputs(args: argparse.Namespace, bags: list[Path]) -> None:
     if out is not None:
         for bag in bags:  # each replayed bag is written to OUT/<bag name>, replacing a bag there with --force
             written = out / bag.name.removesuffix(".mcap")
-            refuse_inputs(written, "--out", inputs, contains=True)
-            if written.exists() and args.force:
+            refuse_inputs(written, "--out", inputs, contains=True, bag_folders=True)
+            if written.exists() and not args.force:
+                raise InputError(f"output bag {written} exists; pass --force to overwrite it")
+            if written.exists():
                 check_replaceable_bag(written)
     output_folder(args.plots, "--plots", inputs=inputs)
+    if args.json:
+        refuse_inputs(Path(args.json), "--json", inputs, bag_folders=True)
     output_file(args.json, args.force, "--json", inputs=inputs)
+    if args.record:
+        _check_record(args.record, args.force, several=len(bags) > 1, inputs=bags)
 
 
-def _check_record(record: str, force: bool, several: bool, inputs: list[Path] = ()) -> None:
-    """--record checked before any work: a file that exists is refused unless --force; several bags want a folder."""
+def _check_record(record: str, force: bool, several: bool, inputs: list[Path]) -> None:
+    """--record checked before any work: a recording that exists is refused unless --force, and --force never
+    replaces an input (nor a file of an input recording's series); several bags want a folder."""
+    from liver_p2p_reg.bags.recorder import recording_series
     from liver_p2p_reg.cli.output_paths import output_file, output_folder, refuse_inputs
 
     path = Path(record)
+    # a recording's rotated continuations are read (as inputs) and replaced (as outputs) with it
+    read = [f for given in inputs for f in (recording_series(given) if given.suffix == ".mcap" else [given])]
     if several:
         if path.suffix == ".mcap" or (path.exists() and not path.is_dir()):
             raise InputError(f"--record {path}: with several bags, give a folder (one <bag>.mcap each)")
-        output_folder(path, "--record", inputs=inputs)
-        for bag in inputs:  # one recording per bag, RECORD/<bag name>.mcap
-            refuse_inputs(path / f"{bag.name.removesuffix('.mcap')}.mcap", "--record", inputs)
+        output_folder(path, "--record", inputs=read)
+        targets = [path / f"{bag.name.removesuffix('.mcap')}.mcap" for bag in inputs]  # RECORD/<bag name>.mcap
+    else:
+        if path.suffix != ".mcap":
+            raise InputError(f"--record {path}: a flight recording is an .mcap file")
+        output_file(path, True, "--record", inputs=read)  # existence: below, with the continuations
+        targets = [path]
+    for target in targets:
+        for written in recording_series(target):
+            refuse_inputs(written, "--record", read, bag_folders=True)
+            if written.exists() and not force:
+                raise InputError(f"{written} exists; pass --force to overwrite it")
+    if several:
         path.mkdir(parents=True, exist_ok=True)
-        return
-    if path.suffix != ".mcap":
-        raise InputError(f"--record {path}: a flight recording is an .mcap file")
-    output_file(path, force, "--record", inputs=inputs)
 
 
 def _rerun(args: argparse.Namespace) -> int:
@@ -173,9 +187,10 @@ def _rerun(args: argparse.Namespace) -> int:
         raise InputError(f"{', '.join(given)}: a flight recording is re-run under its recorded parameters only")
     if args.record:
         _check_record(args.record, args.force, several=False, inputs=[Path(args.bags[0])])
+    from liver_p2p_reg.bags.recorder import recording_series
     from liver_p2p_reg.cli.output_paths import output_file
 
-    output_file(args.json, args.force, "--json", inputs=[Path(args.bags[0])])
+    output_file(args.json, args.force, "--json", inputs=recording_series(Path(args.bags[0])))
     report = rerun_recording(args.bags[0], record_path=args.record, overwrite=args.force)
     for note in report.notes:
         print(f"note: {note}")

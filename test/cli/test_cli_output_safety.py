@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +58,17 @@ def test_bag_force_never_deletes_a_folder_that_is_not_a_bag(files, tmp_path, cap
     npz = files["npz"].read_bytes()
     rc, err = _run(["bag", "import", files["npz"], files["npz"], "--force"], capsys)
     assert rc == 2 and "is an input" in err and files["npz"].read_bytes() == npz
+    # a folder of bare .mcap files (flight recordings, several bags) is no one bag; nor is a pipe
+    recordings = tmp_path / "recordings"
+    recordings.mkdir()
+    for name in ("flight_a.mcap", "flight_b.mcap"):
+        (recordings / name).write_bytes(b"evidence")
+    rc, err = _run([*make[:2], recordings, *make[2:]], capsys)
+    assert rc == 2 and "no metadata.yaml" in err and len(list(recordings.iterdir())) == 2
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    rc, err = _run([*make[:2], pipe, *make[2:]], capsys)
+    assert rc == 2 and "is not a bag" in err and len(err.splitlines()) == 1
     # a bag is still replaced with --force
     bag = tmp_path / "bag"
     assert _run([*make[:2], bag, *make[2:]], capsys)[0] == 0
@@ -74,7 +86,7 @@ def test_replay_outputs_never_replace_the_bag_being_replayed(files, tmp_path, ca
     assert rc == 2 and "is an input" in err
     mcap = next(bag.glob("*.mcap"))
     rc, err = _run([*replay, "--json", mcap], capsys)
-    assert rc == 2 and "inside" in err and "an input" in err
+    assert rc == 2 and "inside" in err and "a bag this command reads" in err
     assert _snapshot(bag) == before
     # --json: an existing file only with --force; a folder is refused before any work
     rows = tmp_path / "rows.json"
@@ -89,9 +101,28 @@ def test_replay_outputs_never_replace_the_bag_being_replayed(files, tmp_path, ca
     assert rc == 2 and "--max-frames" in err
     assert _run([*replay, "--json", rows], capsys)[0] == 0
     assert json.loads(rows.read_text())[0]["bag"] == "case_bag"
+    # two bags, the second's output bag exists: refused before the first is replayed, not after
+    second = tmp_path / "second_bag"
+    assert _run(["bag", "import", files["npz"], second, "--frames", 1], capsys)[0] == 0
+    out = tmp_path / "out"
+    (out / "second_bag").mkdir(parents=True)
+    rc, err = _run(["replay", bag, second, *METHOD, "--out", out], capsys)
+    assert rc == 2 and "exists; pass --force" in err and not (out / "case_bag").exists()
 
 
-def test_register_outputs_never_collide_with_each_other_or_an_input(files, tmp_path, capsys) -> None:
+def test_a_rerun_never_records_over_the_recording_it_reads(files, tmp_path, capsys) -> None:
+    recording = tmp_path / "flight.mcap"
+    assert _run(["register", files["source"], files["view"], *METHOD, "--record", recording], capsys)[0] == 0
+    data = recording.read_bytes()
+    for extra in (["--record", recording, "--force"], ["--json", recording, "--force"]):
+        rc, err = _run(["replay", recording, *extra], capsys)
+        assert rc == 2 and "is an input" in err, extra
+    assert recording.read_bytes() == data
+    rc, err = _run(["replay", recording, "--record", tmp_path / "again.mcap"], capsys)
+    assert rc == 0 and (tmp_path / "again.mcap").is_file()
+
+
+def test_register_outputs_never_collide_with_each_other_or_an_input(files, tmp_path, capsys, monkeypatch) -> None:
     register = ["register", files["source"], files["view"], *METHOD]
     same = tmp_path / "same.ply"
     rc, err = _run([*register, "-o", same, "--moved", same], capsys)
@@ -110,6 +141,10 @@ def test_register_outputs_never_collide_with_each_other_or_an_input(files, tmp_p
     assert rc == 2 and "is an input" in err and [v.read_bytes() for v in views] == data
     rc, err = _run([*register, "-o", tmp_path, "--force"], capsys)
     assert rc == 2 and "is a folder" in err
+    # an empty option is no input (Path("") would be the current folder, and every output in it refused)
+    monkeypatch.chdir(tmp_path)
+    rc, err = _run([*register, "-o", "result.json", "--config", "", "--weights", ""], capsys)
+    assert rc == 0 and json.loads((tmp_path / "result.json").read_text())["status"] in ("OK", "WARN")
 
 
 def test_a_prior_pose_is_scored_as_is_by_evaluate(files, tmp_path, capsys) -> None:
