@@ -89,17 +89,10 @@ def _make(args: argparse.Namespace, case: dict) -> int:
 
 
 def _check_out(args: argparse.Namespace, *inputs: str | None) -> None:
-    """OUT checked before any work: never an input, nor a folder holding one; an existing OUT only with --force,
-    and only when it is a bag (--force replaces a bag; it never deletes what merely stands at OUT)."""
-    from liver_p2p_reg.bags.io import check_replaceable_bag
-    from liver_p2p_reg.cli.output_paths import given_paths, refuse_inputs
+    """OUT checked before any work (output_paths.output_bag)."""
+    from liver_p2p_reg.cli.output_paths import given_paths, output_bag
 
-    out = Path(args.out)
-    refuse_inputs(out, "OUT", given_paths(*inputs), contains=True)
-    if out.exists() or out.is_symlink():
-        if not args.force:
-            raise InputError(f"output bag {out} exists (use --force to overwrite)")
-        check_replaceable_bag(out)
+    output_bag(Path(args.out), args.force, "OUT", given_paths(*inputs))
 
 
 def run_make(args: argparse.Namespace) -> int:

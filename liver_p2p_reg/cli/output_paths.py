@@ -92,6 +92,19 @@ def output_folder(value: str | Path | None, option: str, *, inputs: Iterable[Pat
     return path
 
 
+def output_bag(path: Path, force: bool, option: str, inputs: Iterable[Path], bag_folders: bool = False) -> Path:
+    """A bag the command will write: never an input nor a folder holding one; an existing one only with --force,
+    and only when it is a bag (--force replaces a bag; it never deletes what merely stands at the path)."""
+    from liver_p2p_reg.bags.io import check_replaceable_bag
+
+    refuse_inputs(path, option, inputs, contains=True, bag_folders=bag_folders)
+    if path.exists() or path.is_symlink():
+        if not force:
+            raise InputError(f"output bag {path} exists; pass --force to overwrite it")
+        check_replaceable_bag(path)
+    return path
+
+
 def distinct_outputs(outputs: dict[str, Iterable[Path | None]]) -> None:
     """Two options never write one path (the second would replace the first's file without a word)."""
     seen: dict[Path, str] = {}

@@ -125,19 +125,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _check_outputs(args: argparse.Namespace, bags: list[Path]) -> None:
     """--out, --plots and --json checked before any work: none of them is, or (a bag to replace) holds, an input."""
-    from liver_p2p_reg.bags.io import check_replaceable_bag
-    from liver_p2p_reg.cli.output_paths import given_paths, output_file, output_folder, refuse_inputs
+    from liver_p2p_reg.cli.output_paths import given_paths, output_bag, output_file, output_folder, refuse_inputs
 
     inputs = given_paths(bags, args.config, args.structures)
     out = output_folder(args.out, "--out", inputs=inputs)
     if out is not None:
         for bag in bags:  # each replayed bag is written to OUT/<bag name>, replacing a bag there with --force
-            written = out / bag.name.removesuffix(".mcap")
-            refuse_inputs(written, "--out", inputs, contains=True, bag_folders=True)
-            if written.exists() and not args.force:
-                raise InputError(f"output bag {written} exists; pass --force to overwrite it")
-            if written.exists():
-                check_replaceable_bag(written)
+            output_bag(out / bag.name.removesuffix(".mcap"), args.force, "--out", inputs, bag_folders=True)
     output_folder(args.plots, "--plots", inputs=inputs)
     if args.json:
         refuse_inputs(Path(args.json), "--json", inputs, bag_folders=True)
