@@ -198,7 +198,12 @@ class DeformSection:
     deform_iterations: int = 15  # Gauss-Newton steps (the pairs are recomputed each step)
     deform_min_points: int = 200  # fewer view points than this: no deformation ("too little overlap")
     deform_max_residual_mm: float = 5.0  # rigid residual above this: a gross pose is not deformed
-    deform_min_gain: float = 0.1  # the residual must fall by this share, else the rigid result stands
+    deform_min_gain: float = 0.0  # the residual must fall by this share, else the rigid result stands
+    # the held-out-half check (deform_fit.holdout_gain): fitted on each half of the view, does the deformation
+    # predict the other half better than the rigid correction alone, by this share? Four more fits. Chosen with
+    # deform_min_gain by amendment 3 of docs/deform/rule.md: a deformation must predict, not only fit
+    deform_holdout_check: bool = True
+    deform_min_holdout_gain: float = 0.0
     deform_max_displacement_mm: float = 25.0  # a larger displacement anywhere is implausible: rigid result
     # the error bound of the deformed positions (`liver-p2p calibrate-bound --deformed`); empty: the bundled one
     deform_error_calibration_path: str = ""
@@ -325,6 +330,8 @@ class Config(
             )
         if not 0 <= self.deform_min_gain < 1:
             raise InputError(f"deform_min_gain must be in [0, 1), got {self.deform_min_gain}")
+        if not -1 <= self.deform_min_holdout_gain < 1:
+            raise InputError(f"deform_min_holdout_gain must be in [-1, 1), got {self.deform_min_holdout_gain}")
         for name in ("icp_trim_ratio", "error_coverage"):
             if not 0 < getattr(self, name) <= 1:
                 raise InputError(f"{name} must be in (0, 1], got {getattr(self, name)}")

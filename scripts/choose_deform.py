@@ -4,6 +4,7 @@ Usage (each step resumable; out/deform/ holds the rigid poses and one JSON line 
     .venv/bin/python scripts/choose_deform.py rigid real-val-v2          # the default's rigid poses, 2 mm noise
     .venv/bin/python scripts/choose_deform.py grid real-val-v2 [--start I --stop J]   # every grid setting per case
     .venv/bin/python scripts/choose_deform.py summarize real-val-v2 real-val-v2-arap  # -> docs/deform/choice.md
+    (amendments 2 and 3 of the rule: the steps `gate` / `summarize-gate` and `holdout` / `summarize-holdout`)
 
 The rigid step registers every second case with visibility in [0.1, 0.3) with `learned-p2p-icp` and the
 benchmark's own noise (bench.cases.add_target_noise, 2 mm); the grid step runs the stage from each pose
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,7 @@ from liver_p2p_reg.bench.cases import add_target_noise, case_info, case_seed, wi
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.phantom.casefile import read_case, source_triangles
 from liver_p2p_reg.registration.deform import deform_result
+from liver_p2p_reg.registration.deform_fit import holdout_gain
 from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.registration.threads import pin_threads
 from liver_p2p_reg.result import RegistrationResult
@@ -40,6 +43,10 @@ GATE_GRID = [
     for m, r in ((24, 0.003), (24, 0.01), (48, 0.001), (48, 0.003))
 ]
 GATES = (0.0, 0.02, 0.04, 0.06, 0.08, 0.1)
+# Amendment 3: the held-out-half gate (None: off) with these residual gates, for these settings.
+HOLDOUT_GRID = [{"deform_modes": 24, "deform_regularization": r, "deform_min_gain": 0.0} for r in (0.01, 0.003)]
+HOLDOUT_MIN_GAINS = (0.0, 0.05, 0.1)
+HOLDOUT_GATES = (None, 0.0, 0.02, 0.05)
 RANGES = ((0.1, 0.2), (0.2, 0.3))
 HARM_MM, GOOD_MM, HARM_SHARE = 1.0, 10.0, 0.01
 
@@ -75,7 +82,7 @@ def rigid(name: str, data: Path) -> None:
 def grid(name: str, start: int, stop: int | None, kind: str = "grid") -> None:
     """Every grid setting from each rigid pose: one JSON line per case (vis, rigid TRE, per-setting TRE)."""
     pin_threads(1)
-    settings = GRID if kind == "grid" else GATE_GRID
+    settings = {"grid": GRID, "gate": GATE_GRID, "holdout": HOLDOUT_GRID}[kind]
     poses = list(json.loads((OUT / f"rigid_{name}.json").read_text()).items())[start:stop]
     caches: list[dict] = [{} for _ in settings]
     with open(OUT / f"{kind}_{name}_{start}.jsonl", "a") as fh:
@@ -95,6 +102,12 @@ def grid(name: str, start: int, stop: int | None, kind: str = "grid") -> None:
                 moved = rms(d.T_target_source, p + d.displacement_at(p), y)
                 gain = 1.0 - d.residual_after_mm / d.residual_before_mm if d.residual_before_mm > 0 else 0.0
                 out = {"tre": moved, "applied": d.applied, "ms": d.runtime_ms, "gain": gain, "u": d.rms_displacement_mm}
+                if kind == "holdout" and d.applied:
+                    start_s = time.perf_counter()
+                    out["holdout"] = holdout_gain(
+                        d.model, target, T0, regularization=setting["deform_regularization"], iterations=15
+                    )
+                    out["holdout_ms"] = 1e3 * (time.perf_counter() - start_s)
                 row["out"].append(out)
             fh.write(json.dumps(row) + "\n")
             fh.flush()
@@ -220,13 +233,77 @@ def summarize_gate(names: list[str], target: Path) -> None:
     print("\n".join(text))
 
 
+def summarize_holdout(names: list[str], target: Path) -> None:
+    """Amendment 3: each HOLDOUT_GRID setting x residual gate x held-out gate, by the same rule; appended."""
+    candidates = [(g, mg, hg) for g in range(len(HOLDOUT_GRID)) for mg in HOLDOUT_MIN_GAINS for hg in HOLDOUT_GATES]
+    score, harms_of, lines = {}, {}, []
+    head = [f"{n} ratio {lo}-{hi}" for n in names for lo, hi in RANGES]
+    head += [f"{n} harm" for n in names] + [f"{n} applied" for n in names]
+    lines.append("| setting | deform_min_gain | deform_min_holdout_gain | " + " | ".join(head) + " |")
+    lines.append("|---|---|---|" + "---|" * len(head))
+    for c in candidates:
+        g, mg, hg = c
+        ratios, harms, applied = [], [], []
+        for name in names:
+            rows = _rows("holdout", name)
+            rigid = np.array([r["rigid"] for r in rows])
+            vis = np.array([r["vis"] for r in rows])
+            outs = [r["out"][g] for r in rows]
+            use = np.array([o["applied"] and o["gain"] >= mg and (hg is None or o["holdout"] >= hg) for o in outs])
+            tre = np.where(use, [o["tre"] for o in outs], rigid)
+            for lo, hi in RANGES:
+                sel = (vis >= lo) & (vis < hi)
+                ratios.append(tre[sel].mean() / rigid[sel].mean())
+            harms.append(float(np.mean((tre - rigid > HARM_MM)[rigid < GOOD_MM])))
+            applied.append(float(use.mean()))
+        score[c], harms_of[c] = float(np.mean(ratios)), harms
+        cells = (
+            [f"{x:.3f}" for x in ratios] + [f"{100 * h:.1f} %" for h in harms] + [f"{100 * a:.0f} %" for a in applied]
+        )
+        gate = "off" if hg is None else f"{hg:g}"
+        lines.append(f"| {_name(HOLDOUT_GRID[g])} | {mg:g} | {gate} | " + " | ".join(cells) + " |")
+    allowed = [c for c in candidates if max(harms_of[c]) <= HARM_SHARE]
+    verdict = "**No candidate passes the harm rule.**"
+    if allowed:
+        best = min(score[c] for c in allowed)
+        near = [c for c in allowed if score[c] <= best + 0.01]
+        g, mg, hg = min(
+            near,
+            key=lambda c: (c[2] is not None, -HOLDOUT_GRID[c[0]]["deform_regularization"], -c[1], c[2] or 0.0),
+        )
+        gate = "off" if hg is None else f"{hg:g}"
+        verdict = (
+            f"**Chosen: {_name(HOLDOUT_GRID[g])}, deform_min_gain {mg:g}, held-out gate {gate}** "
+            f"(mean ratio {score[g, mg, hg]:.3f}; the best allowed: {best:.3f})."
+        )
+    ms = [o["holdout_ms"] for name in names for r in _rows("holdout", name) for o in r["out"] if "holdout_ms" in o]
+    text = [
+        "",
+        "## Amendment 3: the held-out-half gate",
+        "",
+        f"Generated by `.venv/bin/python scripts/choose_deform.py summarize-holdout {' '.join(names)}` from the",
+        "`holdout` rows (each gate applied afterwards to the same fits). The held-out check's own cost (four more",
+        f"fits, 1 thread): median {np.median(ms):.0f} ms, p90 {np.percentile(ms, 90):.0f} ms.",
+        "",
+        *lines,
+        "",
+        verdict,
+        "",
+    ]
+    with open(target, "a") as fh:
+        fh.write("\n".join(text))
+    print("\n".join(text))
+
+
 def _name(setting: dict) -> str:
     return f"modes {setting['deform_modes']}, reg {setting['deform_regularization']:g}"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("step", choices=("rigid", "grid", "gate", "summarize", "summarize-gate"))
+    parser.add_argument(
+        "step", choices=("rigid", "grid", "gate", "holdout", "summarize", "summarize-gate", "summarize-holdout")
+    )
     parser.add_argument("sets", nargs="+")
     parser.add_argument("--data", default="data")
     parser.add_argument("--start", type=int, default=0)
@@ -238,6 +315,9 @@ def main() -> None:
         return
     if args.step == "summarize-gate":
         summarize_gate(args.sets, Path(args.write))
+        return
+    if args.step == "summarize-holdout":
+        summarize_holdout(args.sets, Path(args.write))
         return
     for name in args.sets:
         if args.step == "rigid":

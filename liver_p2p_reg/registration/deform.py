@@ -36,6 +36,7 @@ class Deformation:
     iterations: int = 0
     residual_before_mm: float = float("nan")  # robust mean closest-point distance at the rigid pose
     residual_after_mm: float = float("nan")
+    holdout_gain: float = float("nan")  # the held-out-half check's gain (nan: not run)
     runtime_ms: float = 0.0  # the fit (the model's build is `model_build_ms`, once per preop model)
     model_build_ms: float = 0.0
     n_modes: int = 0
@@ -70,6 +71,7 @@ class Deformation:
             "iterations": int(self.iterations),
             "residual_before_mm": num(self.residual_before_mm),
             "residual_after_mm": num(self.residual_after_mm),
+            "holdout_gain": num(self.holdout_gain),
             "runtime_ms": num(self.runtime_ms),
             "model_build_ms": num(self.model_build_ms),
             "n_modes": int(self.n_modes),
@@ -128,7 +130,7 @@ def deform_result(
 ) -> Deformation:
     """Run the non-rigid stage from `result`'s rigid pose (never raises for data it cannot use); the model is
     built on `source_mm` (+ `triangles`) and fitted through `fit_points_mm` when given (else `source_mm`)."""
-    from liver_p2p_reg.registration.deform_fit import fit_deformation
+    from liver_p2p_reg.registration.deform_fit import fit_deformation, holdout_gain
 
     T = np.asarray(result.T_target_source, dtype=np.float64)
     cfg = config.deformation
@@ -173,4 +175,17 @@ def deform_result(
         )
     if not after <= (1.0 - cfg.deform_min_gain) * before:
         return not_applied(T, f"the residual did not improve enough ({before:.2f} -> {after:.2f} mm)", **stats)
+    if cfg.deform_holdout_check:
+        # a deformation that fits the view may still extrapolate wrongly into the organ: ask it to predict
+        stats["holdout_gain"] = holdout_gain(
+            model, target_mm, T, regularization=cfg.deform_regularization, iterations=cfg.deform_iterations
+        )
+        stats["runtime_ms"] = (time.perf_counter() - start) * 1e3
+        if not stats["holdout_gain"] >= cfg.deform_min_holdout_gain:
+            return not_applied(
+                T,
+                f"the deformation does not predict the view's held-out half (gain {stats['holdout_gain']:.3f} "
+                f"< {cfg.deform_min_holdout_gain:g})",
+                **stats,
+            )
     return Deformation(applied=True, reason="", T_target_source=fit.T_target_source, **stats)

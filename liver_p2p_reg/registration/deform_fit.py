@@ -39,6 +39,19 @@ def robust_residual_mm(points_mm: np.ndarray, view_mm: np.ndarray) -> float:
     return float(d[: max(int(0.9 * len(d)), 1)].mean())
 
 
+def plane_residual_mm(points_mm: np.ndarray, normals: np.ndarray, view_mm: np.ndarray) -> float:
+    """Mean point-to-plane distance of the view's points to their closest surface point, the worst 10 % left
+    out: unlike the point-to-point distance it does not reward a fit for moving samples toward noisy points."""
+    _, j = cKDTree(points_mm).query(view_mm)
+    d = np.sort(np.abs(np.einsum("ij,ij->i", normals[j], points_mm[j] - view_mm)))
+    return float(d[: max(int(0.9 * len(d)), 1)].mean())
+
+
+def model_stride(model: ElasticModel, max_model_points: int = 6000) -> int:
+    """The fit's even subsample of the model's surface points: every this-many-th point."""
+    return max(int(np.ceil(len(model.source_mm) / max_model_points)), 1)
+
+
 def fit_deformation(
     model: ElasticModel,
     target_mm: np.ndarray,
@@ -48,9 +61,11 @@ def fit_deformation(
     iterations: int,
     max_model_points: int = 6000,
     max_target_points: int = 2500,
+    deform: bool = True,
 ) -> FitOutcome:
-    """Minimize the energy above from the rigid pose `T_init` (source -> target, mm)."""
-    stride = max(int(np.ceil(len(model.source_mm) / max_model_points)), 1)
+    """Minimize the energy above from the rigid pose `T_init` (source -> target, mm); `deform=False` holds the
+    modes at zero (the rigid correction alone, the held-out check's baseline)."""
+    stride = model_stride(model, max_model_points)
     x0 = model.source_mm[::stride]
     normals = model.source_normals[::stride]
     basis = model.source_basis(stride)  # (P, 3, m), kept with the model
@@ -62,12 +77,15 @@ def fit_deformation(
     prior = regularization * np.concatenate([model.stiffness_ratio, np.zeros(6)])
     view = (target - T[:3, 3]) @ T[:3, :3]  # the view in the preop frame
     before = robust_residual_mm(x0, view)
+    tree = None
     done = 0
     while done < iterations:
         done += 1
         view = (target - T[:3, 3]) @ T[:3, :3]
-        x = x0 + basis @ q
-        dist, j = cKDTree(x).query(view)
+        if tree is None or deform:  # held at zero, the modes leave the surface (and its tree) where it is
+            x = x0 + basis @ q
+            tree = cKDTree(x)
+        dist, j = tree.query(view)
         n = normals[j]
         r = np.einsum("ij,ij->i", n, x[j] - view)
         scale = max(1.4826 * float(np.median(np.abs(r))), MIN_SCALE_MM)
@@ -81,7 +99,9 @@ def fit_deformation(
         sw = float(w.sum()) + 1e-12
         A = (J * w[:, None]).T @ J / sw + np.diag(prior) + 1e-9 * np.eye(m + 6)
         g = (J * w[:, None]).T @ r / sw + prior * np.concatenate([q, np.zeros(6)])
-        step = -np.linalg.solve(A, g)
+        step = np.zeros(m + 6)
+        free = slice(0 if deform else m, m + 6)
+        step[free] = -np.linalg.solve(A[free, free], g[free])
         q = q + step[:m]
         # The view moves by G (rotation about its centre, then translation); the pose becomes T G^-1.
         Rg = axis_angle_rotation(step[m : m + 3])
@@ -101,3 +121,39 @@ def fit_deformation(
         residual_after_mm=after,
         pairs=len(target),
     )
+
+
+def holdout_gain(
+    model: ElasticModel,
+    target_mm: np.ndarray,
+    T_init: np.ndarray,
+    *,
+    regularization: float,
+    iterations: int,
+    max_target_points: int = 2500,
+) -> float:
+    """Does the deformation predict view points it was not fitted to? The view is split in two halves by the
+    plane through its centroid normal to its longest axis; on each half, the stage and the rigid correction
+    alone are fitted to the other half and scored by the held-out half's robust point-to-plane residual. Returns the mean
+    over the halves of 1 - deformed / rigid held-out residual (> 0: the deformation extrapolates to new data)."""
+    target = np.asarray(target_mm, dtype=np.float64)
+    target = target[:: max(int(np.ceil(len(target) / max_target_points)), 1)]  # as the fit decimates it
+    T = np.asarray(T_init, dtype=np.float64)
+    view = (target - T[:3, 3]) @ T[:3, :3]
+    centred = view - view.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    side = centred @ axis <= np.median(centred @ axis)
+    stride = model_stride(model)
+    gains = []
+    for held in (side, ~side):
+        scores = []
+        for deform in (True, False):
+            fit = fit_deformation(
+                model, target[~held], T, regularization=regularization, iterations=iterations, deform=deform
+            )
+            Tf = fit.T_target_source
+            moved = model.source_mm[::stride] + model.source_basis(stride) @ fit.coefficients_mm
+            held_view = (target[held] - Tf[:3, 3]) @ Tf[:3, :3]
+            scores.append(plane_residual_mm(moved, model.source_normals[::stride], held_view))
+        gains.append(1.0 - scores[0] / scores[1] if scores[1] > 0 else 0.0)
+    return float(np.mean(gains))

@@ -183,9 +183,14 @@ DEFORM_SETTINGS = (
 )
 
 
+# The held-out-half gate, named only when it is on (calibrations made before it existed ran without it).
+HOLDOUT_SETTINGS = ("deform_holdout_check", "deform_min_holdout_gain")
+
+
 def deform_settings(config: Any) -> dict[str, Any]:
     """The non-rigid stage's settings a deformed calibration is made with and checked against."""
-    return {name: getattr(config, name) for name in DEFORM_SETTINGS}
+    names = DEFORM_SETTINGS + (HOLDOUT_SETTINGS if config.deform_holdout_check else ())
+    return {name: getattr(config, name) for name in names}
 
 
 def attach_deformed_error_model(result: Any, config: Any) -> None:
@@ -207,7 +212,8 @@ def attach_deformed_error_model(result: Any, config: Any) -> None:
     model = ErrorModel(result.error_model.evidence, calibration, config.error_coverage)
     result.deformed_error_model = model
     result.deformed_error_bound_mm = model.pose_bound_mm()
-    differ = [k for k, v in deform_settings(config).items() if (calibration.deform or {}).get(k) != v]
+    ours, theirs = deform_settings(config), calibration.deform or {}
+    differ = [k for k in sorted(set(ours) | set(theirs)) if theirs.get(k) != ours.get(k)]
     if differ:
         result.deformed_error_calibration_note = (
             f"deformed-position bound calibrated with other {', '.join(differ)}: its coverage is not known"

@@ -181,6 +181,7 @@ def stage_values(
         "deform_max_displacement_mm": f"{deformation.max_displacement_mm:.3f}",
         "deform_residual_before_mm": f"{deformation.residual_before_mm:.3f}",
         "deform_residual_after_mm": f"{deformation.residual_after_mm:.3f}",
+        "deform_holdout_gain": f"{deformation.holdout_gain:.3f}",
         "deform_ms": f"{ms:.1f}",
     }
     if tre_mm is not None and deformation.applied:

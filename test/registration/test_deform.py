@@ -10,6 +10,7 @@ from liver_p2p_reg import Config, Registrar
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom.simulate import simulate_liver
 from liver_p2p_reg.registration.deform import deform_result
+from liver_p2p_reg.registration.deform_fit import fit_deformation
 from liver_p2p_reg.registration.mechanics.modes import _lumped_mass, _rigid_modes, build_elastic_model
 from liver_p2p_reg.registration.mechanics.solid import closed_solid
 from liver_p2p_reg.result import RegistrationResult
@@ -130,3 +131,45 @@ def test_bad_triangles_are_one_line_errors():
         registrar.deform(result, source, target, np.array([[0, 1, 15000]]))
     with pytest.raises(InputError, match=r"\(F, 3\) integer array"):
         registrar.deform(result, source, target, np.array([[0.0, 1.0, 2.0]]))
+
+
+def test_the_held_out_check_passes_a_real_deformation_and_refuses_fitted_noise(fem_liver):
+    sim, d = fem_liver, fem_liver.deformations[0]
+    check = Config(**FIT, deform_holdout_check=True, deform_min_holdout_gain=0.05)
+    real = deform_result(rigid_result(), sim.vertices_mm, d.surface_mm, check, {}, sim.triangles)
+    assert real.applied and real.holdout_gain > 0.05, (real.reason, real.holdout_gain)
+    rng = np.random.default_rng(0)
+    view = sim.vertices_mm[sim.vertices_mm[:, 0] > np.median(sim.vertices_mm[:, 0])]
+    noise = deform_result(
+        rigid_result(), sim.vertices_mm, view + rng.uniform(-0.5, 0.5, view.shape), check, {}, sim.triangles
+    )
+    # the residual gate is off (FIT): only the held-out half can refuse a deformation fitted to noise
+    assert not noise.applied and "held-out half" in noise.reason and noise.holdout_gain < 0.05, noise.reason
+    assert np.array_equal(noise.T_target_source, np.eye(4)) and "\n" not in noise.reason
+    assert real.to_json_dict()["holdout_gain"] == round(real.holdout_gain, 4)
+    unchecked_config = Config(**FIT, deform_holdout_check=False)
+    unchecked = deform_result(rigid_result(), sim.vertices_mm, d.surface_mm, unchecked_config, {}, sim.triangles)
+    assert np.isnan(unchecked.holdout_gain) and unchecked.to_json_dict()["holdout_gain"] is None
+
+
+def test_the_rigid_only_fit_moves_no_mode(fem_liver):
+    sim, d = fem_liver, fem_liver.deformations[0]
+    model = deform_result(rigid_result(), sim.vertices_mm, d.surface_mm, Config(**FIT), {}, sim.triangles).model
+    fit = fit_deformation(model, d.surface_mm, np.eye(4), regularization=0.001, iterations=10, deform=False)
+    assert np.array_equal(fit.coefficients_mm, np.zeros(model.n_modes))
+    assert fit.residual_after_mm <= fit.residual_before_mm + 1e-9  # the rigid correction alone still helps
+
+
+def test_a_deformed_bound_is_not_claimed_for_other_gates(fem_liver):
+    sim, d = fem_liver, fem_liver.deformations[0]
+    rigid = Registrar(Config(method="fpfh-ransac-icp")).register(sim.vertices_mm, d.surface_mm)
+    notes = []
+    for extra in ({}, {"deform_holdout_check": False}):
+        registrar = Registrar(Config(method="fpfh-ransac-icp", deform=True, **extra))
+        r = registrar.deform(rigid, sim.vertices_mm, d.surface_mm, sim.triangles)
+        assert r.deformation.applied, r.deformation.reason
+        notes.append(r.deformed_error_calibration_note)
+    # the bundled calibration holds for the default gates, the held-out check on
+    assert "calibrated with other" not in notes[0], notes[0]
+    # without the check the stage is applied to poses the calibration never saw: its coverage is not claimed
+    assert "calibrated with other deform_holdout_check, deform_min_holdout_gain" in notes[1], notes[1]
