@@ -17,6 +17,7 @@ import argparse
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -96,16 +97,20 @@ def grid(name: str, start: int, stop: int | None, kind: str = "grid") -> None:
             )
             row = {"case": path, "vis": c["visibility"], "rigid": rms(T0, p, y), "out": []}
             for setting, cache in zip(settings, caches, strict=True):
-                d = deform_result(
-                    result, c["src_pcd"], target, Config(deform=True, **setting), cache, source_triangles(c)
-                )
+                # the gates are applied to the rows afterwards: the stage runs with the held-out check off
+                config = Config(deform=True, deform_holdout_check=False, **setting)
+                d = deform_result(result, c["src_pcd"], target, config, cache, source_triangles(c))
                 moved = rms(d.T_target_source, p + d.displacement_at(p), y)
                 gain = 1.0 - d.residual_after_mm / d.residual_before_mm if d.residual_before_mm > 0 else 0.0
                 out = {"tre": moved, "applied": d.applied, "ms": d.runtime_ms, "gain": gain, "u": d.rms_displacement_mm}
                 if kind == "holdout" and d.applied:
                     start_s = time.perf_counter()
                     out["holdout"] = holdout_gain(
-                        d.model, target, T0, regularization=setting["deform_regularization"], iterations=15
+                        d.model,
+                        target,
+                        T0,
+                        regularization=config.deform_regularization,
+                        iterations=config.deform_iterations,
                     )
                     out["holdout_ms"] = 1e3 * (time.perf_counter() - start_s)
                 row["out"].append(out)
@@ -173,6 +178,27 @@ def _rows(kind: str, name: str) -> list[dict]:
     return [json.loads(line) for f in sorted(OUT.glob(f"{kind}_{name}_*.jsonl")) for line in f.read_text().splitlines()]
 
 
+def _gated(rows: list[dict], g: int, use: Callable[[dict], bool]) -> tuple[list[float], float, float]:
+    """Setting g's rows with the stage kept where `use(out)`: the ratio per range, the harm and the applied share."""
+    rigid = np.array([r["rigid"] for r in rows])
+    vis = np.array([r["vis"] for r in rows])
+    kept = np.array([use(r["out"][g]) for r in rows])
+    tre = np.where(kept, [r["out"][g]["tre"] for r in rows], rigid)
+    ratios = [tre[(vis >= lo) & (vis < hi)].mean() / rigid[(vis >= lo) & (vis < hi)].mean() for lo, hi in RANGES]
+    return ratios, float(np.mean((tre - rigid > HARM_MM)[rigid < GOOD_MM])), float(kept.mean())
+
+
+def _judged(rows_of: dict[str, list[dict]], g: int, use: Callable[[dict], bool]) -> tuple[list, list, list]:
+    """_gated over every set: the ratios (set by set, range by range), the harms and the applied shares."""
+    ratios, harms, applied = [], [], []
+    for rows in rows_of.values():
+        r, h, a = _gated(rows, g, use)
+        ratios += r
+        harms.append(h)
+        applied.append(a)
+    return ratios, harms, applied
+
+
 def summarize_gate(names: list[str], target: Path) -> None:
     """Amendment 2: each GATE_GRID setting with each residual gate, judged by the same rule; appended to `target`."""
     candidates = [(g, gate) for g in range(len(GATE_GRID)) for gate in GATES]
@@ -184,19 +210,9 @@ def summarize_gate(names: list[str], target: Path) -> None:
         " | " + " | ".join(f"{n} harm" for n in names) + " | " + " | ".join(f"{n} applied" for n in names) + " |"
     )
     lines.append("|---|---|" + "---|" * (len(names) * (len(RANGES) + 2)))
+    rows_of = {name: _rows("gate", name) for name in names}
     for g, gate in candidates:
-        ratios, harms, applied = [], [], []
-        for name in names:
-            rows = _rows("gate", name)
-            rigid = np.array([r["rigid"] for r in rows])
-            vis = np.array([r["vis"] for r in rows])
-            use = np.array([r["out"][g]["applied"] and r["out"][g]["gain"] >= gate for r in rows])
-            tre = np.where(use, [r["out"][g]["tre"] for r in rows], rigid)
-            ratios += [
-                tre[(vis >= lo) & (vis < hi)].mean() / rigid[(vis >= lo) & (vis < hi)].mean() for lo, hi in RANGES
-            ]
-            harms.append(float(np.mean((tre - rigid > HARM_MM)[rigid < GOOD_MM])))
-            applied.append(float(use.mean()))
+        ratios, harms, applied = _judged(rows_of, g, lambda o, gate=gate: o["applied"] and o["gain"] >= gate)
         score[g, gate], harm_ok[g, gate] = float(np.mean(ratios)), all(h <= HARM_SHARE for h in harms)
         worst_harm[g, gate] = max(harms)
         cells = (
@@ -231,21 +247,14 @@ def summarize_holdout(names: list[str], target: Path) -> None:
     head += [f"{n} harm" for n in names] + [f"{n} applied" for n in names]
     lines.append("| setting | deform_min_gain | deform_min_holdout_gain | " + " | ".join(head) + " |")
     lines.append("|---|---|---|" + "---|" * len(head))
+    rows_of = {name: _rows("holdout", name) for name in names}
     for c in candidates:
         g, mg, hg = c
-        ratios, harms, applied = [], [], []
-        for name in names:
-            rows = _rows("holdout", name)
-            rigid = np.array([r["rigid"] for r in rows])
-            vis = np.array([r["vis"] for r in rows])
-            outs = [r["out"][g] for r in rows]
-            use = np.array([o["applied"] and o["gain"] >= mg and (hg is None or o["holdout"] >= hg) for o in outs])
-            tre = np.where(use, [o["tre"] for o in outs], rigid)
-            for lo, hi in RANGES:
-                sel = (vis >= lo) & (vis < hi)
-                ratios.append(tre[sel].mean() / rigid[sel].mean())
-            harms.append(float(np.mean((tre - rigid > HARM_MM)[rigid < GOOD_MM])))
-            applied.append(float(use.mean()))
+
+        def use(o: dict, mg: float = mg, hg: float | None = hg) -> bool:
+            return o["applied"] and o["gain"] >= mg and (hg is None or o["holdout"] >= hg)
+
+        ratios, harms, applied = _judged(rows_of, g, use)
         score[c], harms_of[c] = float(np.mean(ratios)), harms
         cells = (
             [f"{x:.3f}" for x in ratios] + [f"{100 * h:.1f} %" for h in harms] + [f"{100 * a:.0f} %" for a in applied]
@@ -266,7 +275,7 @@ def summarize_holdout(names: list[str], target: Path) -> None:
             f"**Chosen: {_name(HOLDOUT_GRID[g])}, deform_min_gain {mg:g}, held-out gate {gate}** "
             f"(mean ratio {score[g, mg, hg]:.3f}; the best allowed: {best:.3f})."
         )
-    ms = [o["holdout_ms"] for name in names for r in _rows("holdout", name) for o in r["out"] if "holdout_ms" in o]
+    ms = [o["holdout_ms"] for rows in rows_of.values() for r in rows for o in r["out"] if "holdout_ms" in o]
     intro = [
         f"Generated by `.venv/bin/python scripts/choose_deform.py summarize-holdout {' '.join(names)}` from the",
         "`holdout` rows (each gate applied afterwards to the same fits). The held-out check's own cost (four more",

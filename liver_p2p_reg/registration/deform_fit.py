@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from liver_p2p_reg.registration.mechanics.modes import ElasticModel
 from liver_p2p_reg.registration.refine import axis_angle_rotation
 
+MAX_MODEL_POINTS, MAX_TARGET_POINTS = 6000, 2500  # the fit's even subsamples of the model and the view
 MIN_SCALE_MM = 1.0  # the robust kernel's scale never drops below this (2 mm sensor noise is normal)
 
 
@@ -47,9 +48,9 @@ def plane_residual_mm(points_mm: np.ndarray, normals: np.ndarray, view_mm: np.nd
     return float(d[: max(int(0.9 * len(d)), 1)].mean())
 
 
-def model_stride(model: ElasticModel, max_model_points: int = 6000) -> int:
-    """The fit's even subsample of the model's surface points: every this-many-th point."""
-    return max(int(np.ceil(len(model.source_mm) / max_model_points)), 1)
+def even_stride(n_points: int, max_points: int) -> int:
+    """The step of an even subsample of at most `max_points` of `n_points` points (1: all of them)."""
+    return max(int(np.ceil(n_points / max_points)), 1)
 
 
 def fit_deformation(
@@ -59,18 +60,18 @@ def fit_deformation(
     *,
     regularization: float,
     iterations: int,
-    max_model_points: int = 6000,
-    max_target_points: int = 2500,
+    max_model_points: int = MAX_MODEL_POINTS,
+    max_target_points: int = MAX_TARGET_POINTS,
     deform: bool = True,
 ) -> FitOutcome:
     """Minimize the energy above from the rigid pose `T_init` (source -> target, mm); `deform=False` holds the
     modes at zero (the rigid correction alone, the held-out check's baseline)."""
-    stride = model_stride(model, max_model_points)
+    stride = even_stride(len(model.source_mm), max_model_points)
     x0 = model.source_mm[::stride]
     normals = model.source_normals[::stride]
     basis = model.source_basis(stride)  # (P, 3, m), kept with the model
     target = np.asarray(target_mm, dtype=np.float64)
-    target = target[:: max(int(np.ceil(len(target) / max_target_points)), 1)]
+    target = target[:: even_stride(len(target), max_target_points)]
     T = np.asarray(T_init, dtype=np.float64).copy()
     m = model.n_modes
     q = np.zeros(m)
@@ -130,20 +131,21 @@ def holdout_gain(
     *,
     regularization: float,
     iterations: int,
-    max_target_points: int = 2500,
 ) -> float:
     """Does the deformation predict view points it was not fitted to? The view is split in two halves by the
     plane through its centroid normal to its longest axis; on each half, the stage and the rigid correction
-    alone are fitted to the other half and scored by the held-out half's robust point-to-plane residual. Returns the mean
-    over the halves of 1 - deformed / rigid held-out residual (> 0: the deformation extrapolates to new data)."""
+    alone are fitted to the other half and scored by the held-out half's robust point-to-plane residual.
+    Returns the mean over the halves of 1 - deformed / rigid held-out residual (> 0: the deformation
+    extrapolates to new data)."""
     target = np.asarray(target_mm, dtype=np.float64)
-    target = target[:: max(int(np.ceil(len(target) / max_target_points)), 1)]  # as the fit decimates it
+    target = target[:: even_stride(len(target), MAX_TARGET_POINTS)]  # as the fit decimates it
     T = np.asarray(T_init, dtype=np.float64)
     view = (target - T[:3, 3]) @ T[:3, :3]
     centred = view - view.mean(axis=0)
     axis = np.linalg.svd(centred, full_matrices=False)[2][0]
     side = centred @ axis <= np.median(centred @ axis)
-    stride = model_stride(model)
+    stride = even_stride(len(model.source_mm), MAX_MODEL_POINTS)
+    x0, normals, basis = model.source_mm[::stride], model.source_normals[::stride], model.source_basis(stride)
     gains = []
     for held in (side, ~side):
         scores = []
@@ -152,8 +154,8 @@ def holdout_gain(
                 model, target[~held], T, regularization=regularization, iterations=iterations, deform=deform
             )
             Tf = fit.T_target_source
-            moved = model.source_mm[::stride] + model.source_basis(stride) @ fit.coefficients_mm
+            moved = x0 + basis @ fit.coefficients_mm if deform else x0  # the rigid fit moves no mode
             held_view = (target[held] - Tf[:3, 3]) @ Tf[:3, :3]
-            scores.append(plane_residual_mm(moved, model.source_normals[::stride], held_view))
+            scores.append(plane_residual_mm(moved, normals, held_view))
         gains.append(1.0 - scores[0] / scores[1] if scores[1] > 0 else 0.0)
     return float(np.mean(gains))
