@@ -94,8 +94,9 @@ def matches_per_row(
     Returns (target_index (..., N) long, weight (..., N)); a row has at most one mutual match,
     so this dense form carries every mutual-NN correspondence and batches over patches.
     """
-    index = log_confidence.argmax(dim=-1)  # (..., N)
-    best_log = torch.gather(log_confidence, -1, index[..., None])[..., 0]
+    # max() gives argmax()'s index (the first of equal maxima) with its value, ~3x faster on CPU than
+    # argmax() and a gather; the value's gradient flows to the same entry.
+    best_log, index = log_confidence.max(dim=-1)  # (..., N)
     weight = best_log.exp()
     keep = weight > threshold
     if mutual_only:

@@ -44,8 +44,10 @@ def weighted_procrustes(
     # Reflection guard: flip the axis of the smallest singular value if det < 0.
     d = torch.sign(det3(V @ U.transpose(1, 2)))
     d = torch.where(d == 0, torch.ones_like(d), d)
-    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
-    R = V @ D @ U.transpose(1, 2)
+    # V @ diag(1, 1, d) as a column scaling: the matrix product's values (it adds exact zeros), fewer small ops
+    scale = torch.ones_like(V[:, :1, :])
+    scale[:, 0, 2] = d
+    R = (V * scale) @ U.transpose(1, 2)
     t = c_tgt - (R @ c_src[..., None])[..., 0]
     count = (weights > eps).sum(dim=1)
     spread = S[:, 1] > COLLINEAR_RATIO * S[:, 0].clamp(min=eps)

@@ -250,3 +250,28 @@ def test_icp_cross_product_has_np_cross_bits(rng: np.random.Generator) -> None:
         a, b = rng.normal(size=(n, 3)) * 30.0, rng.normal(size=(n, 3))
         assert cross_rows(a, b).tobytes() == np.cross(a, b).tobytes()  # ICP's poses stay bit for bit what they were
     assert np.array_equal(cross_rows(np.eye(3), np.roll(np.eye(3), -1, axis=0)), np.roll(np.eye(3), -2, axis=0))
+
+
+def test_row_best_matching_has_argmax_bits_and_first_of_ties(rng: np.random.Generator) -> None:
+    # max() replaced argmax() + gather(): the same index (the first of equal maxima) and the same value
+    log_conf = torch.tensor(rng.normal(size=(3, 50, 30)), dtype=torch.float32)
+    log_conf[0, 0, [4, 9]] = 10.0  # a tie in one row
+    index, weight = matches_per_row(log_conf, 0.0, mutual_only=False)
+    expected = log_conf.argmax(dim=-1)
+    assert torch.equal(index, expected) and int(index[0, 0]) == 4
+    assert weight.numpy().tobytes() == torch.gather(log_conf, -1, expected[..., None])[..., 0].exp().numpy().tobytes()
+
+
+def test_farthest_points_has_the_plain_formula_bits(rng: np.random.Generator) -> None:
+    from liver_p2p_reg.registration.features.learned.model import farthest_points
+
+    def plain(pts: np.ndarray, k: int) -> list[int]:
+        chosen, dist = [0], ((pts - pts[0]) ** 2).sum(axis=1)
+        for _ in range(1, k):
+            chosen.append(int(np.argmax(dist)))
+            np.minimum(dist, ((pts - pts[chosen[-1]]) ** 2).sum(axis=1), out=dist)
+        return chosen
+
+    for n, k in ((5, 8), (300, 40), (2000, 250)):
+        pts = rng.normal(size=(n, 3)) * rng.uniform(0.1, 10.0)
+        assert farthest_points(torch.from_numpy(pts), k).tolist() == plain(pts, min(k, n))

@@ -45,16 +45,31 @@ def farthest_points(points: torch.Tensor, k: int) -> torch.Tensor:
     """k indices by farthest point sampling from index 0 (invariant: uses distances only).
 
     Runs in NumPy float64 on the CPU: the loop is sequential and tiny per step, where torch's
-    per-op overhead (or a GPU sync per step) would dominate.
+    per-op overhead (or a GPU sync per step) would dominate. The coordinates are kept as three
+    contiguous columns and each step writes into fixed buffers: the same squared distances bit
+    for bit as ((p - q) ** 2).sum(axis=1), which adds x, y, z in that order, at a quarter of the time.
     """
     pts = points.detach().to("cpu", torch.float64).numpy()
     k = min(k, len(pts))
     chosen = np.zeros(k, dtype=np.int64)
-    dist = ((pts - pts[0]) ** 2).sum(axis=1)
+    columns = [np.ascontiguousarray(pts[:, axis]) for axis in range(3)]
+    diff, square = np.empty(len(pts)), np.empty(len(pts))
+
+    def squared_distances(index: int, out: np.ndarray) -> np.ndarray:
+        for axis, column in enumerate(columns):
+            np.subtract(column, column[index], out=diff)
+            if axis == 0:
+                np.multiply(diff, diff, out=out)
+            else:
+                np.add(out, np.multiply(diff, diff, out=square), out=out)
+        return out
+
+    dist = squared_distances(0, np.empty(len(pts)))
+    step = np.empty(len(pts))
     for i in range(1, k):
         nxt = int(np.argmax(dist))
         chosen[i] = nxt
-        np.minimum(dist, ((pts - pts[nxt]) ** 2).sum(axis=1), out=dist)
+        np.minimum(dist, squared_distances(nxt, step), out=dist)
     return torch.from_numpy(chosen).to(points.device)
 
 
@@ -131,21 +146,27 @@ class MatcherNet(nn.Module):
         bias = bias.view(*dist.shape, cfg.layers, cfg.heads).permute(2, 3, 0, 1)
         return [b.contiguous() for b in bias]
 
-    def _to_points(self, d_point_node: torch.Tensor, node_feat: torch.Tensor) -> torch.Tensor:
-        """Inverse-distance interpolation of node context from the 3 nearest nodes."""
-        k = min(3, node_feat.shape[0])
+    @staticmethod
+    def _interpolation(d_point_node: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each point's 3 nearest nodes and their normalized inverse-distance weights: (N, 3) indices, (N, 3)."""
+        k = min(3, d_point_node.shape[1])
         dk, ik = d_point_node.topk(k, dim=1, largest=False)
-        w = (1.0 / (dk + 1e-3)).to(node_feat.dtype)
-        w = w / w.sum(dim=1, keepdim=True)
+        w = (1.0 / (dk + 1e-3)).to(dtype)
+        return ik, w / w.sum(dim=1, keepdim=True)
+
+    @staticmethod
+    def _to_points(interpolation: tuple[torch.Tensor, torch.Tensor], node_feat: torch.Tensor) -> torch.Tensor:
+        """Inverse-distance interpolation of node context from the 3 nearest nodes."""
+        ik, w = interpolation
         return (node_feat[ik] * w[..., None]).sum(dim=1)
 
     def encode(self, points: torch.Tensor, features: torch.Tensor) -> tuple:
-        """One cloud's own part, before any attention: point embeddings, point->node
-        distances, node features and per-layer attention biases. Depends on that cloud only,
-        so a fixed source can be encoded once and passed to `forward` as `source_context`."""
+        """One cloud's own part, before any attention: point embeddings, each point's interpolation
+        from its nearest nodes, node features and per-layer attention biases. Depends on that cloud
+        only, so a fixed source can be encoded once and passed to `forward` as `source_context`."""
         h = self.embed(features)
         d_point_node, nodes, d_nodes = self._nodes(points, h)
-        return h, d_point_node, nodes, self._biases(d_nodes)
+        return h, self._interpolation(d_point_node, nodes.dtype), nodes, self._biases(d_nodes)
 
     def forward(
         self,
@@ -159,14 +180,14 @@ class MatcherNet(nn.Module):
         """src (N,3), tgt (M,3), invariant features -> x_S (N,d), x_T (M,d) normalized
         [, overlap logits (N,), (M,) when `with_overlap` (training only)].
         `source_context`: `encode(src, f_src)` computed earlier (inference on a fixed source)."""
-        hs, pns, gs, bs = source_context if source_context is not None else self.encode(src, f_src)
-        ht, pnt, gt, bt = self.encode(tgt, f_tgt)
+        hs, interp_s, gs, bs = source_context if source_context is not None else self.encode(src, f_src)
+        ht, interp_t, gt, bt = self.encode(tgt, f_tgt)
         for i in range(self.cfg.layers):
             gs = self.self_att[i](gs, gs, bs[i])
             gt = self.self_att[i](gt, gt, bt[i])
             gs, gt = self.cross_att[i](gs, gt), self.cross_att[i](gt, gs)
-        cs = torch.cat([hs, self._to_points(pns, gs)], dim=1)
-        ct = torch.cat([ht, self._to_points(pnt, gt)], dim=1)
+        cs = torch.cat([hs, self._to_points(interp_s, gs)], dim=1)
+        ct = torch.cat([ht, self._to_points(interp_t, gt)], dim=1)
         xs = F.normalize(self.head(cs), dim=1)
         xt = F.normalize(self.head(ct), dim=1)
         if not with_overlap:
