@@ -148,6 +148,9 @@ class IcpSection:
     refine_candidates: int = 6
     screen_icp_points: int = 400  # screening ICP: intraop points ...
     screen_icp_iterations: int = 15  # ... and iterations per candidate
+    # learned-p2p-ransac-icp: the FPFH + RANSAC pose is screened beside P2P's candidates when the view's
+    # estimated visibility (intraop / preop voxels) is below this (0: never, 1: always)
+    ransac_candidate_visibility: float = 0.3
     icp_max_iterations: int = 50
     icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
     icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
@@ -332,6 +335,8 @@ class Config(
             raise InputError(f"deform_min_gain must be in [0, 1), got {self.deform_min_gain}")
         if not -1 <= self.deform_min_holdout_gain < 1:
             raise InputError(f"deform_min_holdout_gain must be in [-1, 1), got {self.deform_min_holdout_gain}")
+        if not 0 <= self.ransac_candidate_visibility <= 1:
+            raise InputError(f"ransac_candidate_visibility must be in [0, 1], got {self.ransac_candidate_visibility}")
         for name in ("icp_trim_ratio", "error_coverage"):
             if not 0 < getattr(self, name) <= 1:
                 raise InputError(f"{name} must be in (0, 1], got {getattr(self, name)}")

@@ -12,9 +12,8 @@ verdict. An empty path is the bundled weights. The first candidate is the refere
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from liver_p2p_reg.bench.candidate_runs import run_candidate
+from liver_p2p_reg.bench.candidate_runs import publish_report, run_candidate
 from liver_p2p_reg.bench.matcher_rule import METHODS, SETS, verdict
 
 
@@ -36,13 +35,8 @@ def main() -> int:
                 name, weights, SETS, list(METHODS), args.out_root, workers=args.workers, data_root=args.data_root
             )
     table, text = verdict(candidates, args.out_root)
-    report = ["# Matcher selection on the validation sets (rule: RULE.md)", "", *table, "", text, ""]
-    report += [
-        "Command: `python scripts/select_matcher.py " + " ".join(f"--candidate {c}" for c in args.candidate) + "`"
-    ]
-    print("\n".join(report))
-    if args.report:
-        Path(args.report).write_text("\n".join(report) + "\n")
+    command = "python scripts/select_matcher.py " + " ".join(f"--candidate {c}" for c in args.candidate)
+    publish_report("Matcher selection on the validation sets (rule: RULE.md)", table, text, command, args.report)
     return 0
 
 

@@ -11,9 +11,8 @@ table and verdict. An empty path is the bundled weights.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from liver_p2p_reg.bench.candidate_runs import run_candidate
+from liver_p2p_reg.bench.candidate_runs import publish_report, run_candidate
 from liver_p2p_reg.bench.small_view_rule import METHOD, SETS, verdict
 
 
@@ -36,15 +35,9 @@ def main() -> int:
                 name, weights, SETS, [METHOD], args.out_root, workers=args.workers, data_root=args.data_root, threads=1
             )
     table, text = verdict(names[0], names[1], args.out_root)
-    report = ["# Small-view matcher selection on the validation sets (rule: RULE_small_views.md)", "", *table, "", text]
-    report += [
-        "",
-        f"Command: `python scripts/select_small_view_matcher.py --reference {args.reference} "
-        f"--candidate {args.candidate}`",
-    ]
-    print("\n".join(report))
-    if args.report:
-        Path(args.report).write_text("\n".join(report) + "\n")
+    title = "Small-view matcher selection on the validation sets (rule: RULE_small_views.md)"
+    command = f"python scripts/select_small_view_matcher.py --reference {args.reference} --candidate {args.candidate}"
+    publish_report(title, table, text, command, args.report)
     return 0
 
 

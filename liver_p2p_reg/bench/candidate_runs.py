@@ -35,3 +35,11 @@ def run_candidate(
             cmd += ["--data-root", data_root]
         print("+", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
+
+
+def publish_report(title: str, table: list[str], verdict_line: str, command: str, path: str | None) -> None:
+    """A selection's report (title, table, verdict, the command that wrote it): printed, and written to `path`."""
+    report = [f"# {title}", "", *table, "", verdict_line, "", f"Command: `{command}`"]
+    print("\n".join(report))
+    if path:
+        Path(path).write_text("\n".join(report) + "\n")

@@ -25,6 +25,11 @@ def group_stats(out_root: str, name: str, datasets: tuple[str, ...], lo: float, 
             for r in read_rows(Path(out_root) / name / dataset / CASES_CSV)
             if r["method"] == METHOD and lo <= r["visibility"] < hi
         ]
+    return tre_stats(rows)
+
+
+def tre_stats(rows: list[dict]) -> dict[str, float]:
+    """Mean RMS-TRE, success@10 mm, poses off by >= 20 mm and count of benchmark rows (a failure: 1 m, gross)."""
     tre = np.array([np.inf if r["failed"] else r["rms_tre_mm"] for r in rows])
     finite = np.where(np.isfinite(tre), tre, 1e3)  # a failure counts as 1 m in the mean
     return {

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import RegistrationError
 from liver_p2p_reg.registration.confidence import pose_uncertainty
 from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.freespace import Scorer, penalized
@@ -41,14 +42,17 @@ def screen_candidates(
     config: Config,
     cache: dict[str, Any],
     scorer: Scorer | None = None,
+    limit: int | None = None,
 ) -> tuple[int, list[tuple[int, np.ndarray, float, float]]]:
     """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins
     (with a known sensor origin: the lowest residual made worse by its free-space violation).
 
     Returns the winner's index and every screened (index, pose, residual, violation), normalized
     units; the full refinement then starts from the winner's own pose (not from the screened one),
-    so that a winner P2P also chose gets exactly the unscreened result.
+    so that a winner P2P also chose gets exactly the unscreened result. `limit`: how many distinct
+    candidates at most (default `config.refine_candidates`).
     """
+    limit = config.refine_candidates if limit is None else limit
     tried: list[np.ndarray] = []
     screened: list[tuple[int, np.ndarray, float]] = []
     for i in order:
@@ -63,13 +67,44 @@ def screen_candidates(
             T, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
         )
         screened.append((i, T_s, residual_norm(T_s, prep)))
-        if len(tried) >= config.refine_candidates:
+        if len(tried) >= limit:
             break
     assert screened  # order holds at least the chosen candidate
     violation = scorer([T_s for _, T_s, _ in screened]) if scorer is not None else np.full(len(screened), np.nan)
     keys = [penalized(res, v, config.free_space_weight) for (_, _, res), v in zip(screened, violation, strict=True)]
     best = int(np.argmin(keys))  # the first of equals, as P2P's own choice
     return screened[best][0], [(i, T_s, res, float(v)) for (i, T_s, res), v in zip(screened, violation, strict=True)]
+
+
+def ransac_hypothesis(
+    prep: PreprocessedPair, config: Config, ctx: MethodContext, times: dict[str, float]
+) -> tuple[np.ndarray, Candidate] | None:
+    """FPFH + RANSAC's pose (normalized) and its candidate record, on a view whose estimated visibility is below
+    `ransac_candidate_visibility`; None on a larger view or when RANSAC finds no estimate.
+
+    Why: on small views the learned matcher and FPFH fail on different cases (validation: the better of the two
+    poses after ICP is right more often than either), and the screening ICP tells the two apart by their fit.
+    Its time is recorded as the "ransac" stage.
+    """
+    if not prep.visibility < config.ransac_candidate_visibility:
+        return None
+    from liver_p2p_reg.registration.baselines import fpfh_ransac  # Open3D: only where the candidate is wanted
+
+    t = time.perf_counter()
+    try:
+        T_norm = np.asarray(fpfh_ransac(prep.source, prep.target, config, ctx.cache), dtype=np.float64)
+    except RegistrationError:
+        T_norm = None  # no estimate: P2P's candidates alone
+    times["ransac"] = lap_ms(t)
+    if T_norm is None or not np.isfinite(T_norm).all():
+        return None
+    candidate = Candidate(
+        name="fpfh-ransac",
+        T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
+        residual_mm=residual_norm(T_norm, prep) * prep.source_norm.scale_mm,
+        n_matches=0,
+    )
+    return T_norm, candidate
 
 
 def free_space_scorer(prep: PreprocessedPair, config: Config, ctx: MethodContext) -> Scorer | None:

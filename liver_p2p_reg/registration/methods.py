@@ -38,6 +38,7 @@ class Method:
     oracle: bool = False  # the ground-truth fiducials' Procrustes fit
     p2p: bool = False
     refine: bool = False  # the final trimmed point-to-plane ICP
+    ransac_candidate: bool = False  # feature pipelines: FPFH + RANSAC's pose joins the screened candidates
     run: MethodFn | None = None  # a plug-in's own function instead of the pipeline
 
 
@@ -52,6 +53,14 @@ METHODS: dict[str, Method] = {
         features="learned",
         p2p=True,
         refine=True,
+    ),
+    "learned-p2p-ransac-icp": Method(
+        "Learned matcher + P2P, with FPFH + RANSAC's pose screened beside P2P's candidates on small views "
+        "(ransac_candidate_visibility), then trimmed point-to-plane ICP.",
+        features="learned",
+        p2p=True,
+        refine=True,
+        ransac_candidate=True,
     ),
     "fpfh-ransac": Method("Open3D FPFH + RANSAC (max correspondence distance 0.05 normalized).", estimate="ransac"),
     "fpfh-ransac-icp": Method("FPFH + RANSAC, then trimmed point-to-plane ICP.", estimate="ransac", refine=True),
@@ -108,7 +117,14 @@ def run_method(
 
     if row.features:
         return pipeline.run_feature_pipeline(
-            source_mm, target_mm, config, ctx, row.features, use_p2p=row.p2p, refine=row.refine
+            source_mm,
+            target_mm,
+            config,
+            ctx,
+            row.features,
+            use_p2p=row.p2p,
+            refine=row.refine,
+            ransac_candidate=row.ransac_candidate,
         )
     if row.estimate:
         return pipeline.run_global_pipeline(source_mm, target_mm, config, ctx, row.estimate, refine=row.refine)

@@ -23,6 +23,7 @@ from liver_p2p_reg.registration.hypotheses import (
     free_space_choice,
     free_space_scorer,
     lap_ms,
+    ransac_hypothesis,
     screen_candidates,
     single_result,
     uncertainty_mm,
@@ -81,8 +82,12 @@ def run_feature_pipeline(
     *,
     use_p2p: bool,
     refine: bool,
+    ransac_candidate: bool = False,
 ) -> RegistrationResult:
     """preprocess -> features -> dual-softmax matching [-> P2P] [-> refine] -> result in mm.
+
+    `ransac_candidate`: FPFH + RANSAC's pose joins the candidates on small views and is always screened
+    (`hypotheses.ransac_hypothesis`).
 
     `provider`: a table row's features ("fpfh" | "learned"), a provider, or a function making one:
     it is called after the inputs passed the preprocessing, so a bad input (swapped clouds, too few
@@ -131,34 +136,43 @@ def run_feature_pipeline(
                 inliers=int(out.inliers[i]),
             )
         )
-    chosen = out.chosen
+    chosen, n_p2p = out.chosen, len(candidates)
+    extra = ransac_hypothesis(prep, config, ctx, times) if ransac_candidate else None
+    if extra is not None:
+        poses_norm.append(extra[0])
+        candidates.append(extra[1])
     scorer = free_space_scorer(prep, config, ctx)
     if scorer is not None and scorer.view is not None:
         violation = scorer(poses_norm)
         for candidate, v in zip(candidates, violation, strict=True):
             candidate.free_space_violation = float(v)
-        chosen = free_space_choice(out, violation, config)
-    if not candidates[chosen].ok:
+        chosen = free_space_choice(out, violation[:n_p2p], config)
+    if not candidates[chosen].ok and extra is not None:
+        chosen = n_p2p  # P2P found nothing: RANSAC's pose alone
+    elif not candidates[chosen].ok:
         raise RegistrationError(
             f"{provider.name}: no candidate had >= 3 non-degenerate matches (visibility {prep.visibility:.2f})"
         )
     T_norm = poses_norm[chosen]
-    residual = float(out.residual[chosen])
+    residual = candidates[chosen].residual_mm / prep.source_norm.scale_mm if chosen == n_p2p else out.residual[chosen]
+    residual = float(residual)
     screened: list[Candidate] = []
-    if refine and config.refine_candidates > 1:
+    if refine and (config.refine_candidates > 1 or extra is not None):
         t = time.perf_counter()
+        p2p_others = (i for i, c in enumerate(candidates[:n_p2p]) if c.ok and i != chosen)
         if scorer is None or scorer.view is None:
-            others = sorted(
-                (i for i, c in enumerate(candidates) if c.ok and i != chosen), key=lambda i: out.residual[i]
-            )
+            others = sorted(p2p_others, key=lambda i: out.residual[i])
         else:
             others = sorted(
-                (i for i, c in enumerate(candidates) if c.ok and i != chosen),
+                p2p_others,
                 key=lambda i: penalized(
                     float(out.residual[i]), candidates[i].free_space_violation, config.free_space_weight
                 ),
             )
-        chosen, tried = screen_candidates(poses_norm, [chosen, *others], prep, config, ctx.cache, scorer)
+        # RANSAC's pose is screened second, beside (not instead of) P2P's own candidates
+        first = [chosen] if extra is None or chosen == n_p2p else [chosen, n_p2p]
+        limit = config.refine_candidates + (extra is not None)
+        chosen, tried = screen_candidates(poses_norm, [*first, *others], prep, config, ctx.cache, scorer, limit)
         screened = [
             Candidate(
                 name=candidates[i].name,
