@@ -193,7 +193,9 @@ def main() -> int:
     command = (
         f"OMP_NUM_THREADS={args.threads} .venv/bin/python scripts/bench_paths.py --dataset {args.dataset} "
         f"--per-bin {args.per_bin} --repeats {args.repeats} --rounds {args.rounds} --threads {args.threads} "
-        f"--methods {args.methods}" + (f" --readme {args.readme} --block {args.block}" if args.block != MARK else "")
+        f"--methods {args.methods}"
+        + (f" --readme {args.readme}" if args.readme and args.block != MARK else "")
+        + (f" --block {args.block}" if args.block != MARK else "")
     )
     lines = report(records, methods, command, args.threads)
     print("\n".join(lines))

@@ -42,20 +42,22 @@ def screen_candidates(
     config: Config,
     cache: dict[str, Any],
     scorer: Scorer | None = None,
-    limit: int | None = None,
+    extra: int | None = None,
 ) -> tuple[int, list[tuple[int, np.ndarray, float, float]]]:
     """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins
     (with a known sensor origin: the lowest residual made worse by its free-space violation).
 
     Returns the winner's index and every screened (index, pose, residual, violation), normalized
     units; the full refinement then starts from the winner's own pose (not from the screened one),
-    so that a winner P2P also chose gets exactly the unscreened result. `limit`: how many distinct
-    candidates at most (default `config.refine_candidates`).
+    so that a winner P2P also chose gets exactly the unscreened result. At most `config.refine_candidates`
+    distinct candidates are screened, besides `extra` (RANSAC's pose), which is screened whenever it is distinct.
     """
-    limit = config.refine_candidates if limit is None else limit
     tried: list[np.ndarray] = []
     screened: list[tuple[int, np.ndarray, float]] = []
+    counted = 0  # screened candidates other than `extra`
     for i in order:
+        if i != extra and counted >= config.refine_candidates:
+            continue  # full; `extra` may still come
         T = poses_norm[i]
         # near-duplicates (< ~5 deg and 0.05 normalized apart) would converge to the same pose
         if any(
@@ -67,8 +69,7 @@ def screen_candidates(
             T, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
         )
         screened.append((i, T_s, residual_norm(T_s, prep)))
-        if len(tried) >= limit:
-            break
+        counted += i != extra
     assert screened  # order holds at least the chosen candidate
     violation = scorer([T_s for _, T_s, _ in screened]) if scorer is not None else np.full(len(screened), np.nan)
     keys = [penalized(res, v, config.free_space_weight) for (_, _, res), v in zip(screened, violation, strict=True)]

@@ -154,8 +154,7 @@ def run_feature_pipeline(
             f"{provider.name}: no candidate had >= 3 non-degenerate matches (visibility {prep.visibility:.2f})"
         )
     T_norm = poses_norm[chosen]
-    residual = candidates[chosen].residual_mm / prep.source_norm.scale_mm if chosen == n_p2p else out.residual[chosen]
-    residual = float(residual)
+    residual = residual_norm(T_norm, prep) if chosen == n_p2p else float(out.residual[chosen])
     screened: list[Candidate] = []
     if refine and (config.refine_candidates > 1 or extra is not None):
         t = time.perf_counter()
@@ -171,8 +170,8 @@ def run_feature_pipeline(
             )
         # RANSAC's pose is screened second, beside (not instead of) P2P's own candidates
         first = [chosen] if extra is None or chosen == n_p2p else [chosen, n_p2p]
-        limit = config.refine_candidates + (extra is not None)
-        chosen, tried = screen_candidates(poses_norm, [*first, *others], prep, config, ctx.cache, scorer, limit)
+        ransac_index = None if extra is None else n_p2p
+        chosen, tried = screen_candidates(poses_norm, [*first, *others], prep, config, ctx.cache, scorer, ransac_index)
         screened = [
             Candidate(
                 name=candidates[i].name,

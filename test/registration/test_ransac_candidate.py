@@ -33,21 +33,59 @@ def test_ransac_pose_is_screened_beside_p2p_candidates(case) -> None:
     names = [c.name for c in result.candidates]
     assert names[-1] == "fpfh-ransac" and names.count("fpfh-ransac") == 1
     assert names[:-1] == [c.name for c in _register(case, Config(k=2), "learned-p2p-icp").candidates]
-    # screened second, after P2P's choice, unless it is a near-duplicate of that choice (then ICP would end alike)
-    screened = [c.name for c in result.screened]
-    gap_mm = np.abs(result.candidates[-1].T_target_source[:3, 3] - result.screened[0].T_target_source[:3, 3]).max()
-    assert screened[1] == "fpfh-ransac" if "fpfh-ransac" in screened else gap_mm < 10.0
+    # on this easy crop RANSAC's pose is P2P's: skipped as a near-duplicate, P2P keeps its own screened poses
+    default = _register(case, Config(k=2), "learned-p2p-icp")
+    assert [c.name for c in result.screened] == [c.name for c in default.screened]
+    assert result.T_target_source.tobytes() == default.T_target_source.tobytes()
     assert result.runtime_ms["ransac"] > 0 and result.rms_tre_mm < 3.0
     ransac = result.candidates[-1]
     assert ransac.n_matches == 0 and np.isfinite(ransac.residual_mm) and ransac.ok
 
 
-def test_above_the_visibility_threshold_it_is_the_default_bit_for_bit(case) -> None:
-    config = Config(k=2, ransac_candidate_visibility=0.0)
-    hybrid, default = _register(case, config), _register(case, config, "learned-p2p-icp")
-    assert "ransac" not in hybrid.runtime_ms
+@pytest.mark.parametrize("below", [0.0, -0.01])  # never, or just under this view's estimated visibility
+def test_above_the_visibility_threshold_it_is_the_default_bit_for_bit(case, below: float) -> None:
+    default = _register(case, Config(k=2), "learned-p2p-icp")
+    threshold = max(0.0, default.visibility + below) if below else 0.0
+    hybrid = _register(case, Config(k=2, ransac_candidate_visibility=threshold))
+    assert "ransac" not in hybrid.runtime_ms and len(hybrid.candidates) == len(default.candidates)
     assert hybrid.T_target_source.tobytes() == default.T_target_source.tobytes()
     assert [c.name for c in hybrid.screened] == [c.name for c in default.screened]
+
+
+def test_ransac_pose_is_screened_besides_refine_candidates(case) -> None:
+    from liver_p2p_reg.registration.hypotheses import screen_candidates
+    from liver_p2p_reg.registration.preprocess import preprocess_pair
+
+    source, target, T, _, _ = case
+    config = Config(refine_candidates=1)
+    prep = preprocess_pair(source, target, config)
+    s, cs, ct = prep.source_norm.scale_mm, prep.source_norm.centroid_mm, prep.target_norm.centroid_mm
+    right = np.eye(4)
+    right[:3, :3], right[:3, 3] = T[:3, :3], (T[:3, :3] @ cs + T[:3, 3] - ct) / s
+    wrong = right @ np.diag([-1.0, -1.0, 1.0, 1.0])  # 180 deg about z: ICP cannot fix it
+    other = right @ np.diag([1.0, -1.0, -1.0, 1.0])  # 180 deg about x
+    poses = [wrong, other, right]
+    # P2P's choice first, then RANSAC's pose (index 2), then P2P's others: one P2P pose and the extra one
+    chosen, tried = screen_candidates(poses, [0, 2, 1], prep, config, {}, extra=2)
+    assert [i for i, *_ in tried] == [0, 2] and chosen == 2
+    assert [i for i, *_ in screen_candidates(poses, [0, 2, 1], prep, config, {})[1]] == [0]  # no extra: P2P's only
+    chosen, tried = screen_candidates(poses, [0, 2, 1], prep, config.replace(refine_candidates=2), {}, extra=2)
+    assert [i for i, *_ in tried] == [0, 2, 1] and chosen == 2
+
+
+def test_free_space_ranks_the_ransac_pose_too() -> None:
+    # A smaller crop seen from a sensor 1 m out along its outward direction (the node's default path: free
+    # space on): every candidate gets its violation, and RANSAC's pose, distinct here, is screened second.
+    source, target, T_true, fid_s, fid_t = partial_case(np.random.default_rng(7), share=0.15)
+    outward = target.mean(axis=0) - (T_true[:3, :3] @ source.mean(axis=0) + T_true[:3, 3])
+    origin = target.mean(axis=0) + 1000.0 * outward / np.linalg.norm(outward)
+    result = Registrar(Config(k=2, ransac_candidate_visibility=1.0)).register(
+        source, target, method=METHOD, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, sensor_origin_mm=origin
+    )
+    assert result.free_space == "on" and result.candidates[-1].name == "fpfh-ransac"
+    assert all(np.isfinite(c.free_space_violation) for c in result.candidates + result.screened)
+    assert [c.name for c in result.screened][1] == "fpfh-ransac"
+    assert np.isfinite(result.free_space_violation) and result.rms_tre_mm < 3.0
 
 
 def test_ransac_pose_answers_when_p2p_has_no_candidate(case) -> None:
@@ -95,6 +133,19 @@ def test_rule_refuses_a_candidate_that_loses_successes(tmp_path: Path) -> None:
     table, line = verdict(str(tmp_path), float("nan"))  # and no time measured
     assert "fails rule 1 on real-val-v2" in line and "3 (nan ms" in line
     assert any(f"| {CANDIDATE} | [0.05, 0.2) | 3 | 9.00 | 33.3 % | 0 |" in row for row in table)
+
+
+def test_rule_refuses_one_more_gross_pose_above_0_2_and_counts_failures(tmp_path: Path) -> None:
+    for dataset in SETS:
+        reference = _rows(REFERENCE, [4.0, 30.0, 6.0], [5.0, 25.0])
+        candidate = _rows(CANDIDATE, [4.0, 8.0, 6.0], [21.0, 22.0])  # lower mean below 0.2, two gross above
+        candidate[0]["failed"] = True  # a failed registration: 1 m in the mean, gross, no success
+        (tmp_path / RUN / dataset).mkdir(parents=True)
+        write_rows(tmp_path / RUN / dataset / "cases.csv", reference + candidate)
+    table, line = verdict(str(tmp_path), 100.0)
+    assert "fails rule 1 on real-val-v2, 2 on real-val-v2" in line
+    assert any(f"| {CANDIDATE} | [0.05, 0.2) | 3 | 338.00 | 66.7 % | 1 |" in row for row in table)
+    assert any(f"| {CANDIDATE} | [0.2, 0.3) | 2 | 21.50 | 0.0 % | 2 |" in row for row in table)
 
 
 def test_median_time_is_read_from_its_own_block_only(tmp_path: Path) -> None:
