@@ -1,5 +1,6 @@
 """rclpy wiring of register_node and preop_loader_node in this process (the process-level tests are test_ros_graph*.py)."""
 
+import contextlib
 import time
 
 import numpy as np
@@ -40,6 +41,25 @@ def ros_context():
     rclpy.try_shutdown()
 
 
+@contextlib.contextmanager
+def pose_graph(overrides: list, helper_name: str):
+    """register_node with `overrides`, a helper node collecting /registration/pose, both on one executor."""
+    node = RegisterNode(parameter_overrides=overrides)
+    helper = rclpy.create_node(helper_name)
+    poses: list = []
+    helper.create_subscription(PoseStamped, TOPIC_POSE, poses.append, rclpy_qos(TOPIC_POSE))
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    executor.add_node(helper)
+    try:
+        yield node, helper, executor, poses
+    finally:
+        executor.shutdown()
+        node.stop()
+        node.destroy_node()
+        helper.destroy_node()
+
+
 def spin_until(executor, condition, timeout_s=30.0):
     end = time.monotonic() + timeout_s
     while not condition() and time.monotonic() < end:
@@ -70,14 +90,7 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
     preop_m = d / np.linalg.norm(d, axis=1, keepdims=True) * [0.08, 0.055, 0.04]
     fid_m = rng.uniform(-0.02, 0.02, size=(5, 3))
     offset = np.array([0.01, -0.02, 0.3])
-    node = RegisterNode(parameter_overrides=[Parameter("method", value="procrustes")])
-    helper = rclpy.create_node("test_helper")
-    poses = []
-    helper.create_subscription(PoseStamped, TOPIC_POSE, poses.append, rclpy_qos(TOPIC_POSE))
-    executor = MultiThreadedExecutor(num_threads=4)
-    executor.add_node(node)
-    executor.add_node(helper)
-    try:
+    with pose_graph([Parameter("method", value="procrustes")], "test_helper") as (node, helper, executor, poses):
         types = RCLPY_TYPES.cloud
         helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
             points_to_cloud(preop_m, types, frame_id="ct")
@@ -100,11 +113,6 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
         future = client.call_async(Trigger.Request())
         assert spin_until(executor, future.done)
         assert future.result().success and "residual" in future.result().message
-    finally:
-        executor.shutdown()
-        node.stop()
-        node.destroy_node()
-        helper.destroy_node()
 
 
 def test_register_node_runs_the_ransac_candidate_method(ros_context):
@@ -117,14 +125,7 @@ def test_register_node_runs_the_ransac_candidate_method(ros_context):
         Parameter("ransac_candidate_visibility", value=1.0),  # this crop is larger than the default's 0.3
         Parameter("sensor_at_frame_origin", value=False),  # a synthetic crop: no camera at its frame's origin
     ]
-    node = RegisterNode(parameter_overrides=overrides)
-    helper = rclpy.create_node("test_helper_ransac")
-    poses = []
-    helper.create_subscription(PoseStamped, TOPIC_POSE, poses.append, rclpy_qos(TOPIC_POSE))
-    executor = MultiThreadedExecutor(num_threads=4)
-    executor.add_node(node)
-    executor.add_node(helper)
-    try:
+    with pose_graph(overrides, "test_helper_ransac") as (node, helper, executor, poses):
         types = RCLPY_TYPES.cloud
         helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
             points_to_cloud(source_mm / 1000.0, types, frame_id="ct")
@@ -140,11 +141,6 @@ def test_register_node_runs_the_ransac_candidate_method(ros_context):
         result = node.core.last_output.result
         assert result.method == "learned-p2p-ransac-icp" and "ransac" in result.runtime_ms
         assert "fpfh-ransac" in [c.name for c in result.candidates]
-    finally:
-        executor.shutdown()
-        node.stop()
-        node.destroy_node()
-        helper.destroy_node()
 
 
 def test_preop_loader_missing_file_is_fatal_input_error(ros_context, tmp_path):
