@@ -6,6 +6,7 @@ import dataclasses
 import logging
 import os
 import sys
+import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -18,31 +19,59 @@ from rclpy.node import Node
 from liver_p2p_reg.errors import LiverP2PError
 
 ConfigT = TypeVar("ConfigT")
+# Seconds the teardown (destroy_node, rclpy shutdown) may take before an exit_process node leaves without
+# it: DDS teardown has been seen to block for more than 10 s on a loaded host with stale shared-memory
+# ports, and a robot's launch system should see its SIGINT answered, not escalate to SIGKILL.
+EXIT_GRACE_S = 10.0
 
 
-def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None, *, exit_process: bool) -> int:
+def _exit_after(grace_s: float, status: int, name: str) -> threading.Timer:
+    """A started daemon timer that ends the process with `status` after `grace_s`, saying why on stderr."""
+
+    def leave() -> None:
+        sys.stderr.write(f"[{name}] teardown took more than {grace_s:g} s; exiting without waiting for it\n")
+        sys.stderr.flush()
+        os._exit(status)
+
+    timer = threading.Timer(grace_s, leave)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
+def run_node(
+    make_node: Callable[[], Node],
+    name: str,
+    args: list[str] | None,
+    *,
+    exit_process: bool,
+    exit_grace_s: float = EXIT_GRACE_S,
+) -> int:
     """A node's `main()`, the Jazzy idiom (rclpy.init() returns None); the exit status.
 
     Ctrl-C and an external shutdown (SIGTERM) end it quietly; a LiverP2PError while it starts
     (bad parameters, a missing file, a port taken) is one fatal line and status 1, no traceback.
     The node is destroyed (each node releases its own resources there) and rclpy shut down.
     exit_process: then leave at once with os._exit: unloading torch/Open3D took seconds (past
-    launch's SIGINT window under load), and nothing else is left to clean up.
+    launch's SIGINT window under load), and nothing else is left to clean up; and if the teardown
+    itself takes more than `exit_grace_s`, leave without it (one line on stderr), same status.
     """
     rclpy.init(args=args)
     node = None
-    status = 0
+    status = 1  # until the node ends the way it should (an unexpected exception keeps it)
     try:
         node = make_node()
         executor = SingleThreadedExecutor()  # callbacks are short: heavy work runs on the node's own thread
         executor.add_node(node)
         executor.spin()
+        status = 0
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        status = 0
     except LiverP2PError as exc:
         get_logger(name).fatal(str(exc))
-        status = 1
     finally:
+        if exit_process:
+            _exit_after(exit_grace_s, status, name)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -80,3 +80,56 @@ def test_preop_loader_missing_file_is_one_fatal_line(tmp_path):
     assert node.wait(60) == 1
     lines = clean_stderr(node.stderr())
     assert len(lines) == 1 and "model_path not found" in lines[0], lines
+
+
+HANGING_TEARDOWN = """
+import sys, time
+from rclpy.node import Node
+from liver_p2p_reg.ros.node_main import run_node
+
+class Stuck(Node):
+    def __init__(self):
+        super().__init__("stuck_node")
+        self.create_timer(0.05, self.ready)
+        self.said = False
+
+    def ready(self):
+        if not self.said:
+            print("ready", file=sys.stderr, flush=True)
+            self.said = True
+
+    def destroy_node(self):
+        time.sleep(float(sys.argv[1]))  # a teardown that blocks (as DDS's has, on stale shared memory)
+        super().destroy_node()
+
+run_node(Stuck, "stuck_node", None, exit_process=True, exit_grace_s=1.0)
+"""
+
+
+@pytest.mark.parametrize(("teardown_s", "watchdog"), [(120.0, True), (0.0, False)])
+def test_sigint_exit_is_bounded_when_teardown_blocks(tmp_path, teardown_s, watchdog):
+    """A node whose teardown blocks still answers SIGINT: status 0 after its grace, with one line saying so."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "stuck.py"
+    script.write_text(HANGING_TEARDOWN)
+    env = {**os.environ, **set_isolated_environment(), "PYTHONUNBUFFERED": "1"}
+    err = tmp_path / "stuck.stderr"
+    with open(err, "wb") as stderr:
+        proc = subprocess.Popen([sys.executable, str(script), str(teardown_s)], stderr=stderr, env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while "ready" not in err.read_text() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert "ready" in err.read_text(), err.read_text()
+        proc.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        code = proc.wait(30)
+        took = time.monotonic() - t0
+    finally:
+        proc.kill()
+    said = "teardown took more than 1 s; exiting without waiting for it" in err.read_text()
+    assert code == 0 and said == watchdog, (code, err.read_text())
+    assert took >= 1.0 if watchdog else took < 1.0, took
