@@ -229,6 +229,9 @@ class StreamSection:
     survey_step: float = 0.05
     survey_voxel_mm: float = 2.0  # fused surface: one mean point per voxel of this edge ...
     survey_max_points: int = 20000  # ... doubled whenever it would hold more points than this
+    # survey mode with `deform`: the non-rigid stage fits the fused surface (in the current frame), not the frame
+    # alone: the deformation is underdetermined by one view of 20-30 % (docs/deform/ceiling.md)
+    survey_deform_fused: bool = True
     record_path: str = ""  # flight recorder (bags/recorder.py): an MCAP file of every input, change and pose; "": off
     record_max_mb: float = 0.0  # the recorder starts a new numbered file beyond this size; 0: one file
 

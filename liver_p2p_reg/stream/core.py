@@ -50,7 +50,7 @@ from liver_p2p_reg.stream.outputs import (
 from liver_p2p_reg.stream.record_hooks import RecorderFactory, Recording
 from liver_p2p_reg.stream.solve import Frame, solve_frame
 from liver_p2p_reg.stream.structures import StructureStore
-from liver_p2p_reg.stream.survey import Survey
+from liver_p2p_reg.stream.survey import Survey, stage_view_mm
 from liver_p2p_reg.stream.tracking import Tracker
 from liver_p2p_reg.structures_io import place_structures
 
@@ -110,11 +110,9 @@ class NodeCore:
         return self.fiducials.preop_mm
 
     def reconfigure(self, changes: dict[str, Any]) -> Config:
-        """Apply parameter changes atomically (all valid or none; InputError says why).
-
-        The Registrar's cache is kept: its entries are keyed by the source's content and the
-        parameters they depend on, so only what a change invalidates is computed again.
-        """
+        """Apply parameter changes atomically (all valid or none; InputError says why). The Registrar's cache is
+        kept: its entries are keyed by the source's content and the parameters they depend on, so only what a
+        change invalidates is computed again."""
         config = self.config.replace(**changes)
         check_method_name(config.method)
         registrar = rigid_registrar(config)
@@ -364,7 +362,9 @@ class NodeCore:
                 LOG.exception("the pose hook raised")
         if not self.config.deform:
             return output
-        return run_stage(self.registrar, output, frame, structures, self.mesh.for_model(preop_frame, preop_stamp))
+        mesh = self.mesh.for_model(preop_frame, preop_stamp)
+        view = stage_view_mm(self._survey_state, self.config, reason)  # survey mode: the fused surface
+        return run_stage(self.registrar, output, frame, structures, mesh, view)
 
     # ---------------------------------------------------------------- survey mode
     def _survey(self) -> Survey:

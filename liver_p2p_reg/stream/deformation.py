@@ -171,12 +171,18 @@ def stage_values(
     tre_mm: float | None,
     bound_mm: float | None = None,
     bound_note: str = "",
+    *,
+    view: str = "frame",
+    view_points: int = 0,
 ) -> dict[str, str]:
-    """The registration diagnostic's `deform_*` key/values (`bound_mm`: the deformed positions' interior bound)."""
+    """The registration diagnostic's `deform_*` key/values (`bound_mm`: the deformed positions' interior bound;
+    `view`: what the stage fitted, `frame` or `survey`, and its `view_points`)."""
     values = {
         "deform_applied": str(bool(deformation.applied)).lower(),
         "deform_reason": deformation.reason,
         "deform_surface": surface_name(mesh),
+        "deform_view": view,
+        "deform_view_points": str(view_points),
         "deform_rms_displacement_mm": f"{deformation.rms_displacement_mm:.3f}",
         "deform_max_displacement_mm": f"{deformation.max_displacement_mm:.3f}",
         "deform_residual_before_mm": f"{deformation.residual_before_mm:.3f}",
@@ -194,18 +200,28 @@ def stage_values(
 
 
 def run_stage(
-    registrar: Registrar, rigid: CoreOutput, frame: Frame, structures: list[Structure], mesh: PreopMesh | None
+    registrar: Registrar,
+    rigid: CoreOutput,
+    frame: Frame,
+    structures: list[Structure],
+    mesh: PreopMesh | None,
+    view_mm: np.ndarray | None = None,
 ) -> CoreOutput:
     """The non-rigid stage on a registered frame (its pose already out): the same output with the `deform_*`
     values and, when applied, the deformed preop surface (the mesh's welded vertices when it ran on `mesh`, else
-    the model's points; sensor frame, mm) and structures. Never raises; pose and verdict stand."""
+    the model's points; sensor frame, mm) and structures. `view_mm`: what it fits instead of the frame's points
+    (the survey's fused surface, in the frame's sensor frame). Never raises; pose and verdict stand."""
     result, start = rigid.result, time.perf_counter()
+    view = frame.points_mm if view_mm is None else view_mm
     T = np.asarray(result.T_target_source, dtype=np.float64).copy()
     kwargs: dict[str, Any] = {"source_fiducials_mm": frame.fid_s, "target_fiducials_mm": frame.fid_t}
     kwargs.update({} if mesh is None else mesh.stage_kwargs)
     deformed, placed = None, rigid.structures
     try:
-        registrar.deform(result, frame.preop_mm, frame.points_mm, **kwargs)
+        registrar.deform(result, frame.preop_mm, view, **kwargs)
+        if view_mm is not None and result.deformation.applied:  # the bound's calibration saw single views only
+            notes = [result.deformed_error_calibration_note, "calibrated on single views; this fit used a fused survey"]
+            result.deformed_error_calibration_note = "; ".join(n for n in notes if n)
         if result.deformation.applied:
             # on a mesh: its vertices, so that a holder of /preop/mesh (welded alike) pairs them with its triangles
             surface = frame.preop_mm if mesh is None else mesh.vertices_mm
@@ -222,7 +238,8 @@ def run_stage(
     ms = (time.perf_counter() - start) * 1e3
     diag = rigid.diagnostics[0]
     deformation: Deformation = result.deformation
-    values = {**diag.values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm, *_bound(result))}
+    seen = {"view": "frame" if view_mm is None else "survey", "view_points": len(view)}
+    values = {**diag.values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm, *_bound(result), **seen)}
     diagnostics = [Diagnostic(diag.level, diag.name, diag.message, values, diag.hardware_id), *rigid.diagnostics[1:]]
     return dataclasses.replace(rigid, diagnostics=diagnostics, structures=placed, deformed_preop_mm=deformed)
 

@@ -138,6 +138,12 @@ class Survey:
         result = self._fuse(preop_mm, points_mm, result, fid, first=True)
         return SurveyStep(result, self._values(), warnings)
 
+    def fused_view_mm(self) -> np.ndarray | None:
+        """The fused surface in the last accepted frame's sensor frame (mm), while fusing; else None."""
+        if self.state != FUSING or self.T_mm is None or not len(self.fused):
+            return None
+        return transform_points(self.T_mm, self.fused.points)
+
     # ---------------------------------------------------------------- internals
     def _track(self, preop_mm: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
         """T_sensor_ct of a new frame: trimmed ICP of the frame onto the fused surface, from the last pose."""
@@ -224,3 +230,11 @@ class Survey:
             "survey_points": str(len(self.fused)),
             "survey_registrations": str(self.registrations),
         }
+
+
+def stage_view_mm(survey: Survey | None, config: Config, reason: str) -> np.ndarray | None:
+    """What the non-rigid stage fits instead of the frame (`survey_deform_fused`): the fused surface while a survey
+    fuses (not on a ~/reregister, which registers the frame alone), else None."""
+    if survey is None or config.mode != "survey" or reason == "reregister" or not config.survey_deform_fused:
+        return None
+    return survey.fused_view_mm()

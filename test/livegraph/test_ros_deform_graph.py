@@ -139,6 +139,7 @@ def test_register_node_publishes_the_deformed_preop_after_the_pose_only_with_def
         values = values_of(verdict)
         assert DEFORM_KEYS <= set(values) and values["deform_applied"] == "true" and values["deform_reason"] == ""
         assert values["deform_surface"] == "mesh" and float(values["deform_ms"]) > 0
+        assert values["deform_view"] == "frame" and int(values["deform_view_points"]) > 0  # not a survey: the frame
         assert float(values["deformed_error_bound_mm"]) > 0  # the deformed positions' own calibrated bound
         # the same arithmetic as the ROS-free core on the same messages (float32 metres on the wire)
         expected, vertices = expected_output(case)

@@ -104,3 +104,27 @@ def test_fused_surface_is_voxel_merged_and_bounded() -> None:
     fused.add(rng.uniform(0, 100, size=(20000, 3)) * [1, 1, 0])  # a 100 x 100 mm square: 2500 voxels of 2 mm
     assert len(fused) <= 500 and fused.voxel_mm > 2.0  # the grid coarsened to stay bounded
     assert fused.counts.sum() == 26000
+
+
+def test_with_deform_the_stage_fits_the_fused_surface_while_fusing(sweep) -> None:
+    """survey_deform_fused: the stage's view is the fused sweep (more points than the frame), else the frame."""
+    cores = {fused: NodeCore(Config(mode="survey", deform=True, survey_deform_fused=fused)) for fused in (True, False)}
+    diags = {}
+    for fused, core in cores.items():
+        assert core.set_preop(sweep["preop"]).level == OK
+        core.set_preop_fiducials(sweep["preop_fiducials"])
+        for i, k in enumerate(range(0, 24, 4)):
+            output, diag = feed(core, sweep, k, float(i))
+        diags[fused] = (output, diag.values)
+    (out_f, fused), (out_1, frame) = diags[True], diags[False]
+    assert fused["survey_state"] == frame["survey_state"] == "fusing"
+    # the stage never changes the pose: the same rigid pose either way
+    assert np.array_equal(out_f.pose.T_sensor_ct_mm, out_1.pose.T_sensor_ct_mm)
+    assert (fused["deform_view"], frame["deform_view"]) == ("survey", "frame")
+    assert int(frame["deform_view_points"]) <= len(sweep["frames"][20])  # the frame (its outliers dropped)
+    assert int(fused["deform_view_points"]) == int(fused["survey_points"])  # the fused voxel means
+    assert fused["deform_applied"] == "true", fused["deform_reason"]
+    assert "fused survey" in out_f.result.deformed_error_calibration_note
+    # more of the organ seen: the deformed interior is closer to the truth than the rigid pose's here
+    assert float(fused["deformed_rms_tre_mm"]) < float(fused["rms_tre_mm"]) - 1.0, fused
+    assert fused["deformed_rms_tre_mm"] != frame.get("deformed_rms_tre_mm")  # two fits of two views

@@ -1,0 +1,182 @@
+"""The non-rigid stage on one view against the stage on a fused survey of several views, on real-anatomy sets.
+
+    .venv/bin/python scripts/survey_deform.py [--sets real-test-camera-v2,real-test-camera-v2-arap] \
+        [--views 1,2,4,8] [--noise-mm 2] [--readme docs/results/survey_deform.md]
+    .venv/bin/python scripts/survey_deform.py --bags bags/sweep_* [--readme docs/results/survey_deform.md]
+
+A camera set holds, for each liver and deformation, up to 16 laparoscope views of the same deformed organ from
+different camera poses, their visibility bins cycling [0.05, 0.1), [0.1, 0.15), [0.15, 0.2), [0.2, 0.3) (so the
+first view sees 5-10 %). For each (liver, deformation) with at least the largest k views, the first k views
+(k in --views) are fused into the sensor frame of the first one with their true relative poses (the perfect
+tracking survey mode approaches; each view gets its own --noise-mm of Gaussian noise), and then:
+- the rigid pose is ICP started from the true pose on that fused surface (method `track`, where survey mode's
+  global registrations end: bags/README.md, the survey table);
+- the stage (`deform`, its defaults) runs from that pose once on the first view alone and once on the fused
+  surface (`survey_deform_fused`).
+With --bags: each sweep bag replayed through the node core in survey mode with the stage, fitting the frame and
+fitting the fused survey (`survey_deform_fused` false / true).
+Reported: mean interior RMS-TRE of the Procrustes oracle, the rigid pose, each stage's result (the rigid
+result where the stage was not applied) and how often it was applied. Nothing here is tuned: the stage's
+settings are the defaults chosen on the validation livers (docs/deform/choice.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from liver_p2p_reg.bench.cases import list_case_paths, read_case, resolve_dataset
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.metrics import rms_tre_mm
+from liver_p2p_reg.registration.baselines import kabsch_np
+from liver_p2p_reg.registration.registrar import Registrar
+
+MARK, BAGS_MARK = "SURVEY-DEFORM", "SURVEY-BAGS"
+VIEW_NAME = re.compile(r"case_L(\d+)_D(\d+)_T(\d+)$")
+
+
+def organ_views(dataset: str) -> dict[tuple[int, int], list[Path]]:
+    """The set's case files grouped by (liver, deformation), each group in view order."""
+    folder, _ = resolve_dataset(dataset, None)
+    groups: dict[tuple[int, int], list[tuple[int, Path]]] = defaultdict(list)
+    for path in list_case_paths(folder):
+        match = VIEW_NAME.match(path.stem)
+        if match:  # density twins and other variants are not separate views
+            liver, deformation, view = (int(g) for g in match.groups())
+            groups[(liver, deformation)].append((view, path))
+    return {key: [p for _, p in sorted(views)] for key, views in sorted(groups.items())}
+
+
+def to_first_view(case: dict, first: dict, rng: np.random.Generator, noise_mm: float) -> np.ndarray:
+    """A view's points, noised, moved into the first view's sensor frame by the two true poses."""
+    points = np.asarray(case["tgt_pcd"], float)
+    points = points + rng.normal(0.0, noise_mm, points.shape) if noise_mm > 0 else points
+    in_ct = (points - case["t_gt"]) @ np.asarray(case["R_gt"], float)  # R^T (x - t), row vectors
+    return in_ct @ np.asarray(first["R_gt"], float).T + first["t_gt"]
+
+
+def stage_tre_mm(registrar: Registrar, rigid, source, view, triangles, fid_s, fid_t) -> tuple[float, bool]:
+    """Interior RMS-TRE after the stage fitted `view` from the rigid pose (the rigid one when not applied)."""
+    registrar.deform(rigid, source, view, triangles, fid_s, fid_t)
+    applied = bool(rigid.deformation.applied)
+    return (rigid.deformed_rms_tre_mm if applied else rms_tre_mm(rigid.T_target_source, fid_s, fid_t)), applied
+
+
+def run_set(dataset: str, counts: list[int], noise_mm: float, registrar: Registrar) -> dict[int, np.ndarray]:
+    """Per view count: rows (oracle, rigid, stage on one view, stage on the fused views, applied 1, applied fused)."""
+    rows: dict[int, list] = defaultdict(list)
+    # the same organs for every count: those with at least the largest count of views (a camera pose that could
+    # not reach its visibility bin was skipped when the set was made)
+    organs = {key: paths for key, paths in organ_views(dataset).items() if len(paths) >= max(counts)}
+    for (liver, deformation), paths in tqdm(organs.items(), desc=dataset, unit="organ"):
+        cases = [read_case(p) for p in paths[: max(counts)]]
+        first = cases[0]
+        rng = np.random.default_rng([liver, deformation, int(noise_mm * 1000)])
+        views = [to_first_view(c, first, rng, noise_mm) for c in cases]
+        source = np.asarray(first["src_pcd"], float)
+        triangles = first.get("src_triangles")
+        fid_s, fid_t = np.asarray(first["src_marker"], float), np.asarray(first["tgt_marker"], float)
+        truth = kabsch_np(fid_s, fid_t)
+        for k in counts:
+            fused = np.concatenate(views[:k])
+            rigid = registrar.register(source, fused, method="track", initial_T_mm=truth)
+            rigid_tre = rms_tre_mm(rigid.T_target_source, fid_s, fid_t)
+            one, one_applied = stage_tre_mm(registrar, rigid, source, views[0], triangles, fid_s, fid_t)
+            many, many_applied = stage_tre_mm(registrar, rigid, source, fused, triangles, fid_s, fid_t)
+            oracle = rms_tre_mm(truth, fid_s, fid_t)
+            rows[k].append((oracle, rigid_tre, one, many, one_applied, many_applied))
+    return {k: np.asarray(v, float) for k, v in rows.items()}
+
+
+def table_lines(results: dict[str, dict[int, np.ndarray]], noise_mm: float) -> list[str]:
+    """The markdown table: one row per set and view count."""
+    lines = [
+        f"Mean interior RMS-TRE (mm), {noise_mm:g} mm noise per view; the stage's result is the rigid one where it "
+        "was not applied; `applied`: on one view / on the fused views.",
+        "",
+        "| set | views fused | organs | oracle | rigid (ICP from the true pose on the fused views) | stage on the first "
+        "view | stage on the fused views | fused / oracle | applied |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, by_count in results.items():
+        for k, r in sorted(by_count.items()):
+            oracle, rigid, one, many = (r[:, i].mean() for i in range(4))
+            applied = f"{100 * r[:, 4].mean():.0f} % / {100 * r[:, 5].mean():.0f} %"
+            lines.append(
+                f"| {name} | {k} | {len(r)} | {oracle:.2f} | {rigid:.2f} | {one:.2f} | {many:.2f} | "
+                f"{many / oracle:.2f} | {applied} |"
+            )
+    return lines
+
+
+def final_tre_mm(frame: dict) -> float:
+    """A replayed frame's interior RMS-TRE after the stage: the deformed one where it was applied, else the rigid one."""
+    deformed = frame.get("deformed_rms_tre_mm")
+    return float(frame["rms_tre_mm"] if deformed is None else deformed)
+
+
+def bag_lines(bags: list[str]) -> list[str]:
+    """Each sweep bag replayed in survey mode with the stage on the frame and on the fused surface."""
+    from liver_p2p_reg.bags.replay import replay_bag
+
+    lines = [
+        f"Command: `.venv/bin/python scripts/survey_deform.py --bags {' '.join(bags)}` (no other option)",
+        "",
+        "Interior RMS-TRE (mm) per frame after the stage (the rigid one where it was not applied), mean over all "
+        "frames, over the last 10, and at the last frame; the rigid survey's last frame beside it:",
+        "",
+        "| sweep bag | stage fits | frames applied | mean, all frames | mean, last 10 | last frame | rigid, last frame |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for bag in bags:
+        for fused in (False, True):
+            row = replay_bag(bag, Config(mode="survey", deform=True, survey_deform_fused=fused))
+            tre = [final_tre_mm(f) for f in row.per_frame]
+            rigid_last = row.per_frame[-1]["rms_tre_mm"]
+            lines.append(
+                f"| `{Path(bag).name}` | {'the fused survey' if fused else 'the frame'} | "
+                f"{row.deform_applied}/{row.registered} | {np.mean(tre):.2f} | {np.mean(tre[-10:]):.2f} | "
+                f"{tre[-1]:.2f} | {rigid_last:.2f} |"
+            )
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sets", default="real-test-camera-v2,real-test-camera-v2-arap")
+    parser.add_argument("--views", default="1,2,4,8")
+    parser.add_argument("--noise-mm", type=float, default=2.0)
+    parser.add_argument("--bags", nargs="+", help="instead: replay these sweep bags in survey mode, frame vs fused")
+    parser.add_argument("--readme", help="write the block into this markdown file")
+    args = parser.parse_args(argv)
+    if args.bags:
+        lines = bag_lines(args.bags)
+        print("\n".join(lines))
+        if args.readme:
+            from liver_p2p_reg.bench.readme import replace_readme_block
+
+            replace_readme_block(Path(args.readme), "\n".join(lines), BAGS_MARK)
+        return 0
+    counts = sorted({int(v) for v in args.views.split(",")})
+    registrar = Registrar(Config())  # the stage is called on its own after each rigid pose
+    results = {name: run_set(name, counts, args.noise_mm, registrar) for name in args.sets.split(",")}
+    command = (
+        f"Command: `.venv/bin/python scripts/survey_deform.py --sets {args.sets} --views {args.views} "
+        f"--noise-mm {args.noise_mm:g}`"
+    )
+    lines = [command, "", *table_lines(results, args.noise_mm)]
+    print("\n".join(lines))
+    if args.readme:
+        from liver_p2p_reg.bench.readme import replace_readme_block
+
+        replace_readme_block(Path(args.readme), "\n".join(lines), MARK)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
