@@ -187,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sets", default="real-test-camera-v2,real-test-camera-v2-arap")
     parser.add_argument("--views", default="1,2,4,8")
     parser.add_argument("--noise-mm", type=float, default=2.0)
+    parser.add_argument(
+        "--regularization", type=float, help="the stage's deform_regularization (default: the config's)"
+    )
     parser.add_argument("--bags", nargs="+", help="instead: replay these sweep bags in survey mode, frame vs fused")
     parser.add_argument("--readme", help="write the block into this markdown file")
     args = parser.parse_args(argv)
@@ -199,11 +202,14 @@ def main(argv: list[str] | None = None) -> int:
             replace_readme_block(Path(args.readme), "\n".join(lines), BAGS_MARK)
         return 0
     counts = sorted({int(v) for v in args.views.split(",")})
-    registrar = Registrar(Config())  # the stage is called on its own after each rigid pose
+    config = Config() if args.regularization is None else Config(deform_regularization=args.regularization)
+    registrar = Registrar(config)  # the stage is called on its own after each rigid pose
     results = {name: run_set(name, counts, args.noise_mm, registrar) for name in args.sets.split(",")}
     command = (
         f"Command: `.venv/bin/python scripts/survey_deform.py --sets {args.sets} --views {args.views} "
-        f"--noise-mm {args.noise_mm:g}`"
+        f"--noise-mm {args.noise_mm:g}"
+        + ("" if args.regularization is None else f" --regularization {args.regularization:g}")
+        + "`"
     )
     lines = [command, "", *table_lines(results, args.noise_mm)]
     print("\n".join(lines))
