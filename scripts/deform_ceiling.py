@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from liver_p2p_reg.bench.cases import BIN_LABELS, list_case_paths, read_case, resolve_dataset, visibility_bin
+from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.deform import elastic_model
 
@@ -122,11 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     for name in sets:
         lines += [f"| {name} | " + " | ".join(cells) + " |" for cells in true_pose_rows(Path(args.true_pose) / name)]
-    print("\n".join(lines))
-    if args.readme:
-        from liver_p2p_reg.bench.readme import replace_readme_block
-
-        replace_readme_block(Path(args.readme), "\n".join(lines), MARK)
+    write_headline(lines[0], lines[2:], args.readme, MARK)  # printed, and written into --readme's block
     return 0
 
 

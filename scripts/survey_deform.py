@@ -35,6 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from liver_p2p_reg.bench.cases import list_case_paths, read_case, resolve_dataset, sensor_origin_mm
+from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import rms_tre_mm
 from liver_p2p_reg.registration.baselines import kabsch_np
@@ -95,7 +96,7 @@ def survey_start(registrar: Registrar, source: np.ndarray, cases: list[dict], fi
 
 def run_set(dataset: str, counts: list[int], noise_mm: float, registrar: Registrar) -> dict[int, np.ndarray]:
     """Per view count, one row per organ: oracle, rigid, stage on one view, stage on the fused views, applied on one,
-    applied on the fused, the fused stage within its bound, survey mode's own pose (see run_set), that + stage."""
+    applied on the fused, the fused stage within its bound, survey mode's own pose (see run_set), that + stage, harm."""
     rows: dict[int, list] = defaultdict(list)
     # the same organs for every count: those with at least the largest count of views (a camera pose that could
     # not reach its visibility bin was skipped when the set was made)
@@ -122,7 +123,10 @@ def run_set(dataset: str, counts: list[int], noise_mm: float, registrar: Registr
             found_tre = rms_tre_mm(surveyed.T_target_source, fid_s, fid_t)
             found_many = stage_tre_mm(registrar, surveyed, source, fused, triangles, fid_s, fid_t)[0]
             oracle = rms_tre_mm(truth, fid_s, fid_t)
-            rows[k].append((oracle, rigid_tre, one, many, one_applied, many_applied, covered, found_tre, found_many))
+            harmed = found_tre < 10.0 and found_many > found_tre + 1.0  # a good pose made worse by > 1 mm
+            rows[k].append(
+                (oracle, rigid_tre, one, many, one_applied, many_applied, covered, found_tre, found_many, harmed)
+            )
     return {k: np.asarray(v, float) for k, v in rows.items()}
 
 
@@ -134,8 +138,9 @@ def table_lines(results: dict[str, dict[int, np.ndarray]], noise_mm: float) -> l
         "",
         "| set | views fused | organs | oracle | rigid (ICP from the true pose on the fused views) | stage on the first "
         "view | stage on the fused views | fused / oracle | applied | within the deformed bound | survey: the "
-        "default on the first view without warnings, ICP on the fused views from it | that + stage on the fused views |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "default on the first view without warnings, ICP on the fused views from it | that + stage on the fused views "
+        "| harmed (that < 10 mm, > 1 mm worse) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, by_count in results.items():
         for k, r in sorted(by_count.items()):
@@ -145,7 +150,8 @@ def table_lines(results: dict[str, dict[int, np.ndarray]], noise_mm: float) -> l
             within = f"{100 * covered.mean():.0f} % of {len(covered)}" if len(covered) else "-"
             lines.append(
                 f"| {name} | {k} | {len(r)} | {oracle:.2f} | {rigid:.2f} | {one:.2f} | {many:.2f} | "
-                f"{many / oracle:.2f} | {applied} | {within} | {r[:, 7].mean():.2f} | {r[:, 8].mean():.2f} |"
+                f"{many / oracle:.2f} | {applied} | {within} | {r[:, 7].mean():.2f} | {r[:, 8].mean():.2f} | "
+                f"{int(r[:, 9].sum())} |"
             )
     return lines
 
@@ -182,6 +188,38 @@ def bag_lines(bags: list[str]) -> list[str]:
     return lines
 
 
+def rule_lines(runs: dict[float, dict[str, np.ndarray]], reference: float) -> list[str]:
+    """docs/deform/RULE_survey.md applied: per candidate and set, the survey path's mean after the stage and its harm."""
+    sets = list(runs[reference])
+    lines = [
+        "| regularization | "
+        + " | ".join(f"{name}: mean after the stage (mm), harmed" for name in sets)
+        + " | passes |",
+        "|---|" + "---|" * len(sets) + "---|",
+    ]
+    passing = {}
+    for value, by_set in runs.items():
+        ok = value != reference
+        cells = []
+        for name in sets:
+            mean, harm = by_set[name][:, 8].mean(), int(by_set[name][:, 9].sum())
+            ref_mean, ref_harm = runs[reference][name][:, 8].mean(), int(runs[reference][name][:, 9].sum())
+            ok &= mean <= ref_mean - 0.05 and harm <= ref_harm
+            cells.append(f"{mean:.3f}, {harm}")
+        if ok:
+            passing[value] = np.mean([by_set[name][:, 8].mean() for name in sets])
+        lines.append(
+            f"| {value:g} | "
+            + " | ".join(cells)
+            + f" | {'yes' if ok else 'no' if value != reference else '(reference)'} |"
+        )
+    chosen = min(passing, key=passing.get) if passing else reference
+    verdict = f"**Chosen: {chosen:g}**" + (
+        " (no candidate passes; the fused survey keeps the default)" if not passing else ""
+    )
+    return [*lines, "", verdict]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", default="real-test-camera-v2,real-test-camera-v2-arap")
@@ -191,15 +229,17 @@ def main(argv: list[str] | None = None) -> int:
         "--regularization", type=float, help="the stage's deform_regularization (default: the config's)"
     )
     parser.add_argument("--bags", nargs="+", help="instead: replay these sweep bags in survey mode, frame vs fused")
+    parser.add_argument(
+        "--rule", help="regularizations to judge by docs/deform/RULE_survey.md, the first the reference"
+    )
+    parser.add_argument("--runs", default="out/survey_rule", help="with --rule: one JSON of rows per value (resumable)")
     parser.add_argument("--readme", help="write the block into this markdown file")
     args = parser.parse_args(argv)
+    if args.rule:
+        return judge(args)
     if args.bags:
         lines = bag_lines(args.bags)
-        print("\n".join(lines))
-        if args.readme:
-            from liver_p2p_reg.bench.readme import replace_readme_block
-
-            replace_readme_block(Path(args.readme), "\n".join(lines), BAGS_MARK)
+        write_headline(lines[0], lines[2:], args.readme, BAGS_MARK)
         return 0
     counts = sorted({int(v) for v in args.views.split(",")})
     config = Config() if args.regularization is None else Config(deform_regularization=args.regularization)
@@ -212,11 +252,30 @@ def main(argv: list[str] | None = None) -> int:
         + "`"
     )
     lines = [command, "", *table_lines(results, args.noise_mm)]
-    print("\n".join(lines))
-    if args.readme:
-        from liver_p2p_reg.bench.readme import replace_readme_block
+    write_headline(lines[0], lines[2:], args.readme, MARK)
+    return 0
 
-        replace_readme_block(Path(args.readme), "\n".join(lines), MARK)
+
+def judge(args: argparse.Namespace) -> int:
+    """--rule: run (or read back) each regularization on the sets at --views, then apply the rule."""
+    import json
+
+    counts = sorted({int(v) for v in args.views.split(",")})
+    runs: dict[float, dict[str, np.ndarray]] = {}
+    for value in (float(v) for v in args.rule.split(",")):
+        path = Path(args.runs) / f"regularization_{value:g}.json"
+        if not path.exists():
+            registrar = Registrar(Config(deform_regularization=value))
+            rows = {name: run_set(name, counts, args.noise_mm, registrar)[counts[-1]] for name in args.sets.split(",")}
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({name: r.tolist() for name, r in rows.items()}))
+        runs[value] = {name: np.asarray(r, float) for name, r in json.loads(path.read_text()).items()}
+    command = (
+        f"Command: `.venv/bin/python scripts/survey_deform.py --sets {args.sets} --views {counts[-1]} "
+        f"--noise-mm {args.noise_mm:g} --rule {args.rule}`"
+    )
+    lines = [command, "", *rule_lines(runs, float(args.rule.split(",")[0]))]
+    write_headline(lines[0], lines[2:], args.readme, "SURVEY-RULE")
     return 0
 
 
