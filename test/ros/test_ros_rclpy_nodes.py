@@ -193,3 +193,43 @@ def test_preop_loader_publishes_mesh_path_beside_a_point_model(ros_context, tmp_
             PreopLoaderNode(
                 parameter_overrides=[Parameter("model_path", value=str(model)), Parameter("mesh_path", value=str(bad))]
             )
+
+
+def test_register_node_in_survey_mode_deforms_onto_the_fused_sweep(ros_context):
+    """mode survey + deform over DDS: from the second fused frame the stage fits the fused surface (deform_view)."""
+    from pathlib import Path
+
+    from ros_support import bag_frames_m
+
+    preop_m, frames_m = bag_frames_m(Path(__file__).resolve().parents[2] / "bags" / "sweep_insilico_9000002")
+    overrides = [
+        Parameter("mode", value="survey"),
+        Parameter("deform", value=True),
+        Parameter("max_rate_hz", value=50.0),
+    ]
+    with pose_graph(overrides, "test_helper_survey_deform") as (node, helper, executor, poses):
+        types = RCLPY_TYPES.cloud
+        deformed: list = []
+        helper.create_subscription(PointCloud2, TOPIC_DEFORMED_PREOP, deformed.append, rclpy_qos(TOPIC_DEFORMED_PREOP))
+        helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
+            points_to_cloud(preop_m, types, frame_id="ct")
+        )
+        assert spin_until(executor, lambda: node.core.preop_mm is not None)
+        intraop = helper.create_publisher(PointCloud2, TOPIC_INTRAOP, rclpy_qos(TOPIC_INTRAOP))
+        views = []
+        for i, k in enumerate((0, 4, 8)):
+            intraop.publish(points_to_cloud(frames_m[k], types, frame_id="camera", stamp_ns=100 + i))
+
+            def done(stamp=str(100 + i)):
+                out = node.core.last_output
+                return out is not None and out.diagnostics[0].values.get("stamp_ns") == stamp
+
+            assert spin_until(executor, done, timeout_s=90.0)
+            views.append(node.core.last_output.diagnostics[0].values)
+        assert [v["survey_state"] for v in views] == ["fusing"] * 3, [v.get("survey_state") for v in views]
+        assert all(v["deform_view"] == "survey" for v in views)  # the fused surface, from the first frame on
+        assert int(views[-1]["deform_view_points"]) == int(views[-1]["survey_points"])
+        applied = sum(v["deform_applied"] == "true" for v in views)
+        assert applied > 0, [v["deform_reason"] for v in views]
+        # every pose and every deformed surface the stage gave arrives (and nothing is left in flight at teardown)
+        assert spin_until(executor, lambda: len(deformed) == applied and len(poses) == 3, timeout_s=30.0)
