@@ -172,8 +172,9 @@ def bag_lines(bags: list[str]) -> list[str]:
         "Interior RMS-TRE (mm) per frame after the stage (the rigid one where it was not applied), mean over all "
         "frames, over the last 10, and at the last frame; the rigid survey's last frame beside it:",
         "",
-        "| sweep bag | stage fits | frames applied | mean, all frames | mean, last 10 | last frame | rigid, last frame |",
-        "|---|---|---|---|---|---|---|",
+        "| sweep bag | stage fits | frames applied | mean, all frames | mean, last 10 | last frame | rigid, last frame "
+        "| stage p50 (ms) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for bag in bags:
         for fused in (False, True):
@@ -183,7 +184,7 @@ def bag_lines(bags: list[str]) -> list[str]:
             lines.append(
                 f"| `{Path(bag).name}` | {'the fused survey' if fused else 'the frame'} | "
                 f"{row.deform_applied}/{row.registered} | {np.mean(tre):.2f} | {np.mean(tre[-10:]):.2f} | "
-                f"{tre[-1]:.2f} | {rigid_last:.2f} |"
+                f"{tre[-1]:.2f} | {rigid_last:.2f} | {np.median([f['deform_ms'] for f in row.per_frame]):.0f} |"
             )
     return lines
 

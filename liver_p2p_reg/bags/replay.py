@@ -66,7 +66,7 @@ class ReplayRow:
     output: str = ""  # output bag path ("" when not written)
     info: dict = field(default_factory=dict)  # the bag's case description (custom_data)
     # one dict per registration that gave a pose: stamp_ns, rms_tre_mm (None without ground truth),
-    # level, method, and in survey mode survey_state / survey_visibility; with `deform` deform_applied and
+    # level, method, and in survey mode survey_state / survey_visibility; with `deform` deform_applied, deform_ms and
     # deformed_rms_tre_mm (None unless applied with ground truth)
     per_frame: list[dict] = field(default_factory=list)
     deform: bool = False  # replayed with the non-rigid stage on
@@ -260,7 +260,11 @@ def _deform_frame(output: CoreOutput) -> dict:
     if "deform_applied" not in output.diagnostics[0].values:
         return {}
     applied = output.deformed_preop_mm is not None
-    return {"deform_applied": applied, "deformed_rms_tre_mm": output.result.deformed_rms_tre_mm if applied else None}
+    return {
+        "deform_applied": applied,
+        "deformed_rms_tre_mm": output.result.deformed_rms_tre_mm if applied else None,
+        "deform_ms": float(output.diagnostics[0].values["deform_ms"]),
+    }
 
 
 def replay_bags(
