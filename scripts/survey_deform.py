@@ -96,7 +96,7 @@ def survey_start(registrar: Registrar, source: np.ndarray, cases: list[dict], fi
 
 def run_set(dataset: str, counts: list[int], noise_mm: float, registrar: Registrar) -> dict[int, np.ndarray]:
     """Per view count, one row per organ: oracle, rigid, stage on one view, stage on the fused views, applied on one,
-    applied on the fused, the fused stage within its bound, survey mode's own pose (see run_set), that + stage, harm."""
+    applied on the fused, the fused stage within its bound, survey mode's own pose (survey_start, then ICP), that + stage, harm."""
     rows: dict[int, list] = defaultdict(list)
     # the same organs for every count: those with at least the largest count of views (a camera pose that could
     # not reach its visibility bin was skipped when the set was made)
@@ -110,6 +110,7 @@ def run_set(dataset: str, counts: list[int], noise_mm: float, registrar: Registr
         triangles = first.get("src_triangles")
         fid_s, fid_t = np.asarray(first["src_marker"], float), np.asarray(first["tgt_marker"], float)
         truth = kabsch_np(fid_s, fid_t)
+        oracle = rms_tre_mm(truth, fid_s, fid_t)  # the same for every count of fused views
         start_T = survey_start(registrar, source, cases, first)
         for k in counts:
             fused = np.concatenate(views[:k])
@@ -122,7 +123,6 @@ def run_set(dataset: str, counts: list[int], noise_mm: float, registrar: Registr
             surveyed = registrar.register(source, fused, method="track", initial_T_mm=start_T)
             found_tre = rms_tre_mm(surveyed.T_target_source, fid_s, fid_t)
             found_many = stage_tre_mm(registrar, surveyed, source, fused, triangles, fid_s, fid_t)[0]
-            oracle = rms_tre_mm(truth, fid_s, fid_t)
             harmed = found_tre < 10.0 and found_many > found_tre + 1.0  # a good pose made worse by > 1 mm
             rows[k].append(
                 (oracle, rigid_tre, one, many, one_applied, many_applied, covered, found_tre, found_many, harmed)

@@ -5,7 +5,8 @@
 
 For each test liver of the real split and each deformation family: one deformation (the test sets' generator,
 `simulate_liver`), and a laparoscope sweeping over its anterior surface as the bundled sweep bags do
-(`sweep_frames`, depth-camera noise and 2 % flying pixels, at most 3800 points per frame; --frames of them).
+(`bundled_cases.sweep_views`: depth-camera noise and 2 % flying pixels, at most 3800 points per frame; --frames
+of them).
 The frames are fed to the node core (`NodeCore`, survey mode, the default method, `deform` on, the preop mesh
 given) once with the stage fitting the frame and once fitting the fused survey (`survey_deform_fused`).
 Unlike scripts/survey_deform.py, tracking here is survey mode's own, not perfect. Reported per family: mean
@@ -20,17 +21,14 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import rms_tre_mm
-from liver_p2p_reg.phantom.bundled_cases import SWEEP_MAX_POINTS, depth_sensor_noise
-from liver_p2p_reg.phantom.crop import sample_surface, vertex_normals
+from liver_p2p_reg.phantom.bundled_cases import sweep_views
 from liver_p2p_reg.phantom.real import load_real_liver, real_split
 from liver_p2p_reg.phantom.simulate import simulate_liver
-from liver_p2p_reg.phantom.sweep import sweep_frames
 from liver_p2p_reg.registration.baselines import kabsch_np
 from liver_p2p_reg.stream.core import NodeCore
 
@@ -43,15 +41,9 @@ def real_sweep(stem: str, family: str, n_frames: int) -> dict:
     sim = simulate_liver(liver.seed, 1, target_tets=10_000, liver=liver, family=family)
     surface, fids = sim.deformations[0].surface_mm, sim.deformations[0].fiducials_mm
     rng = np.random.default_rng([liver.seed, 88])
-    pts = sample_surface(surface, sim.triangles, 2 * len(sim.vertices_mm), rng)
-    normals = vertex_normals(surface, sim.triangles)[cKDTree(surface).query(pts)[1]]
-    frames, frame_fids = [], []
-    for frame in sweep_frames(pts, normals, n_frames, rng):
-        idx = frame.visible
-        if len(idx) > SWEEP_MAX_POINTS:
-            idx = np.sort(rng.choice(idx, SWEEP_MAX_POINTS, replace=False))
-        frames.append(depth_sensor_noise((pts[idx] - frame.eye_mm) @ frame.axes, rng))
-        frame_fids.append((fids - frame.eye_mm) @ frame.axes)
+    _, frames, frame_fids, _ = sweep_views(
+        surface, sim.triangles, 2 * len(sim.vertices_mm), fids, n_frames, rng, noisy=True
+    )
     return {
         "vertices": sim.vertices_mm,
         "triangles": sim.triangles,

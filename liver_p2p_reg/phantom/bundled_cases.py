@@ -198,6 +198,33 @@ def phantom_case(index: int, visibility_wanted: float) -> tuple[str, dict]:
     }
 
 
+def sweep_views(
+    surface_mm: np.ndarray,
+    triangles: np.ndarray,
+    n_points: int,
+    fiducials_mm: np.ndarray,
+    n_frames: int,
+    rng: np.random.Generator,
+    *,
+    noisy: bool,
+) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """A scope sweeping over a (deformed) surface: the dense surface sample, each frame's points (at most
+    SWEEP_MAX_POINTS, with depth-camera noise when `noisy`) and fiducials in that moment's camera frame, and the
+    sample's indices each frame saw."""
+    pts = sample_surface(surface_mm, triangles, n_points, rng)
+    normals = vertex_normals(surface_mm, triangles)[cKDTree(surface_mm).query(pts)[1]]
+    frames, frame_fids, seen = [], [], []
+    for frame in sweep_frames(pts, normals, n_frames, rng):
+        idx = frame.visible
+        if len(idx) > SWEEP_MAX_POINTS:
+            idx = np.sort(rng.choice(idx, SWEEP_MAX_POINTS, replace=False))
+        seen.append(idx)
+        clean = (pts[idx] - frame.eye_mm) @ frame.axes
+        frames.append(depth_sensor_noise(clean, rng) if noisy else clean)
+        frame_fids.append((fiducials_mm - frame.eye_mm) @ frame.axes)
+    return pts, frames, frame_fids, seen
+
+
 def sweep_case(kind: str, index: int) -> tuple[str, dict]:
     """A scope sweeping over the anterior surface: frames in the moving camera's frame, ground-truth fiducials per frame."""
     if kind == "insilico":
@@ -210,19 +237,12 @@ def sweep_case(kind: str, index: int) -> tuple[str, dict]:
         sim = simulate_liver(liver_id, 1)
         surface, fids, markers = phantom_shape(sim, np.random.default_rng([liver_id, 77]))
     rng = np.random.default_rng([liver_id, 88])
-    pts = sample_surface(surface, sim.triangles, 2 * len(sim.vertices_mm), rng)
-    normals = vertex_normals(surface, sim.triangles)[cKDTree(surface).query(pts)[1]]
+    n_points = 2 * len(sim.vertices_mm)
+    pts, frames, frame_fids, seen = sweep_views(
+        surface, sim.triangles, n_points, fids[markers], SWEEP_FRAMES, rng, noisy=kind == "phantom"
+    )
     meter = VisibilityMeter(sim.vertices_mm)
-    frames, frame_fids, seen, visibility = [], [], [], []
-    for frame in sweep_frames(pts, normals, SWEEP_FRAMES, rng):
-        idx = frame.visible
-        if len(idx) > SWEEP_MAX_POINTS:
-            idx = np.sort(rng.choice(idx, SWEEP_MAX_POINTS, replace=False))
-        seen.append(idx)
-        visibility.append(meter(pts[idx]))
-        clean = (pts[idx] - frame.eye_mm) @ frame.axes
-        frames.append(depth_sensor_noise(clean, rng) if kind == "phantom" else clean)
-        frame_fids.append((fids[markers] - frame.eye_mm) @ frame.axes)
+    visibility = [meter(pts[idx]) for idx in seen]
     union = meter(pts[np.unique(np.concatenate(seen))])
     disp = np.linalg.norm(fids - sim.fiducials_mm, axis=1)
     info = {
