@@ -59,12 +59,13 @@ def extract_cases(n_bags: int, path: Path) -> None:
         from liver_p2p_reg.bags.io import read_messages
         from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_mm
 
+    wanted = ("/preop/points", "/intraop/points", "/preop/fiducials", "/intraop/fiducials")  # the clouds read here
     arrays = {}
     for bag in sorted(p for p in (ROOT / "bags").iterdir() if p.is_dir())[:n_bags]:
         first: dict[str, np.ndarray] = {}
         for m in read_messages(bag):
-            if m.topic not in first:
-                first[m.topic] = cloud_to_points_mm(m.msg) if m.topic != "/diagnostics" else None
+            if m.topic in wanted and m.topic not in first:
+                first[m.topic] = cloud_to_points_mm(m.msg)
         arrays[f"{bag.name}/source"] = first["/preop/points"]
         arrays[f"{bag.name}/target"] = first["/intraop/points"]
         arrays[f"{bag.name}/fid_s"] = first["/preop/fiducials"]

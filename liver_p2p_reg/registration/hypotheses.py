@@ -13,7 +13,7 @@ from liver_p2p_reg.registration.confidence import pose_uncertainty
 from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.freespace import Scorer, penalized
 from liver_p2p_reg.registration.preprocess import PreprocessedPair, denormalize_transform, residual_norm
-from liver_p2p_reg.registration.refine import refine_pose
+from liver_p2p_reg.registration.refine import refine_poses
 from liver_p2p_reg.result import Candidate, RegistrationResult
 
 
@@ -53,7 +53,7 @@ def screen_candidates(
     distinct candidates are screened, besides `extra` (RANSAC's pose), which is screened whenever it is distinct.
     """
     tried: list[np.ndarray] = []
-    screened: list[tuple[int, np.ndarray, float]] = []
+    picked: list[int] = []
     counted = 0  # screened candidates other than `extra`
     for i in order:
         if i != extra and counted >= config.refine_candidates:
@@ -65,11 +65,13 @@ def screen_candidates(
         ):
             continue
         tried.append(T)
-        T_s = refine_pose(
-            T, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
-        )
-        screened.append((i, T_s, residual_norm(T_s, prep)))
+        picked.append(i)
         counted += i != extra
+    # The picks depend on the starting poses only, so their short ICPs run together (refine_poses).
+    moved = refine_poses(
+        tried, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
+    )
+    screened = [(i, T_s, residual_norm(T_s, prep)) for i, T_s in zip(picked, moved, strict=True)]
     assert screened  # order holds at least the chosen candidate
     violation = scorer([T_s for _, T_s, _ in screened]) if scorer is not None else np.full(len(screened), np.nan)
     keys = [penalized(res, v, config.free_space_weight) for (_, _, res), v in zip(screened, violation, strict=True)]

@@ -114,7 +114,7 @@ def run_feature_pipeline(
     tgt = torch.as_tensor(prep.target, dtype=torch.float32, device=device)
     times["preprocess"] = prepare_ms + lap_ms(t)
     t = time.perf_counter()
-    with torch.no_grad():
+    with torch.inference_mode():
         x_src, x_tgt = provider.describe(src, tgt, ctx.cache)
         times["features"] = lap_ms(t)
         out = p2p_register(src, tgt, x_src, x_tgt, p2p_settings(config, use_p2p))

@@ -16,7 +16,7 @@ from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration import nearest
 from liver_p2p_reg.registration.features.fpfh import outward_normals
 from liver_p2p_reg.registration.nearest import NearestIndex
-from liver_p2p_reg.registration.refine import axis_angle_rotation, trimmed_icp
+from liver_p2p_reg.registration.refine import axis_angle_rotation, trimmed_icp, trimmed_icp_many
 
 
 def test_the_required_fast_backend_is_installed() -> None:
@@ -143,3 +143,28 @@ def test_an_index_pickles_as_its_cloud_and_answers_the_same(rng: np.random.Gener
     assert again.backend == backend and np.array_equal(again.points, index.points)
     for a, b in zip(again.query_k(queries, 4), index.query_k(queries, 4), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_icp_from_several_starts_at_once_gives_each_start_its_own_bits(rng: np.random.Generator) -> None:
+    # screening runs its short ICPs together (one closest-point search per iteration for all starts); each pose must
+    # be bitwise the one its start gives alone, whether it converges, runs out of iterations or loses its pairs
+    source, target, T_true, _, _ = partial_case(rng)
+    source, target = source / 100.0, target / 100.0
+    T_true = T_true.copy()
+    T_true[:3, 3] /= 100.0
+    target = target + rng.normal(scale=0.01, size=target.shape)
+    near = T_true.copy()
+    near[:3, :3] = T_true[:3, :3] @ axis_angle_rotation(np.array([0.03, -0.02, 0.04]))
+    near[:3, 3] += 0.05
+    tilted = T_true.copy()
+    tilted[:3, :3] = T_true[:3, :3] @ axis_angle_rotation(np.array([0.4, 0.2, -0.3]))
+    lost = T_true.copy()
+    lost[:3, 3] += 5.0  # every pair beyond the gate: stops at once, keeps its start
+    starts = [near, tilted, lost, T_true]
+    index = (NearestIndex(source), outward_normals(source, 0.1))
+    for iterations in (3, 50):
+        together = trimmed_icp_many(starts, source, target, max_iterations=iterations, source_index=index)
+        alone = [trimmed_icp(T, source, target, max_iterations=iterations, source_index=index) for T in starts]
+        assert [T.tobytes() for T in together] == [T.tobytes() for T in alone]
+    np.testing.assert_allclose(together[2], lost, atol=1e-12)
+    assert not np.allclose(together[0], near)  # the others moved
