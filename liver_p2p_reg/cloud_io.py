@@ -11,6 +11,7 @@ import numpy as np
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.o3d import o3d_module
+from liver_p2p_reg.off_io import read_off
 from liver_p2p_reg.ply_pcd import read_pcd, read_ply, write_pcd, write_ply
 
 LOG = logging.getLogger("liver_p2p_reg")
@@ -90,8 +91,8 @@ def require_regular_file(path: str | Path) -> Path:
 def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Load vertices (V, 3) and triangles (F, 3); a point-cloud file gives F = 0.
 
-    PLY and PCD are read in numpy (the same values Open3D gives, without its import); STL, OBJ,
-    OFF and PLY/PCD layouts those readers leave out are read by Open3D.
+    PLY and PCD are read in numpy (the same values Open3D gives, without its import), OFF too (checked, in full
+    precision); STL, OBJ and PLY/PCD layouts those readers leave out are read by Open3D.
     """
     path = require_regular_file(path)
     suffix = path.suffix.lower()
@@ -99,6 +100,8 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         return mesh
     if suffix == ".pcd" and (cloud := read_pcd(path)) is not None and len(cloud) > 0:
         return cloud, np.zeros((0, 3), np.int64)
+    if suffix == ".off":  # read here, checked: Open3D's reader crashes the process on some malformed files
+        return read_off(path)
     o3d = o3d_module()  # heavy import, only for the formats above
     if suffix in MESH_FORMATS:
         mesh = o3d.io.read_triangle_mesh(str(path))
@@ -162,7 +165,8 @@ def clean_points(points: np.ndarray, name: str, *, min_points: int = 3) -> np.nd
 
 def extent_mm(points_mm: np.ndarray) -> float:
     """Size of a cloud: its bounding-box diagonal (mm)."""
-    return float(np.linalg.norm(points_mm.max(axis=0) - points_mm.min(axis=0)))
+    with np.errstate(over="ignore"):  # 1e200 mm coordinates: an inf extent, refused by the callers in one line
+        return float(np.linalg.norm(points_mm.max(axis=0) - points_mm.min(axis=0)))
 
 
 def implausible_extent(extent: float, name: str, min_mm: float, max_mm: float) -> str:
@@ -214,6 +218,13 @@ def _load_text(path: Path) -> np.ndarray:
 
 def _load_numpy(path: Path, key: str | None) -> np.ndarray:
     """The array of an NPY file, or the named / first of `NPZ_POINT_KEYS` / only point array of an NPZ; numbers only."""
+    with path.open("rb") as f:
+        magic = f.read(6)
+    # numpy calls any file without its magic "pickled data" and offers allow_pickle: for a damaged file, wrong advice
+    wanted = b"\x93NUMPY" if path.suffix.lower() == ".npy" else b"PK\x03\x04"
+    if magic[:4] != wanted[:4]:
+        kind = "NumPy .npy" if path.suffix.lower() == ".npy" else "NumPy .npz (zip)"
+        raise InputError(f"cannot read {path}: not a {kind} file (it does not start as one)")
     if path.suffix.lower() == ".npy":
         return _numeric(np.load(path, allow_pickle=False), str(path))
     with np.load(path, allow_pickle=False) as data:

@@ -57,9 +57,16 @@ MINIMUMS: dict[str, float] = {
     "deform_max_residual_mm": 0,
     "deform_max_displacement_mm": 0,
     "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
+    "max_input_points": 1000,
+    "icp_max_iterations": 1,
+    "ransac_max_iterations": 1,
+    "ambiguity_pose_mm": 0,
+    "ambiguity_residual_ratio": 1,
 }
 # Open3D's random.seed() (RANSAC, FGR) takes a C int: a larger seed would pass NumPy and fail mid-registration.
 MAX_SEED = 2**31 - 1
+MAX_THREADS = 256  # torch and Open3D threads per registration
+MAX_PATCHES = 64  # P2P patch candidates (the default is 5)
 
 
 @dataclass
@@ -208,7 +215,8 @@ class DeformSection:
     deform_holdout_check: bool = True
     deform_min_holdout_gain: float = 0.0
     deform_max_displacement_mm: float = 25.0  # a larger displacement anywhere is implausible: rigid result
-    # the error bound of the deformed positions (`liver-p2p calibrate-bound --deformed`); empty: the bundled one
+    # the error bound of the deformed positions (`liver-p2p calibrate-bound --deformed`); empty: the bundled ones (of
+    # single-frame fits, and of survey mode's fused-survey fits: scripts/calibrate_survey_bound.py)
     deform_error_calibration_path: str = ""
 
 
@@ -307,6 +315,17 @@ class Config(
             value = getattr(self, name)
             if not value >= minimum:  # `not >=` also catches NaN
                 raise InputError(f"{name} must be >= {minimum}, got {value}")
+        if not 0 <= self.num_threads <= MAX_THREADS:  # a huge thread pool crashed the process (segmentation fault)
+            raise InputError(f"num_threads must be in [0, {MAX_THREADS}] (0: the usable CPUs), got {self.num_threads}")
+        if not self.open3d_threads <= MAX_THREADS:
+            raise InputError(f"open3d_threads must be in [1, {MAX_THREADS}], got {self.open3d_threads}")
+        if not self.k <= MAX_PATCHES:  # each patch costs a dual softmax over the whole view: 100000 took a minute
+            raise InputError(f"k must be in [1, {MAX_PATCHES}], got {self.k}")
+        for name in ("normal_radius_norm", "fpfh_radius_norm", "icp_max_corr_norm", "ransac_max_corr_norm"):
+            if not 0 < getattr(self, name) <= 2:  # normalized units: the organ fits in the unit sphere
+                raise InputError(f"{name} must be in (0, 2] (normalized units), got {getattr(self, name)}")
+        if not 0 < self.ransac_confidence <= 1:
+            raise InputError(f"ransac_confidence must be in (0, 1], got {self.ransac_confidence}")
         if not self.seed <= MAX_SEED:
             raise InputError(f"seed must be in [0, {MAX_SEED}] (Open3D takes a 32-bit seed), got {self.seed}")
         if not 0 < self.voxel_size_norm <= 0.5:  # in a unit sphere a larger voxel leaves a handful of points

@@ -12,6 +12,7 @@ uninitialized.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -40,11 +41,13 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     vertices lack x, y or z, whichever reader would have read it.
     """
     data = path.read_bytes()
+    # A header this reader cannot parse is refused, not handed to Open3D: its reader fills a truncated body with
+    # zeros and crashes the process on some malformed files, and only a parsed header lets ply_check see them.
     try:
         header, body = _split_header(data, b"end_header")
         fmt, elements = _ply_elements(header)
-    except (_Unsupported, ValueError, IndexError, KeyError):
-        return None
+    except (_Unsupported, ValueError, IndexError, KeyError) as exc:
+        raise InputError(f"cannot read {path}: malformed PLY header ({str(exc) or type(exc).__name__})") from None
     check_ply_body(path, elements, body, PLY_FORMATS[fmt])
     try:
         _check_supported(elements)
@@ -56,14 +59,14 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _split_header(data: bytes, end: bytes) -> tuple[list[str], bytes]:
-    stop = data.find(end, 0, MAX_HEADER_BYTES)
-    if stop < 0:
-        raise _Unsupported("no end of header")
-    newline = data.find(b"\n", stop)
-    if newline < 0:
-        raise _Unsupported("header not terminated")
-    lines = data[:stop].decode("ascii").splitlines()
-    return lines, data[newline + 1 :]
+    """The header's lines and the body: the header ends at the first line that is `end` alone (a comment may hold
+    the word), within MAX_HEADER_BYTES. Latin-1 decodes any byte: a stray non-ASCII comment is still parsed."""
+    match = re.search(rb"(?:^|\n)" + re.escape(end) + rb"[ \t\r]*\n", data[: MAX_HEADER_BYTES + len(end) + 3])
+    if match is None:
+        raise _Unsupported(f"no '{end.decode()}' line within the first {MAX_HEADER_BYTES // 1024} KiB")
+    stop = match.start() + (data[match.start() : match.start() + 1] == b"\n")
+    lines = data[:stop].decode("latin-1").splitlines()
+    return lines, data[match.end() :]
 
 
 def _ply_elements(lines: list[str]) -> tuple[str, list[tuple[str, int, list[tuple[str, ...]]]]]:
@@ -163,13 +166,15 @@ def read_pcd(path: Path) -> np.ndarray | None:
         if stop < 0 or newline < 0:
             return None
         fields: dict[str, list[str]] = {}
-        for line in data[:newline].decode("ascii").splitlines():
+        for line in data[:newline].decode("latin-1").splitlines():  # any byte: a non-ASCII comment still parses
             words = line.split()
             if words and not words[0].startswith("#"):
                 fields[words[0].upper()] = words[1:]
         names, sizes, types = fields["FIELDS"], fields["SIZE"], fields["TYPE"]
         counts = fields.get("COUNT", ["1"] * len(names))
-        n_points = int(fields["POINTS"][0])
+        n_points = (
+            int(fields["POINTS"][0]) if "POINTS" in fields else int(fields["WIDTH"][0]) * int(fields["HEIGHT"][0])
+        )
         body = data[newline + 1 :]
         record_bytes = sum(int(s) * int(c) for s, c in zip(sizes, counts, strict=True))
         words_per_point = sum(int(c) for c in counts)

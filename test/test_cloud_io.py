@@ -341,3 +341,96 @@ def test_ply_faces_that_are_no_triangles_of_its_vertices_are_refused(tmp_path: P
     binary.write_bytes(header.replace("ascii", "binary_little_endian").encode() + body)
     with pytest.raises(InputError, match=f"malformed PLY body \\({message}"):
         load_points(binary)
+
+
+def test_ply_header_quirks_are_parsed_or_refused_never_handed_to_open3d(
+    tmp_path: Path, rng: np.random.Generator
+) -> None:
+    """A non-ASCII comment used to skip the checks (Open3D then zero-filled a truncated body or crashed the process
+    on an empty face), a `comment end_header` line cut the header short, and a header over 64 KiB aborted Open3D."""
+    points = _blob(rng, 200)
+    whole = tmp_path / "cloud.ply"
+    save_points(whole, points)
+    data = whole.read_bytes()
+    accented = tmp_path / "accented.ply"
+    accented.write_bytes(data.replace(b"end_header\n", "comment café ü\nend_header\n".encode("latin-1"), 1))
+    np.testing.assert_array_equal(load_points(accented), load_points(whole))
+    cut = tmp_path / "accented_cut.ply"
+    cut.write_bytes(accented.read_bytes()[: -len(data) // 3])
+    with pytest.raises(InputError, match="truncated: its header declares 200 vertex elements"):
+        load_points(cut)
+    worded = tmp_path / "worded.ply"  # the word in a comment is no end of the header
+    worded.write_bytes(data.replace(b"end_header\n", b"comment end_header here\nend_header\n", 1))
+    np.testing.assert_array_equal(load_points(worded), load_points(whole))
+    long = tmp_path / "long.ply"
+    long.write_bytes(data.replace(b"end_header\n", b"comment " + b"x" * 70_000 + b"\nend_header\n", 1))
+    with pytest.raises(InputError, match="malformed PLY header .no 'end_header' line within the first 64 KiB"):
+        load_points(long)
+
+
+def test_pcd_with_a_non_ascii_comment_is_still_checked(tmp_path: Path, rng: np.random.Generator) -> None:
+    whole = tmp_path / "cloud.pcd"
+    save_points(whole, _blob(rng, 100))
+    data = whole.read_bytes().replace(b"VERSION", "# café\nVERSION".encode("latin-1"), 1)
+    cut = tmp_path / "cut.pcd"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(InputError, match="truncated: its header declares 100 points"):
+        load_points(cut)
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ("3 1 0\n0 0 0\n100 0 0\n0 100 0\n0\n", "face 0 has 0 vertex indices"),  # Open3D crashed (SIGSEGV) on it
+        ("3 1 0\n0 0 0\n100 0 0\n0 100 0\n3 0 1 -1\n", "face 0 refers to vertex -1 of 3"),  # Open3D counted back
+        ("3 1 0\n0 0 0\n100 0 0\n0 100 0\n3 0 1 3\n", "face 0 refers to vertex 3 of 3"),
+        ("3 1 0\n0 0 0\n100 0 0\n0 100 0\n4 0 1 2\n", "face 0 declares 4 indices and holds 3"),
+        ("5 1 0\n0 0 0\n100 0 0\n0 100 0\n3 0 1 2\n", "truncated: its header declares 5 vertices"),
+        ("-3 1 0\n", "declares -3 vertices"),
+    ],
+)
+def test_off_files_are_checked_before_open3d_reads_them(tmp_path: Path, body: str, message: str) -> None:
+    path = tmp_path / "mesh.off"
+    path.write_text("OFF\n" + body)
+    with pytest.raises(InputError, match=message) as info:
+        load_points(path)
+    assert "\n" not in str(info.value)
+
+
+def test_off_vertices_alone_are_a_cloud_and_a_good_mesh_still_loads(tmp_path: Path, rng: np.random.Generator) -> None:
+    pts = _blob(rng, 50)
+    cloud = tmp_path / "cloud.off"
+    cloud.write_text("OFF\n# vertices only\n50 0 0\n" + "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in pts.tolist()))
+    np.testing.assert_array_equal(load_points(cloud), pts)
+    mesh = tmp_path / "mesh.off"  # counts on the OFF line (Open3D refused them), a quad, a face colour
+    mesh.write_text("OFF 4 2 0\n0 0 0\n100 0 0\n100 100 0\n0 100 0\n3 0 1 2\n4 0 1 2 3 255 0 0\n")
+    points = load_points(mesh)
+    assert len(points) > 1000 and np.allclose(points[:, 2], 0)
+
+
+def test_off_is_read_as_open3d_reads_it_in_full_precision(tmp_path: Path, rng: np.random.Generator) -> None:
+    """The same triangles as Open3D's reader, and the vertices as written (Open3D parses them as float32). (Polygons
+    are split into fans here; Open3D ear-clips them, which covers the same surface where a polygon is planar and
+    convex, and fails on others.)"""
+    from liver_p2p_reg.cloud_io import load_mesh
+
+    o3d = pytest.importorskip("open3d")
+    pts = _blob(rng, 300)
+    faces = rng.integers(0, 300, size=(200, 3))
+    path = tmp_path / "mesh.off"
+    rows = [f"{x!r} {y!r} {z!r}" for x, y, z in pts.tolist()] + [f"3 {a} {b} {c}" for a, b, c in faces]
+    path.write_text("OFF\n300 200 0\n" + "\n".join(rows) + "\n")
+    vertices, triangles = load_mesh(path)
+    theirs = o3d.io.read_triangle_mesh(str(path))
+    assert vertices.tobytes() == pts.tobytes()  # repr() round-trips: the file's numbers exactly
+    np.testing.assert_array_equal(vertices.astype(np.float32), np.asarray(theirs.vertices))
+    np.testing.assert_array_equal(triangles, np.asarray(theirs.triangles))
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".npz"])
+def test_a_damaged_numpy_file_is_not_called_pickled_data(tmp_path: Path, rng: np.random.Generator, suffix: str) -> None:
+    path = tmp_path / f"damaged{suffix}"
+    path.write_bytes(rng.integers(0, 256, 4000, dtype=np.uint8).tobytes())
+    with pytest.raises(InputError, match=f"not a NumPy {suffix}") as info:
+        load_points(path)
+    assert "pickle" not in str(info.value)

@@ -90,6 +90,15 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"seed": -1}, "seed must be >= 0"),
         ({"seed": 2**31}, r"seed must be in \[0, 2147483647\]"),  # Open3D's seed() takes a C int
         ({"expected_extent_min_mm": 700.0}, "expected_extent_min_mm < expected_extent_max_mm"),
+        ({"num_threads": 100_000}, r"num_threads must be in \[0, 256\]"),  # a huge pool crashed the process
+        ({"num_threads": -4}, r"num_threads must be in \[0, 256\]"),
+        ({"k": 100_000}, r"k must be in \[1, 64\]"),
+        ({"normal_radius_norm": float("nan")}, r"normal_radius_norm must be in \(0, 2\]"),
+        ({"icp_max_corr_norm": 0}, r"icp_max_corr_norm must be in \(0, 2\]"),
+        ({"ransac_confidence": 2}, r"ransac_confidence must be in \(0, 1\]"),
+        ({"icp_max_iterations": -3}, "icp_max_iterations must be >= 1"),
+        ({"ambiguity_residual_ratio": float("nan")}, "ambiguity_residual_ratio must be >= 1"),
+        ({"max_input_points": 0}, "max_input_points must be >= 1000"),
     ],
 )
 def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:

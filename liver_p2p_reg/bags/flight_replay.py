@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bags.io import typestore
+from liver_p2p_reg.bags.io import is_bag_error, typestore, unreadable
 from liver_p2p_reg.bags.recorder import (
     TOPIC_CONFIG,
     TOPIC_EVENT,
@@ -100,20 +100,27 @@ def read_file(path: Path, state: ReadState) -> Iterator[RecordedMessage]:
                 state.truncated = True
                 return
             stream = ReadDataStream(BytesIO(body))
-            if opcode == Opcode.SCHEMA:
-                schema = Schema.read(stream)
-                schemas[schema.id] = schema.name
-            elif opcode == Opcode.CHANNEL:
-                channel = Channel.read(stream)
-                channels[channel.id] = (channel.topic, schemas.get(channel.schema_id, ""))
-            elif opcode == Opcode.MESSAGE:
-                message = Message.read(stream, length)
-                topic, msgtype = channels[message.channel_id]
-                yield RecordedMessage(
-                    topic, msgtype, message.log_time, store.deserialize_cdr(message.data, msgtype), path
-                )
-            elif opcode in (Opcode.DATA_END, Opcode.FOOTER):  # the summary follows: nothing to replay
-                return
+            try:
+                if opcode == Opcode.SCHEMA:
+                    schema = Schema.read(stream)
+                    schemas[schema.id] = schema.name
+                elif opcode == Opcode.CHANNEL:
+                    channel = Channel.read(stream)
+                    channels[channel.id] = (channel.topic, schemas.get(channel.schema_id, ""))
+                elif opcode == Opcode.MESSAGE:
+                    message = Message.read(stream, length)
+                    topic, msgtype = channels[message.channel_id]
+                    item = RecordedMessage(
+                        topic, msgtype, message.log_time, store.deserialize_cdr(message.data, msgtype), path
+                    )
+                elif opcode in (Opcode.DATA_END, Opcode.FOOTER):  # the summary follows: nothing to replay
+                    return
+            except Exception as exc:  # damaged bytes inside a record: one line naming the file, not a traceback
+                if not is_bag_error(exc):
+                    raise
+                raise unreadable(path, exc) from None
+            if opcode == Opcode.MESSAGE:
+                yield item
 
 
 def first_meta(path: Path) -> dict[str, Any] | None:

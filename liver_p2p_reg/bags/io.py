@@ -173,9 +173,9 @@ def read_messages(path: str | Path, topics: list[str] | None = None) -> Iterator
             for conn, timestamp, raw in reader.messages(connections=conns):
                 yield BagMessage(conn.topic, conn.msgtype, int(timestamp), reader.deserialize(raw, conn.msgtype))
     except Exception as exc:
-        if not _is_bag_error(exc):
+        if not is_bag_error(exc):
             raise
-        raise _unreadable(path, exc) from None
+        raise unreadable(path, exc) from None
 
 
 def bag_source(path: Path) -> Path:
@@ -199,14 +199,14 @@ def bag_source(path: Path) -> Path:
     return path
 
 
-def _is_bag_error(exc: Exception) -> bool:
+def is_bag_error(exc: Exception) -> bool:
     """Whether an exception raised by the bag readers says the bag's bytes are unreadable (not a bug of ours)."""
     if isinstance(exc, (ValueError, KeyError, IndexError, OSError, EOFError)):
         return True
     return type(exc).__module__.split(".")[0] in _BAG_ERROR_PACKAGES
 
 
-def _unreadable(path: str | Path, exc: Exception) -> InputError:
+def unreadable(path: str | Path, exc: Exception) -> InputError:
     """The one-line InputError for a bag rosbags cannot read: its path and the first line of the reason."""
     reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return InputError(f"cannot read bag {path}: {reason}")
@@ -236,9 +236,9 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
         with AnyReader([source], default_typestore=typestore()) as reader:
             return {name: (info.msgtype, info.msgcount) for name, info in reader.topics.items()}
     except Exception as exc:
-        if not _is_bag_error(exc):
+        if not is_bag_error(exc):
             raise
-        raise _unreadable(path, exc) from None
+        raise unreadable(path, exc) from None
 
 
 def _qos(*, latched: bool, best_effort: bool = False, depth: int = 1) -> Any:

@@ -7,6 +7,7 @@ import json
 import logging
 from pathlib import Path
 
+from liver_p2p_reg.cli.output_paths import output_file
 from liver_p2p_reg.errors import InputError
 
 
@@ -50,7 +51,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     g.set_defaults(func=run_generate)
     s = sub.add_parser("stats", help="print distributions and write Fig. 4-style histograms")
     s.add_argument("dir", help="a generated dataset directory")
-    s.add_argument("--png", help="histogram PNG path (default DIR/stats.png)")
+    s.add_argument("--png", help="histogram picture path, .png/.pdf/.svg (default DIR/stats.png, replaced each run)")
+    s.add_argument("--force", action="store_true", help="overwrite an existing --png file")
     s.add_argument("--json", action="store_true", help="print JSON instead of text")
     s.set_defaults(func=run_stats)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
@@ -99,9 +101,11 @@ def run_stats(args: argparse.Namespace) -> int:
     from liver_p2p_reg.phantom.stats import STAT_COLUMNS, plot_histograms, summarize
 
     directory = Path(args.dir)
+    # a path the user names is theirs: replaced only with --force (the default DIR/stats.png is this command's own)
+    target = output_file(args.png, args.force, "--png", suffixes=(".png", ".pdf", ".svg")) or directory / "stats.png"
     rows = read_manifest(directory)
     summary = summarize(rows)
-    png = plot_histograms(rows, args.png or directory / "stats.png", title=directory.name)
+    png = plot_histograms(rows, target, title=directory.name)
     summary["histograms_png"] = str(png)
     if args.json:
         print(json.dumps(summary, indent=2))

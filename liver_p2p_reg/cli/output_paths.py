@@ -78,6 +78,8 @@ def output_file(
         raise InputError(f"{path} exists; pass --force to overwrite it")
     if not path.parent.is_dir():
         raise InputError(f"output folder does not exist: {path.parent}")
+    if path.is_symlink() and not path.resolve().parent.is_dir():  # checked now, not after the work: a dangling link
+        raise InputError(f"{option} {path} links to {path.resolve()}, whose folder does not exist")
     return path
 
 

@@ -204,10 +204,13 @@ def run(args: argparse.Namespace) -> int:
         if path is not None:
             check_point_file(path)
     initial_T = load_initial_transform(Path(args.initial_transform)) if args.initial_transform else None
-    from liver_p2p_reg.structures_io import load_structures
+    from liver_p2p_reg.structures_io import far_from_model, load_structures
 
     args.structure_list = load_structures(args.structures or [])  # InputError: one line, exit 2
     source = load_points(source_path, seed=config.seed)
+    for structure in args.structure_list:  # a structure must lie at the organ, in its frame and units
+        if problem := far_from_model(structure, source):
+            raise InputError(problem)
     args.source_mesh = source_mesh(source_path) if config.deform else None  # the stage's closed surface
     views = [load_points(t, seed=config.seed) for t in targets]  # every file is read before any work
     fiducials = (None, None)

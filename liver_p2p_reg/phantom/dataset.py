@@ -257,6 +257,8 @@ def generate_dataset(
         old = json.loads(spec_path.read_text())
         if old != spec_record(spec):
             raise InputError(f"{out} holds a dataset with different parameters; use another --out")
+    elif any(out.iterdir()):  # every folder a run made holds dataset.json (written first): this one is someone's
+        raise InputError(f"{out} is not empty and holds no dataset.json; give an empty or new folder as --out")
     spec_path.write_text(json.dumps(spec_record(spec), indent=2))
     (out / COMPLETE_MARKER).unlink(missing_ok=True)
     rows_by_liver: dict[int, list[dict]] = {}

@@ -107,7 +107,8 @@ def pose_evidence(
     dist, idx = tree.query(view)
     centre = view.mean(axis=0)
     cov, sigma = np.full((6, 6), np.inf), float("nan")
-    keep = np.flatnonzero(dist <= 3.0 * max(float(np.median(dist)), 1e-6))
+    # finite only: a view moved beyond float range pairs nothing (its index would be the tree's size)
+    keep = np.flatnonzero(np.isfinite(dist) & (dist <= 3.0 * max(float(np.median(dist)), 1e-6)))
     if len(keep) >= MIN_PAIRS:
         keep = keep[dist[keep] <= np.quantile(dist[keep], trim_ratio)]
     keep = keep[:: max(1, len(keep) // MAX_PAIRS)]

@@ -217,6 +217,10 @@ def _check_triangles(triangles: np.ndarray | None, n_clean: int, n_given: int) -
     return tris.astype(np.int64)
 
 
+# A prior pose's translation or a sensor origin beyond this (1 km) is no surgical scene: refused.
+MAX_POSITION_MM = 1e6
+
+
 def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
     if T is None:
         return None
@@ -228,6 +232,12 @@ def _check_pose(T: np.ndarray | None) -> np.ndarray | None:
         raise InputError("initial_T_mm must be a rigid transform (its 3x3 block is not a rotation)")
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):  # a projective matrix moves points non-rigidly
         raise InputError(f"initial_T_mm must be a rigid transform (its bottom row is {T[3].tolist()}, not 0 0 0 1)")
+    with np.errstate(over="ignore"):  # 1e300 squared: inf, refused below
+        shift = float(np.linalg.norm(T[:3, 3]))
+    if shift > MAX_POSITION_MM:  # an organ a kilometre away: wrong units or frame (and overflow further on)
+        raise InputError(
+            f"initial_T_mm moves the organ {shift:.3g} mm (more than {MAX_POSITION_MM:g} mm): wrong units?"
+        )
     return T
 
 
@@ -237,6 +247,10 @@ def _check_origin(origin: np.ndarray | None) -> np.ndarray | None:
     origin = as_float_array(origin, "sensor origin").reshape(-1)
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise InputError(f"the sensor origin must be 3 finite numbers (mm, target frame), got {origin.tolist()}")
+    with np.errstate(over="ignore"):
+        far = float(np.linalg.norm(origin)) > MAX_POSITION_MM
+    if far:
+        raise InputError(f"the sensor origin {origin.tolist()} is more than {MAX_POSITION_MM:g} mm away: wrong units?")
     return origin
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,7 @@ from liver_p2p_reg.ros.topics import (
     rclpy_qos,
 )
 from liver_p2p_reg.stream.outputs import ERROR, LOADER_DIAG_NAME, OK, Diagnostic
-from liver_p2p_reg.structures_io import Structure, read_structures
+from liver_p2p_reg.structures_io import Structure, far_from_model, read_structures
 
 TYPES = RCLPY_TYPES.cloud
 UNITS_TO_M = {"mm": M_PER_MM, "m": 1.0}
@@ -124,6 +125,11 @@ class PreopLoaderWiring:
         fiducials_m = load_model_m(param["fiducials_path"], param["units"]) if param["fiducials_path"] else None
         specs = structure_specs(self.get_parameter("structures_paths").value)
         structures, errors = read_structures(specs, to_mm=UNITS_TO_M[param["units"]] * 1e3)
+        far = {s.label: far_from_model(s, model_m * 1e3) for s in structures}  # another frame or unit: not published
+        errors += [(s.path, far[s.label]) for s in structures if far[s.label]]
+        structures = [
+            dataclasses.replace(s, label_id=i) for i, s in enumerate(s for s in structures if not far[s.label])
+        ]
         stamp_ns = self.get_clock().now().nanoseconds
         # the mesh itself, for viewers (the Slicer bridge, RViz); same stamp as its points: they pair by it
         stamp = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)

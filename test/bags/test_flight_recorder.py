@@ -343,3 +343,16 @@ def test_the_node_switches_recordings_at_runtime_and_closes_them_on_shutdown(tmp
         report = rerun_recording(path)
         assert (report.registrations, reproduced(report)) == (1, 1) and report.ok, (path, report)
     assert recorded(second)[TOPIC_PREOP] and recorded(second)[TOPIC_CONFIG][0]["snapshot"]
+
+
+def test_a_recording_with_damaged_bytes_is_one_line_not_a_traceback(bag_recording, tmp_path):
+    records = mcap_records(bag_recording)
+    start, end = next((s, e) for op, s, e, t in records if t == TOPIC_REGISTRATION)
+    data = bytearray(Path(bag_recording).read_bytes())
+    middle = (start + end) // 2
+    data[middle : middle + 64] = bytes(b ^ 0xFF for b in data[middle : middle + 64])  # inside a String record's JSON
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    code, _, err = cli("replay", damaged)
+    assert code == 2 and err.strip().startswith("liver-p2p: error: cannot read bag") and "damaged.mcap" in err, err
+    assert "Traceback" not in err

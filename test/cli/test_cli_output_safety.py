@@ -175,3 +175,38 @@ def test_config_and_calibration_outputs_are_checked_before_any_work(tmp_path, ca
                            (["--cache", mine], "is a file")):  # fmt: skip
         rc, err = _run(["calibrate-bound", "--val", tmp_path, *extra], capsys)
         assert rc == 2 and message in err, extra
+
+
+def test_dataset_commands_never_replace_what_they_did_not_write(tmp_path, capsys) -> None:
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "manifest.csv").write_text("my,csv\n")  # a folder of someone else's: no dataset.json
+    rc, err = _run(["dataset", "generate", "--out", mine, "--livers", "1", "--deformations", "1", "--targets", "1",
+                    "--tets", "500", "--no-progress"], capsys)  # fmt: skip
+    assert rc == 2 and "holds no dataset.json" in err and (mine / "manifest.csv").read_text() == "my,csv\n"
+    assert sorted(p.name for p in mine.iterdir()) == ["manifest.csv"]
+    picture = tmp_path / "picture.png"
+    picture.write_bytes(b"mine")
+    for png, message in ((picture, "exists; pass --force"), (tmp_path / "stats.xyz", "use one of .png, .pdf, .svg")):
+        rc, err = _run(["dataset", "stats", mine, "--png", png], capsys)
+        assert rc == 2 and message in err, err
+    assert picture.read_bytes() == b"mine"
+
+
+def test_an_output_linked_into_a_missing_folder_is_refused_before_the_work(files, tmp_path, capsys) -> None:
+    link = tmp_path / "result.json"
+    link.symlink_to(tmp_path / "missing" / "x.json")
+    rc, err = _run(["register", files["source"], files["view"], *METHOD, "-o", link], capsys)
+    assert rc == 2 and "whose folder does not exist" in err
+
+
+def test_a_prior_pose_or_sensor_far_beyond_any_scene_is_one_line(files, tmp_path, capsys) -> None:
+    pose = tmp_path / "far.txt"
+    T = np.eye(4)
+    T[0, 3] = 1e300  # overflowed to inf further on, and the error bound indexed past its tree
+    np.savetxt(pose, T)
+    rc, err = _run(["register", files["source"], files["view"], "--method", "evaluate", "--initial-transform", pose],
+                   capsys)  # fmt: skip
+    assert rc == 2 and "initial_T_mm moves the organ inf mm" in err and err.count("\n") == 1, err
+    rc, err = _run(["register", files["source"], files["view"], *METHOD, "--sensor-origin=1e308,1e308,1e308"], capsys)
+    assert rc == 2 and "more than 1e+06 mm away" in err and err.count("\n") == 1, err

@@ -98,3 +98,13 @@ def test_duplicate_labels_and_the_replay_option(case: dict, capsys) -> None:
     assert main(["replay", str(BAG_A), "--structures", str(case["dir"] / "metres.npy")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith("liver-p2p: error: structure 'metres'")
+
+
+def test_a_structure_far_from_the_model_is_refused(case: dict, capsys) -> None:
+    # 5 m off: another frame or unit; it used to be moved with the pose and given a sub-millimetre bound
+    far = Path(case["dir"]) / "far.xyz"
+    save_points(far, case["tumour"] + 5000.0)
+    assert main(register(case, "--structures", str(far))) == 2
+    err = capsys.readouterr().err.strip()
+    assert "structure 'far': a point lies" in err and "outside the preop model's bounding box" in err
+    assert "\n" not in err
