@@ -17,7 +17,11 @@ from liver_p2p_reg.registration.weights_id import weights_sha256
 BUNDLED_CALIBRATION = Path(__file__).resolve().parents[1] / "weights" / "error_bound_v1.json"
 # The bound of the positions the non-rigid stage gives, calibrated on the validation poses where it was applied.
 BUNDLED_DEFORMED_CALIBRATION = BUNDLED_CALIBRATION.with_name("error_bound_deformed_v1.json")
+# ... and where the stage fitted survey mode's fused sweep (scripts/calibrate_survey_bound.py): far more accurate
+# than on one view, which the frame's pose evidence does not show
+BUNDLED_SURVEY_CALIBRATION = BUNDLED_CALIBRATION.with_name("error_bound_deformed_survey_v1.json")
 RIGID, DEFORMED = "rigid", "deformed"  # which positions a calibration's errors were measured at
+FRAME, SURVEY = "frame", "survey"  # what the non-rigid stage fitted: one frame, or survey mode's fused surface
 FORMAT = "liver_p2p_reg error-bound calibration"
 
 
@@ -35,6 +39,7 @@ class BoundCalibration:
     provenance: dict[str, Any]  # data, seed, command: what `liver-p2p calibrate-bound` recorded
     positions: str = RIGID  # RIGID: the pose's; DEFORMED: the non-rigid stage's (of `deform` settings)
     deform: dict[str, Any] | None = None  # the non-rigid stage's settings a DEFORMED calibration ran with
+    view: str = FRAME  # a DEFORMED calibration's fits: of single frames, or of fused surveys
 
     def scale_mm(self, features: np.ndarray) -> np.ndarray:
         """Predicted error scale (mm) of each row of features; inf where a feature is not finite."""
@@ -116,6 +121,7 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
             provenance=dict(raw.get("provenance", {})),
             positions=str(raw.get("positions", RIGID)),
             deform=dict(raw["deform"]) if raw.get("deform") is not None else None,
+            view=str(raw.get("view", FRAME)),
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
@@ -159,7 +165,8 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
     """Why a calibration's coverage is not known for this method and weights ("" when it is)."""
     # Not a WARN: the bound is still the best estimate there is; the user is told it is not a calibrated one.
     # A tracked pose is the calibrated method's ICP refinement from the previous pose: its calibration holds.
-    if method not in (calibration.method, "track"):
+    # A survey calibration was made of survey mode's frames, its tracked ones scored by `evaluate` among them.
+    if method not in (calibration.method, "track", *(("evaluate",) if calibration.view == SURVEY else ())):
         return f"error bound calibrated for {calibration.method}, not {method}: its coverage is not known"
     if calibration.weights_sha256 and weights_sha256(config) != calibration.weights_sha256:
         return (
@@ -193,16 +200,21 @@ def deform_settings(config: Any) -> dict[str, Any]:
     return {name: getattr(config, name) for name in names}
 
 
-def attach_deformed_error_model(result: Any, config: Any) -> None:
+def attach_deformed_error_model(result: Any, config: Any, view: str = FRAME) -> None:
     """Give an applied deformation the bound of its deformed positions (`result.deformed_error_model`,
     `deformed_error_bound_mm`): the same pose evidence, the DEFORMED calibration's scale and quantiles.
 
-    Settings other than the calibration's are told in `result.deformed_error_calibration_note`."""
+    `view`: what the stage fitted (FRAME, or SURVEY: survey mode's fused surface, whose bundled calibration is its
+    own). Settings other than the calibration's, or a calibration of the other view, are told in
+    `result.deformed_error_calibration_note`."""
+    result.deformed_error_model, result.deformed_error_bound_mm = None, float("nan")
+    result.deformed_error_calibration_note = ""
     if result.error_model is None or result.deformation is None or not result.deformation.applied:
         return
-    path = config.deform_error_calibration_path or str(BUNDLED_DEFORMED_CALIBRATION)
+    bundled = BUNDLED_SURVEY_CALIBRATION if view == SURVEY else BUNDLED_DEFORMED_CALIBRATION
+    path = config.deform_error_calibration_path or str(bundled)
     try:  # a bad or missing file costs the deformed positions their bound (said), never the deformation itself
-        calibration = read_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION)
+        calibration = read_calibration(config.deform_error_calibration_path, bundled)
         if calibration.positions != DEFORMED:
             raise InputError(f"{path} is not a calibration of deformed positions")
         calibration.column(config.error_coverage)
@@ -217,6 +229,11 @@ def attach_deformed_error_model(result: Any, config: Any) -> None:
     if differ:
         result.deformed_error_calibration_note = (
             f"deformed-position bound calibrated with other {', '.join(differ)}: its coverage is not known"
+        )
+    elif calibration.view != view:
+        fits = "single views" if calibration.view == FRAME else "fused surveys"
+        result.deformed_error_calibration_note = (
+            f"calibrated on {fits}; this fit used {'a fused survey' if view == SURVEY else 'one view'}"
         )
     else:
         result.deformed_error_calibration_note = calibration_note(calibration, result.method, config)

@@ -115,10 +115,12 @@ class Registrar:
         target_fiducials_mm: np.ndarray | None = None,
         *,
         mesh_vertices_mm: np.ndarray | None = None,
+        view: str = "frame",
     ) -> RegistrationResult:
         """The non-rigid stage from `result`'s rigid pose: sets `result.deformation` (applied or why not) and,
         with fiducials, `deformed_rms_tre_mm`. The rigid pose in `result` is left as it is. The node calls
-        this after publishing the rigid pose; `register` calls it when `deform` is on.
+        this after publishing the rigid pose; `register` calls it when `deform` is on. `view`: what `target_mm` is,
+        "frame" (one view) or "survey" (survey mode's fused surface): it picks the deformed bound's calibration.
 
         The closed preop surface is `source_triangles` over the source points, or over `mesh_vertices_mm`
         when those are given (a CT mesh beside a sampled cloud); without triangles it is rebuilt from the points.
@@ -137,9 +139,7 @@ class Registrar:
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)  # bad ones refused before any work
         fit = None if mesh_vertices_mm is None else source  # beside a mesh: fitted through the registered cloud
         result.deformation = deform_result(result, surface, target, self.config, self.cache, tris, fit)
-        result.deformed_error_model, result.deformed_error_bound_mm = None, float("nan")
-        result.deformed_error_calibration_note = ""
-        attach_deformed_error_model(result, self.config)  # the bound of the deformed positions, when applied
+        attach_deformed_error_model(result, self.config, view)  # the bound of the deformed positions, when applied
         result.runtime_ms["deform"] = (time.perf_counter() - start) * 1e3
         if fid_s is not None and fid_t is not None:
             moved = result.deformation.deformed_position_mm(fid_s)

@@ -21,6 +21,7 @@ import numpy as np
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.registration.deform import Deformation, not_applied
+from liver_p2p_reg.registration.error_calibration import FRAME, SURVEY
 from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.stream.outputs import OK, PREOP_DIAG_NAME, WARN, CoreOutput, Diagnostic
 from liver_p2p_reg.stream.solve import Frame
@@ -218,10 +219,7 @@ def run_stage(
     kwargs.update({} if mesh is None else mesh.stage_kwargs)
     deformed, placed = None, rigid.structures
     try:
-        registrar.deform(result, frame.preop_mm, view, **kwargs)
-        if view_mm is not None and result.deformation.applied:  # the bound's calibration saw single views only
-            notes = [result.deformed_error_calibration_note, "calibrated on single views; this fit used a fused survey"]
-            result.deformed_error_calibration_note = "; ".join(n for n in notes if n)
+        registrar.deform(result, frame.preop_mm, view, **kwargs, view=FRAME if view_mm is None else SURVEY)
         if result.deformation.applied:
             # on a mesh: its vertices, so that a holder of /preop/mesh (welded alike) pairs them with its triangles
             surface = frame.preop_mm if mesh is None else mesh.vertices_mm
@@ -238,7 +236,7 @@ def run_stage(
     ms = (time.perf_counter() - start) * 1e3
     diag = rigid.diagnostics[0]
     deformation: Deformation = result.deformation
-    seen = {"view": "frame" if view_mm is None else "survey", "view_points": len(view)}
+    seen = {"view": FRAME if view_mm is None else SURVEY, "view_points": len(view)}
     values = {**diag.values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm, *_bound(result), **seen)}
     diagnostics = [Diagnostic(diag.level, diag.name, diag.message, values, diag.hardware_id), *rigid.diagnostics[1:]]
     return dataclasses.replace(rigid, diagnostics=diagnostics, structures=placed, deformed_preop_mm=deformed)

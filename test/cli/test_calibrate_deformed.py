@@ -102,3 +102,14 @@ def test_a_rigid_calibration_is_refused_and_other_settings_are_noted(calibrated:
     other.write_text(json.dumps(raw))
     result, _ = _registered(calibrated, str(other))
     assert "deform_regularization" in result.deformed_error_calibration_note
+
+
+def test_a_fused_survey_fit_is_told_when_its_calibration_saw_single_views(calibrated: dict) -> None:
+    # the file given is a calibration of single-view fits: on a survey's fused surface its coverage is not known
+    result, case = _registered(calibrated, str(calibrated["out"]))
+    registrar = Registrar(Config.from_yaml(calibrated["tmp"] / "run.yaml").validate())
+    registrar.deform(result, case["src_pcd"], case["tgt_pcd"], source_triangles(case), view="survey")
+    assert result.deformation.applied and np.isfinite(result.deformed_error_bound_mm)
+    assert result.deformed_error_calibration_note == "calibrated on single views; this fit used a fused survey"
+    registrar.deform(result, case["src_pcd"], case["tgt_pcd"], source_triangles(case))  # one view: no note
+    assert result.deformed_error_calibration_note == ""

@@ -124,7 +124,10 @@ def test_with_deform_the_stage_fits_the_fused_surface_while_fusing(sweep) -> Non
     assert int(frame["deform_view_points"]) <= len(sweep["frames"][20])  # the frame (its outliers dropped)
     assert int(fused["deform_view_points"]) == int(fused["survey_points"])  # the fused voxel means
     assert fused["deform_applied"] == "true", fused["deform_reason"]
-    assert "fused survey" in out_f.result.deformed_error_calibration_note
+    # each fit's deformed bound is its view's own calibration: the fused survey's has its own quantiles
+    assert out_f.result.deformed_error_model.calibration.view == "survey"
+    assert out_f.result.deformed_error_calibration_note == "", out_f.result.deformed_error_calibration_note
+    assert float(fused["deformed_error_bound_mm"]) == pytest.approx(out_f.result.deformed_error_bound_mm, rel=1e-3)
     # more of the organ seen: the deformed interior is closer to the truth than the rigid pose's here
     assert float(fused["deformed_rms_tre_mm"]) < float(fused["rms_tre_mm"]) - 1.0, fused
     assert fused["deformed_rms_tre_mm"] != frame.get("deformed_rms_tre_mm")  # two fits of two views
