@@ -113,7 +113,24 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         cloud = o3d.io.read_point_cloud(str(path))
         if len(cloud.points) > 0:
             return np.asarray(cloud.points, dtype=np.float64), np.zeros((0, 3), np.int64)
+    if suffix == ".obj" and len(vertices := _obj_vertices(path)):  # vertices alone: Open3D gives no points for them
+        return vertices, np.zeros((0, 3), np.int64)
     raise InputError(f"cannot read {path}: no points found (empty or unreadable {suffix} file)")
+
+
+def _obj_vertices(path: Path) -> np.ndarray:
+    """The `v x y z` lines of an OBJ file without faces, (V, 3) float64 (empty when it has none or a bad one)."""
+    rows = []
+    for line in path.read_bytes().decode("latin-1").splitlines():
+        words = line.split()
+        if words[:1] == ["v"]:
+            try:
+                rows.append([float(w) for w in words[1:4]])
+            except ValueError:
+                return np.zeros((0, 3))
+            if len(rows[-1]) < 3:  # a vertex short of a coordinate: no cloud to guess from
+                return np.zeros((0, 3))
+    return np.array(rows, dtype=np.float64).reshape(-1, 3)
 
 
 def sample_mesh_surface(vertices: np.ndarray, triangles: np.ndarray, *, seed: int = 0) -> np.ndarray:

@@ -434,3 +434,14 @@ def test_a_damaged_numpy_file_is_not_called_pickled_data(tmp_path: Path, rng: np
     with pytest.raises(InputError, match=f"not a NumPy {suffix}") as info:
         load_points(path)
     assert "pickle" not in str(info.value)
+
+
+def test_obj_vertices_alone_are_a_cloud(tmp_path: Path, rng: np.random.Generator) -> None:
+    pts = _blob(rng, 40)
+    path = tmp_path / "cloud.obj"
+    path.write_text("# scanner export\n" + "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in pts.tolist()))
+    np.testing.assert_array_equal(load_points(path), pts)
+    short = tmp_path / "short.obj"
+    short.write_text("v 1 2 3\nv 4 5\n")
+    with pytest.raises(InputError, match="no points found"):
+        load_points(short)

@@ -191,6 +191,9 @@ def _rerun(args: argparse.Namespace) -> int:
     print(f"{args.bags[0]}: {report.summary()}")
     if args.json:
         Path(args.json).write_text(json.dumps({**report.__dict__, "ok": report.ok}, indent=2))
+    if report.registrations == 0:  # nothing compared is nothing verified: not a pass
+        print(f"liver-p2p: error: {args.bags[0]} holds no complete registration to re-run", file=sys.stderr)
+        return 2
     if not report.ok:
         first = report.differences[0]
         print(

@@ -356,3 +356,11 @@ def test_a_recording_with_damaged_bytes_is_one_line_not_a_traceback(bag_recordin
     code, _, err = cli("replay", damaged)
     assert code == 2 and err.strip().startswith("liver-p2p: error: cannot read bag") and "damaged.mcap" in err, err
     assert "Traceback" not in err
+
+
+def test_a_recording_cut_before_its_first_registration_verifies_nothing_and_says_so(bag_recording, tmp_path):
+    records = mcap_records(bag_recording)
+    first_commit = next(s for op, s, e, t in records if t == TOPIC_REGISTRATION)
+    path = cut(bag_recording, first_commit + 12, tmp_path / "early.mcap")
+    code, _, err = cli("replay", path)
+    assert code == 2 and "holds no complete registration to re-run" in err, err
