@@ -27,71 +27,30 @@ import time
 from pathlib import Path
 
 import numpy as np
+from survey_real_sweeps import liver_sweeps, survey_outputs  # the same sweeps and node runs
 from tqdm import tqdm
 
 from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_fit import COVERAGES, conformal_quantile, coverage_at, scores
 from liver_p2p_reg.bench.readme import write_headline
-from liver_p2p_reg.config import Config
-from liver_p2p_reg.phantom.bundled_cases import sweep_views
 from liver_p2p_reg.phantom.real import load_real_liver, real_split
-from liver_p2p_reg.phantom.simulate import simulate_liver
 from liver_p2p_reg.registration.error_calibration import (
     BUNDLED_DEFORMED_CALIBRATION,
     BUNDLED_SURVEY_CALIBRATION,
     SURVEY,
     read_calibration,
 )
-from liver_p2p_reg.stream.core import NodeCore
 
 MARK = "SURVEY-BOUND"
 DEFORMATIONS_PER_LIVER = 2  # calibration sweeps per validation liver
 
 
-def sweeps_of(liver_id: int, family: str, n_deformations: int, n_frames: int) -> list[dict]:
-    """One sweep per deformation of a liver (a real one by its stem's seed, else procedural), as real_sweep makes."""
-    stems = {load_real_liver(s).seed: s for s in real_split()["val"] + real_split()["test"]}
-    liver = load_real_liver(stems[liver_id]) if liver_id in stems else None
-    sim = simulate_liver(liver_id, n_deformations, target_tets=10_000, liver=liver, family=family)
-    out = []
-    for d, deformation in enumerate(sim.deformations):
-        # one deformation: survey_real_sweeps.py's sweep of that liver exactly; more: a sweep path of each
-        rng = np.random.default_rng([liver_id, 88] if n_deformations == 1 else [liver_id, 88, d])
-        _, frames, frame_fids, _ = sweep_views(
-            deformation.surface_mm,
-            sim.triangles,
-            2 * len(sim.vertices_mm),
-            deformation.fiducials_mm,
-            n_frames,
-            rng,
-            noisy=True,
-        )
-        out.append(
-            {
-                "liver_id": liver_id,
-                "vertices": sim.vertices_mm,
-                "triangles": sim.triangles,
-                "fiducials": sim.fiducials_mm,
-                "frames": frames,
-                "frame_fiducials": frame_fids,
-            }
-        )
-    return out
-
-
 def survey_poses(sweep: dict, sweep_id: int) -> list[dict]:
     """Per frame where the stage fitted the fused survey: the deformed positions' errors at the interior markers and
     the bound's features there (the frame's pose evidence), as `bound_data` rows."""
-    core = NodeCore(Config(mode="survey", deform=True, survey_deform_fused=True))
-    core.set_preop_mesh(sweep["vertices"], sweep["triangles"], "ct", 5)
-    core.set_preop(sweep["vertices"], "ct", 5)
-    core.set_preop_fiducials(sweep["fiducials"], 5)
     rows = []
-    for k, (points, fid_t) in enumerate(zip(sweep["frames"], sweep["frame_fiducials"], strict=True)):
-        core.set_intraop_fiducials(fid_t, 1_000 + k)
-        core.on_intraop_points(points, "camera", 1_000 + k)
-        output = core.process_pending(float(k))
-        if output is None or output.pose is None or output.deformed_preop_mm is None:
+    for k, output, fid_t in survey_outputs(sweep, fused=True):
+        if output.deformed_preop_mm is None:
             continue
         if output.diagnostics[0].values.get("deform_view") != SURVEY:
             continue
@@ -121,7 +80,7 @@ def collect(path: Path, livers: list[int], family: str, n_deformations: int, n_f
         return bound_data.load(path)
     rows, sweep_of, n_sweeps = [], [], 0
     for liver_id in tqdm(livers, desc=f"{path.stem}", unit="liver"):
-        for sweep in sweeps_of(liver_id, family, n_deformations, n_frames):
+        for sweep in liver_sweeps(liver_id, family, n_deformations, n_frames):
             poses = survey_poses(sweep, n_sweeps)
             rows += poses
             sweep_of += [n_sweeps] * len(poses)

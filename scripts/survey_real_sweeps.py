@@ -19,6 +19,7 @@ rule); its later frames are registered one by one and the stage fits each frame,
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -31,42 +32,68 @@ from liver_p2p_reg.phantom.real import load_real_liver, real_split
 from liver_p2p_reg.phantom.simulate import simulate_liver
 from liver_p2p_reg.registration.baselines import kabsch_np
 from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.outputs import CoreOutput
 
 MARK = "SURVEY-REAL-SWEEPS"
 
 
+def liver_sweeps(liver_id: int, family: str, n_deformations: int, n_frames: int) -> list[dict]:
+    """One deformed liver (a real one of the val or test split by its seed, else procedural), one sweep over each of
+    its deformations: the preop mesh and fiducials, each frame and its fiducials (camera frame), its `liver_id`."""
+    stems = {load_real_liver(s).seed: s for s in real_split()["val"] + real_split()["test"]}
+    liver = load_real_liver(stems[liver_id]) if liver_id in stems else None
+    sim = simulate_liver(liver_id, n_deformations, target_tets=10_000, liver=liver, family=family)
+    sweeps = []
+    for d, deformation in enumerate(sim.deformations):
+        # one deformation: the sweep this script has always made of that liver; more: a sweep path of each
+        rng = np.random.default_rng([liver_id, 88] if n_deformations == 1 else [liver_id, 88, d])
+        _, frames, frame_fids, _ = sweep_views(
+            deformation.surface_mm,
+            sim.triangles,
+            2 * len(sim.vertices_mm),
+            deformation.fiducials_mm,
+            n_frames,
+            rng,
+            noisy=True,
+        )
+        sweeps.append(
+            {
+                "liver_id": liver_id,
+                "vertices": sim.vertices_mm,
+                "triangles": sim.triangles,
+                "fiducials": sim.fiducials_mm,
+                "frames": frames,
+                "frame_fiducials": frame_fids,
+            }
+        )
+    return sweeps
+
+
 def real_sweep(stem: str, family: str, n_frames: int) -> dict:
     """One deformed real liver and a sweep over it: preop mesh and fiducials, frames and their fiducials (camera)."""
-    liver = load_real_liver(stem)
-    sim = simulate_liver(liver.seed, 1, target_tets=10_000, liver=liver, family=family)
-    surface, fids = sim.deformations[0].surface_mm, sim.deformations[0].fiducials_mm
-    rng = np.random.default_rng([liver.seed, 88])
-    _, frames, frame_fids, _ = sweep_views(
-        surface, sim.triangles, 2 * len(sim.vertices_mm), fids, n_frames, rng, noisy=True
-    )
-    return {
-        "vertices": sim.vertices_mm,
-        "triangles": sim.triangles,
-        "fiducials": sim.fiducials_mm,
-        "frames": frames,
-        "frame_fiducials": frame_fids,
-    }
+    return liver_sweeps(load_real_liver(stem).seed, family, 1, n_frames)[0]
 
 
-def replay_sweep(sweep: dict, fused: bool) -> np.ndarray:
-    """Per frame that got a pose: oracle, rigid and after-the-stage interior RMS-TRE (mm), and 1 while the survey fused."""
+def survey_outputs(sweep: dict, fused: bool) -> Iterator[tuple[int, CoreOutput, np.ndarray]]:
+    """Each frame that got a pose from the node core (survey mode, `deform` on, the stage fitting the fused survey or
+    the frame): its index, the output and the frame's true fiducials."""
     core = NodeCore(Config(mode="survey", deform=True, survey_deform_fused=fused))
     core.set_preop_mesh(sweep["vertices"], sweep["triangles"], "ct", 5)
     core.set_preop(sweep["vertices"], "ct", 5)
     core.set_preop_fiducials(sweep["fiducials"], 5)
-    rows = []
     for k, (points, fid_t) in enumerate(zip(sweep["frames"], sweep["frame_fiducials"], strict=True)):
         stamp = 1_000 + k
         core.set_intraop_fiducials(fid_t, stamp)
         core.on_intraop_points(points, "camera", stamp)
         output = core.process_pending(float(k))
-        if output is None or output.pose is None:
-            continue
+        if output is not None and output.pose is not None:
+            yield k, output, fid_t
+
+
+def replay_sweep(sweep: dict, fused: bool) -> np.ndarray:
+    """Per frame that got a pose: oracle, rigid and after-the-stage interior RMS-TRE (mm), and 1 while the survey fused."""
+    rows = []
+    for _, output, fid_t in survey_outputs(sweep, fused):
         result = output.result
         rigid = result.rms_tre_mm
         applied = output.deformed_preop_mm is not None
