@@ -27,8 +27,6 @@ DEVICES = ("cpu", "cuda")
 
 # Lower bounds of the numeric fields that have nothing but a lower bound.
 MINIMUMS: dict[str, float] = {
-    "k": 1,
-    "open3d_threads": 1,
     "min_points": 3,
     "outlier_neighbors": 3,
     "max_patch_rows": 0,
@@ -65,8 +63,15 @@ MINIMUMS: dict[str, float] = {
 }
 # Open3D's random.seed() (RANSAC, FGR) takes a C int: a larger seed would pass NumPy and fail mid-registration.
 MAX_SEED = 2**31 - 1
-MAX_THREADS = 256  # torch and Open3D threads per registration
-MAX_PATCHES = 64  # P2P patch candidates (the default is 5)
+# [low, high] of integer settings: threads per registration (torch, Open3D), P2P patches (the default 5)
+CLOSED: dict[str, tuple[int, int]] = {"num_threads": (0, 256), "open3d_threads": (1, 256), "k": (1, 64)}
+# (low, high] of fractions, and of lengths in normalized units (the organ fits in the unit sphere; a voxel above
+# 0.5 leaves a handful of points)
+HALF_OPEN: dict[str, tuple[float, float]] = {
+    **dict.fromkeys(("ransac_confidence", "icp_trim_ratio", "error_coverage"), (0, 1)),
+    **dict.fromkeys(("normal_radius_norm", "fpfh_radius_norm", "icp_max_corr_norm", "ransac_max_corr_norm"), (0, 2)),
+    "voxel_size_norm": (0, 0.5),
+}
 
 
 @dataclass
@@ -315,21 +320,14 @@ class Config(
             value = getattr(self, name)
             if not value >= minimum:  # `not >=` also catches NaN
                 raise InputError(f"{name} must be >= {minimum}, got {value}")
-        if not 0 <= self.num_threads <= MAX_THREADS:  # a huge thread pool crashed the process (segmentation fault)
-            raise InputError(f"num_threads must be in [0, {MAX_THREADS}] (0: the usable CPUs), got {self.num_threads}")
-        if not self.open3d_threads <= MAX_THREADS:
-            raise InputError(f"open3d_threads must be in [1, {MAX_THREADS}], got {self.open3d_threads}")
-        if not self.k <= MAX_PATCHES:  # each patch costs a dual softmax over the whole view: 100000 took a minute
-            raise InputError(f"k must be in [1, {MAX_PATCHES}], got {self.k}")
-        for name in ("normal_radius_norm", "fpfh_radius_norm", "icp_max_corr_norm", "ransac_max_corr_norm"):
-            if not 0 < getattr(self, name) <= 2:  # normalized units: the organ fits in the unit sphere
-                raise InputError(f"{name} must be in (0, 2] (normalized units), got {getattr(self, name)}")
-        if not 0 < self.ransac_confidence <= 1:
-            raise InputError(f"ransac_confidence must be in (0, 1], got {self.ransac_confidence}")
+        for name, (low, high) in CLOSED.items():  # a huge thread pool segfaulted; 100000 patches took a minute
+            if not low <= getattr(self, name) <= high:
+                raise InputError(f"{name} must be in [{low}, {high}], got {getattr(self, name)}")
+        for name, (low, high) in HALF_OPEN.items():
+            if not low < getattr(self, name) <= high:
+                raise InputError(f"{name} must be in ({low}, {high}], got {getattr(self, name)}")
         if not self.seed <= MAX_SEED:
             raise InputError(f"seed must be in [0, {MAX_SEED}] (Open3D takes a 32-bit seed), got {self.seed}")
-        if not 0 < self.voxel_size_norm <= 0.5:  # in a unit sphere a larger voxel leaves a handful of points
-            raise InputError(f"voxel_size_norm must be in (0, 0.5], got {self.voxel_size_norm}")
         if not self.max_target_ratio >= 1:  # below 1 would refuse a full view of an undeformed liver
             raise InputError(f"max_target_ratio must be >= 1, got {self.max_target_ratio}")
         if not 0 <= self.confidence_threshold <= 1:  # a dual-softmax confidence is below 1 (1 rejects all)
@@ -359,9 +357,6 @@ class Config(
             raise InputError(f"deform_min_holdout_gain must be in [-1, 1), got {self.deform_min_holdout_gain}")
         if not 0 <= self.ransac_candidate_visibility <= 1:
             raise InputError(f"ransac_candidate_visibility must be in [0, 1], got {self.ransac_candidate_visibility}")
-        for name in ("icp_trim_ratio", "error_coverage"):
-            if not 0 < getattr(self, name) <= 1:
-                raise InputError(f"{name} must be in (0, 1], got {getattr(self, name)}")
         if not 0 <= self.expected_extent_min_mm < self.expected_extent_max_mm:
             raise InputError(
                 "need 0 <= expected_extent_min_mm < expected_extent_max_mm, got "

@@ -72,7 +72,7 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("values", "message"),
     [
-        ({"k": 0}, "k must be >= 1"),
+        ({"k": 0}, r"k must be in \[1, 64\]"),
         ({"k": "five"}, "k must be an integer"),
         ({"mode": "sometimes"}, "mode must be one of"),
         ({"selection": "best"}, "selection must be one of"),
@@ -95,6 +95,7 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"k": 100_000}, r"k must be in \[1, 64\]"),
         ({"normal_radius_norm": float("nan")}, r"normal_radius_norm must be in \(0, 2\]"),
         ({"icp_max_corr_norm": 0}, r"icp_max_corr_norm must be in \(0, 2\]"),
+        ({"open3d_threads": 1000}, r"open3d_threads must be in \[1, 256\]"),
         ({"ransac_confidence": 2}, r"ransac_confidence must be in \(0, 1\]"),
         ({"icp_max_iterations": -3}, "icp_max_iterations must be >= 1"),
         ({"ambiguity_residual_ratio": float("nan")}, "ambiguity_residual_ratio must be >= 1"),

@@ -62,7 +62,7 @@ def test_help_imports_no_heavy_library() -> None:
         (["register", "{dir}/missing.ply", "{target}"], "file not found"),
         (["register", "{source}", "{dir}/missing.ply"], "file not found"),
         (["register", "{source}", "{target}", "--method", "magic"], "unknown method 'magic'"),
-        (["register", "{source}", "{target}", "--k", "0"], "k must be >= 1"),
+        (["register", "{source}", "{target}", "--k", "0"], "k must be in [1, 64]"),
         (["register", "{source}", "{target}", "-o", "{source}"], "is an input of this command"),
         (["register", "{source}", "{target}", "--method", "track"], "--initial-transform"),
         (["bogus"], "invalid choice: 'bogus'"),

@@ -102,7 +102,7 @@ def test_bad_inputs_give_one_line_errors(files: dict, tmp_path: Path, capsys: py
     assert "only 20 valid points" in _error(["register", src, str(few)], capsys)
     assert "more than 1.25x the source" in _error(["register", tgt, src, "--method", "fpfh-p2p"], capsys)
     assert "unknown method" in _error(["register", src, tgt, "--method", "magic"], capsys)
-    assert "k must be >= 1" in _error(["register", src, tgt, "--k", "0"], capsys)
+    assert "k must be in [1, 64]" in _error(["register", src, tgt, "--k", "0"], capsys)
     assert "needs source and target fiducials" in _error(["register", src, tgt, "--method", "procrustes"], capsys)
     assert "give both" in _error(["register", src, tgt, "--source-fiducials", files["fid_s.npy"]], capsys)
     missing_dir = tmp_path / "no" / "out.json"

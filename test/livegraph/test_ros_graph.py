@@ -62,7 +62,7 @@ def test_parameters_validated_with_a_reason_and_atomic(graph):
     assert not bad[0].successful and "unknown method" in bad[0].reason
     bad = graph.probe.set_parameters({"mode": "sometimes", "k": 0})
     assert [r.successful for r in bad] == [False, False] and "mode must be one of" in bad[0].reason
-    assert "k must be >= 1" in bad[1].reason
+    assert "k must be in [1, 64]" in bad[1].reason
     assert graph.probe.set_parameters({"use_sim_time": False})[0].successful
     atomic = graph.probe.set_parameters_atomically({"k": 7, "max_rate_hz": -1.0})
     assert not atomic.successful and "max_rate_hz" in atomic.reason
