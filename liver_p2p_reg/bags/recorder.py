@@ -160,15 +160,18 @@ def recording_series(path: Path) -> list[Path]:
 
 def recording_path(record_path: str, existing: str) -> Path:
     """Where a recording asked for as `record_path` goes (a folder: flight_<time>.mcap in it)."""
-    path = Path(record_path).expanduser()
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    if record_path.endswith(os.sep) or path.is_dir():
-        path = path / f"flight_{stamp}.mcap"
-    if path.suffix != ".mcap":
-        raise InputError(f"record_path {record_path}: a flight recording is an .mcap file (or a folder for one)")
-    if not path.parent.is_dir():
-        raise InputError(f"record_path {record_path}: folder {path.parent} does not exist")
-    taken = [p for p in recording_series(path) if p.exists()]
+    try:  # ~nosuchuser (RuntimeError) and a name over 255 bytes (OSError) crashed the node from a parameter
+        path = Path(record_path).expanduser()
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        if record_path.endswith(os.sep) or path.is_dir():
+            path = path / f"flight_{stamp}.mcap"
+        if path.suffix != ".mcap":
+            raise InputError(f"record_path {record_path}: a flight recording is an .mcap file (or a folder for one)")
+        if not path.parent.is_dir():
+            raise InputError(f"record_path {record_path}: folder {path.parent} does not exist")
+        taken = [p for p in recording_series(path) if p.exists()]
+    except (RuntimeError, OSError) as exc:
+        raise InputError(f"record_path {record_path[:200]}: not usable ({exc})") from None
     if taken and existing == "refuse":
         raise InputError(f"{taken[0]} exists; pass --force to overwrite it")
     if taken and existing == "overwrite":

@@ -171,8 +171,8 @@ def parse_structure_labels(text: str) -> tuple[list[str], int | None]:
     """(names, stamp_ns or None) of a /preop/structure_labels JSON text; InputError when it is not one."""
     try:
         data = json.loads(text)
-    except ValueError as exc:
-        raise InputError(f"not JSON ({exc})") from None
+    except (ValueError, RecursionError) as exc:  # "[" * 200000 overflowed the parser's recursion: a crash
+        raise InputError(f"not JSON ({str(exc) or type(exc).__name__})") from None
     names = data.get("labels") if isinstance(data, dict) else None
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise InputError('expected {"labels": [string, ...], "stamp_ns": int}')

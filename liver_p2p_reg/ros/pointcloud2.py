@@ -12,6 +12,7 @@ from liver_p2p_reg.errors import InputError
 
 # sensor_msgs/PointField datatype constants (identical in every ROS 2 distribution).
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
+MAX_POINT_STEP = 1 << 16  # bytes per point: x, y, z and every extra field of a real sensor fit in far less
 _NUMPY_OF = {
     INT8: "i1",
     UINT8: "u1",
@@ -78,6 +79,9 @@ def cloud_fields(msg: Any, names: Sequence[str]) -> dict[str, np.ndarray]:
 def _records(msg: Any, names: Sequence[str]) -> np.ndarray:
     """The cloud's points as a numpy record array of the named fields (a view of its data where it can be)."""
     by_name = {f.name: f for f in msg.fields}
+    twice = sorted({f.name for f in msg.fields if f.name in names and sum(g.name == f.name for g in msg.fields) > 1})
+    if twice:  # which one is meant cannot be known: the last one was taken, and the geometry was wrong
+        raise InputError(f"PointCloud2 has field(s) {', '.join(twice)} twice")
     missing = [name for name in names if name not in by_name]
     if missing:
         have = ", ".join(by_name) or "none"
@@ -85,6 +89,8 @@ def _records(msg: Any, names: Sequence[str]) -> np.ndarray:
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     n = height * width
+    if point_step > MAX_POINT_STEP:  # numpy's record type takes a C int: 2**31 raised a ValueError past the checks
+        raise InputError(f"PointCloud2 point_step {point_step} is implausible (more than {MAX_POINT_STEP} bytes)")
     if n == 0:  # an empty cloud is empty whatever its fields say
         return np.zeros(0, dtype=[(name, "f8") for name in names])
     order = ">" if msg.is_bigendian else "<"
@@ -204,7 +210,8 @@ def cloud_to_structures(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
     ids = fields["label_id"].astype(np.float64)
     keep = np.isfinite(points).all(axis=1)
     points, ids = points[keep], ids[keep]
-    if not (np.isfinite(ids).all() and (ids >= 0).all() and (ids == np.round(ids)).all()):
-        raise InputError("PointCloud2 label_id must hold non-negative whole numbers")
+    # below 2**31: a float64 id of 1e300 is whole too, and cast to an integer it became garbage
+    if not (np.isfinite(ids).all() and (ids >= 0).all() and (ids < 2**31).all() and (ids == np.round(ids)).all()):
+        raise InputError("PointCloud2 label_id must hold non-negative whole numbers below 2**31")
     bounds = fields["error_bound"].astype(np.float64)[keep] if "error_bound" in fields else None
     return points, ids.astype(np.int64), bounds

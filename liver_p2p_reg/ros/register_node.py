@@ -12,6 +12,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -27,7 +28,8 @@ from visualization_msgs.msg import Marker
 
 from liver_p2p_reg.bags.recorder import recording_path
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import LiverP2PError
+from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.error_calibration import read_calibration
 from liver_p2p_reg.registration.methods import check_method_name
 from liver_p2p_reg.ros import openmp_wait_warning
 from liver_p2p_reg.ros.messages import (
@@ -61,10 +63,11 @@ from liver_p2p_reg.ros.topics import (
 )
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.health import StreamHealth
-from liver_p2p_reg.stream.outputs import DIAG_NAME, OK, WARN, Diagnostic
+from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, WARN, Diagnostic
 
 DIAGNOSTICS_PERIOD_S = 1.0
 JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
+MAX_WAIT_S = 60.0  # the worker wakes at least this often, however far the next due registration lies
 
 
 class RegisterWiring(RegisterOutputs):
@@ -126,6 +129,10 @@ class RegisterWiring(RegisterOutputs):
             self.get_logger().info("tf2_ros not importable: publishing /registration/transform only, no /tf")
         if (spinning := openmp_wait_warning()) is not None:
             self.get_logger().warning(spinning)
+        # the services wait for the worker: in a group of their own, the default group's callbacks run meanwhile
+        self._service_group = (
+            MutuallyExclusiveCallbackGroup()
+        )  # not `_services`: rclpy's Node keeps a list by that name
         self._worker = threading.Thread(target=self._work, name="registration", daemon=True)
         self._worker.start()
 
@@ -134,8 +141,9 @@ class RegisterWiring(RegisterOutputs):
         self._live = [
             self._subscribe(TOPIC_INTRAOP_FIDUCIALS, self._on_intraop_fiducials),
             self._subscribe(TOPIC_INTRAOP, self._on_intraop),
-            self.create_service(Trigger, "~/reregister", self._on_reregister),
-            self.create_service(Trigger, "~/reset_survey", self._on_reset_survey),  # survey mode: start over
+            self.create_service(Trigger, "~/reregister", self._on_reregister, callback_group=self._service_group),
+            # survey mode: start over
+            self.create_service(Trigger, "~/reset_survey", self._on_reset_survey, callback_group=self._service_group),
             # on the steady clock: with use_sim_time a ROS-time timer stops while a looped bag's /clock runs
             # back over time it has already passed
             self.create_timer(
@@ -224,29 +232,41 @@ class RegisterWiring(RegisterOutputs):
             self._report(diags)
         self._submit()
 
-    async def _on_reregister(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        # The registration runs on the worker; this coroutine waits without holding a thread.
+    def _on_worker(self, name: str, work: Callable[[], Any]) -> Future:
+        """A Future the worker completes with `work()`'s value, after any registration in progress; with the exception
+        where `work` raised (reported as an ERROR): a request must be answered whatever happens, or it waits forever."""
         done = Future(executor=self.executor)
         done.add_done_callback(lambda _: None)  # makes set_result wake the executor
 
         def job() -> None:
-            output = self.core.reregister(time.monotonic(), on_pose=self._publish_pose)
-            self._publish(output)
-            done.set_result(output)
+            try:
+                done.set_result(work())
+            except Exception as exc:
+                self._report([Diagnostic(ERROR, DIAG_NAME, f"{name} failed: {type(exc).__name__}: {exc}", {})])
+                done.set_result(exc)
 
         self._submit(job)
-        output = await done
-        response.success = output.pose is not None
-        response.message = output.summary
+        return done
+
+    def _reregister_now(self) -> Any:
+        output = self.core.reregister(time.monotonic(), on_pose=self._publish_pose)
+        self._publish(output)
+        return output
+
+    async def _on_reregister(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        # The registration runs on the worker; this coroutine waits without holding a thread (its own callback group:
+        # the node's topics, parameters and status are served meanwhile).
+        output = await self._on_worker("reregister", self._reregister_now)
+        failed = isinstance(output, Exception)
+        response.success = not failed and output.pose is not None
+        response.message = f"reregister failed: {type(output).__name__}: {output}" if failed else output.summary
         return response
 
     async def _on_reset_survey(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         # On the worker, after any registration in progress; this coroutine waits without a thread.
-        done = Future(executor=self.executor)
-        done.add_done_callback(lambda _: None)  # makes set_result wake the executor
-        self._submit(lambda: done.set_result(self.core.reset_survey()))
-        response.message = await done
-        response.success = True
+        message = await self._on_worker("reset_survey", self.core.reset_survey)
+        response.success = not isinstance(message, Exception)
+        response.message = str(message) if response.success else f"reset_survey failed: {message}"
         self.get_logger().info(response.message)
         return response
 
@@ -260,8 +280,19 @@ class RegisterWiring(RegisterOutputs):
             check_method_name(config.method)
             if config.record_path and config.record_path != self._accepted.record_path:
                 recording_path(config.record_path, "new")  # a folder that does not exist: refused now, with why
-        except LiverP2PError as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
+            # settings every registration would fail on: refused now, not reported frame after frame
+            if (config.error_calibration_path, config.error_coverage) != (
+                self._accepted.error_calibration_path,
+                self._accepted.error_coverage,
+            ):
+                read_calibration(config.error_calibration_path).column(config.error_coverage)
+            if config.device == "cuda" and config.device != self._accepted.device:
+                import torch
+
+                if not torch.cuda.is_available():
+                    raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
+        except Exception as exc:  # a parameter must never take the node down: refused, with why
+            return SetParametersResult(successful=False, reason=f"{str(exc) or type(exc).__name__}"[:500])
         # ... and apply on the worker, between registrations, without blocking this callback
         self._accepted = config
         self._submit(lambda: self._reconfigure(config))
@@ -286,7 +317,8 @@ class RegisterWiring(RegisterOutputs):
                     wait_s = None if due_s is None else due_s - time.monotonic()
                     if wait_s is not None and wait_s <= 0:
                         break
-                    self._wake.wait(wait_s)
+                    # bounded: a wait beyond threading.TIMEOUT_MAX (max_rate_hz 1e-10) raised and ended this thread
+                    self._wake.wait(None if wait_s is None else min(wait_s, MAX_WAIT_S))
                 if self._stopping:
                     return
                 jobs, self._jobs = self._jobs, []
@@ -299,7 +331,9 @@ class RegisterWiring(RegisterOutputs):
             except Exception as exc:  # the worker must outlive anything; at shutdown, stay silent
                 if self._stopping:
                     return
-                self.get_logger().error(f"registration worker: {type(exc).__name__}: {exc}")
+                text = f"registration worker: {type(exc).__name__}: {exc}"
+                self.get_logger().error(text)
+                self._report([Diagnostic(ERROR, DIAG_NAME, text, {})])  # said on /diagnostics too, not only logged
 
     def _preload(self) -> None:
         ms = self.core.preload()

@@ -233,3 +233,58 @@ def test_register_node_in_survey_mode_deforms_onto_the_fused_sweep(ros_context):
         assert applied > 0, [v["deform_reason"] for v in views]
         # every pose and every deformed surface the stage gave arrives (and nothing is left in flight at teardown)
         assert spin_until(executor, lambda: len(deformed) == applied and len(poses) == 3, timeout_s=30.0)
+
+
+def test_bad_runtime_input_never_takes_the_node_down(ros_context):
+    """Found by an adversarial pass: parameters that crashed the node or were accepted and then failed every frame,
+    a rate that ended the worker thread, and an unreadable cloud after which ~/reregister never answered."""
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(1500, 3))
+    preop_m = d / np.linalg.norm(d, axis=1, keepdims=True) * [0.08, 0.055, 0.04]
+    fid_m = rng.uniform(-0.02, 0.02, size=(5, 3))
+    offset = np.array([0.01, -0.02, 0.3])
+    overrides = [Parameter("method", value="procrustes"), Parameter("mode", value="on_demand")]
+    with pose_graph(overrides, "fuzz_helper") as (node, helper, executor, poses):
+        refused = {
+            "record_path": ("~nosuchuser_zz/run.mcap", "not usable"),  # RuntimeError from expanduser: a crash
+            "error_coverage": (0.5, "error_coverage 0.5 is not calibrated"),
+            "error_calibration_path": ("/nonexistent/cal.json", "not found"),
+        }
+        for name, (value, words) in refused.items():
+            answer = node.set_parameters([Parameter(name, value=value)])[0]
+            assert not answer.successful and words in answer.reason, (name, answer.reason)
+        long_name = node.set_parameters([Parameter("record_path", value="/tmp/" + "r" * 300 + ".mcap")])[0]
+        assert not long_name.successful and "not usable" in long_name.reason  # OSError: file name too long
+        types = RCLPY_TYPES.cloud
+        helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
+            points_to_cloud(preop_m, types, frame_id="ct")
+        )
+        helper.create_publisher(PointCloud2, TOPIC_PREOP_FIDUCIALS, rclpy_qos(TOPIC_PREOP_FIDUCIALS)).publish(
+            points_to_cloud(fid_m, types, frame_id="ct")
+        )
+        helper.create_publisher(PointCloud2, TOPIC_INTRAOP_FIDUCIALS, rclpy_qos(TOPIC_INTRAOP_FIDUCIALS)).publish(
+            points_to_cloud(fid_m + offset, types, frame_id="camera", stamp_ns=7)
+        )
+        assert spin_until(executor, lambda: node.core.preop_mm is not None)
+        intraop = helper.create_publisher(PointCloud2, TOPIC_INTRAOP, rclpy_qos(TOPIC_INTRAOP))
+        client = helper.create_client(Trigger, "/register_node/reregister")
+        assert client.wait_for_service(timeout_sec=10)
+
+        def reregister() -> Trigger.Response:
+            future = client.call_async(Trigger.Request())
+            assert spin_until(executor, future.done, timeout_s=30.0), "~/reregister never answered"
+            return future.result()
+
+        broken = points_to_cloud(preop_m[:10], types, frame_id="camera", stamp_ns=8)
+        broken.point_step = 2**31  # numpy's record type takes a C int: a ValueError past the checks
+        intraop.publish(broken)
+        spin_until(executor, lambda: False, timeout_s=0.5)
+        answer = reregister()
+        assert not answer.success and "point_step" in answer.message, answer.message
+        assert node.set_parameters([Parameter("max_rate_hz", value=1e-10)])[0].successful
+        intraop.publish(points_to_cloud(preop_m[preop_m[:, 0] > 0] + offset, types, frame_id="camera", stamp_ns=7))
+        spin_until(executor, lambda: False, timeout_s=0.5)
+        assert reregister().success and spin_until(executor, lambda: len(poses) == 1)
+        spin_until(executor, lambda: False, timeout_s=1.0)  # the worker's next wait: 1e10 s, beyond TIMEOUT_MAX
+        assert node._worker.is_alive()
+        assert reregister().success  # and it still registers

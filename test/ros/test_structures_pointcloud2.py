@@ -75,6 +75,9 @@ def test_non_finite_points_go_with_their_label_and_bad_ids_are_refused(rng: np.r
     float_ids = points_to_cloud(points_m[:2], TYPES, frame_id="ct", extra_fields={"label_id": np.array([0.5, 1.0])})
     with pytest.raises(InputError, match="label_id"):
         cloud_to_structures(float_ids)
+    huge_ids = points_to_cloud(points_m[:2], TYPES, frame_id="ct", extra_fields={"label_id": np.array([1e300, 1.0])})
+    with pytest.raises(InputError, match="below 2\\*\\*31"):  # whole, and garbage once cast to an integer
+        cloud_to_structures(huge_ids)
     with pytest.raises(InputError, match="lacks field.*label_id"):
         cloud_to_structures(points_to_cloud(points_m[:2], TYPES, frame_id="ct"))
     assert [
@@ -101,3 +104,20 @@ def test_node_messages_carry_structures_in_metres_with_their_ids_and_names(rng: 
     for bad in ("nope", '{"labels": "tumour"}', '["tumour"]', '{"labels": ["a"], "stamp_ns": "1"}'):
         with pytest.raises(InputError):
             parse_structure_labels(bad)
+
+
+def test_structure_labels_nested_beyond_the_parser_are_refused_not_fatal() -> None:
+    from liver_p2p_reg.errors import InputError
+    from liver_p2p_reg.ros.messages import parse_structure_labels
+
+    with pytest.raises(InputError, match="not JSON"):  # RecursionError ended register_node and the Slicer bridge
+        parse_structure_labels("[" * 200_000)
+
+
+def test_a_cloud_naming_a_coordinate_twice_is_refused() -> None:
+    from liver_p2p_reg.ros.pointcloud2 import cloud_to_points_m
+
+    msg = points_to_cloud(np.random.default_rng(0).uniform(-0.1, 0.1, (5, 3)), TYPES, frame_id="camera")
+    msg.fields[1].name = "x"  # two x fields (offsets 0 and 4): one of them is y
+    with pytest.raises(InputError, match="field.s. x twice"):
+        cloud_to_points_m(msg)
