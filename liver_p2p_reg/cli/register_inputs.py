@@ -25,7 +25,10 @@ def load_initial_transform(path: Path) -> Any:
             data = json.loads(path.read_text())
             matrix = np.asarray(data["transform"] if isinstance(data, dict) else data, dtype=np.float64)
         elif path.suffix.lower() == ".npy":
-            matrix = np.load(path, allow_pickle=False).astype(np.float64)  # a text or object array: one line
+            raw = np.load(path, allow_pickle=False)
+            if raw.dtype.kind not in "fiu":  # complex (its imaginary part dropped with a warning), text, bool
+                raise ValueError(f"it holds {raw.dtype} values, not real numbers")
+            matrix = raw.astype(np.float64)
         else:
             matrix = np.loadtxt(path, dtype=np.float64, ndmin=2, delimiter=None, comments="#")
     except (OSError, ValueError, KeyError, TypeError) as exc:

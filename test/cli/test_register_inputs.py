@@ -42,6 +42,9 @@ def test_a_projective_initial_transform_is_refused(clouds, tmp_path: Path, capsy
     pose[3] = [0.0, 0.0, 1e-9, 1.0]  # printed round-off is not a projective row
     np.savetxt(tmp_path / "near.txt", pose)
     assert load_initial_transform(tmp_path / "near.txt")[3, 3] == 1.0
+    np.save(tmp_path / "complex.npy", np.eye(4) * (1 + 1j))  # its imaginary part was dropped with a warning
+    with pytest.raises(InputError, match="holds complex128 values, not real numbers"):
+        load_initial_transform(tmp_path / "complex.npy")
 
 
 @pytest.mark.parametrize("method", ["fpfh-ransac", "fgr"])
