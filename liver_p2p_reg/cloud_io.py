@@ -119,10 +119,13 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _obj_vertices(path: Path) -> np.ndarray:
-    """The `v x y z` lines of an OBJ file without faces, (V, 3) float64 (empty when it has none or a bad one)."""
+    """The `v x y z` lines of an OBJ file without faces, (V, 3) float64 (empty when it has faces (a mesh Open3D could
+    not read is no cloud), none, or a bad one)."""
     rows = []
     for line in path.read_bytes().decode("latin-1").splitlines():
         words = line.split()
+        if words[:1] == ["f"]:
+            return np.zeros((0, 3))
         if words[:1] == ["v"]:
             try:
                 rows.append([float(w) for w in words[1:4]])

@@ -61,11 +61,12 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 def _split_header(data: bytes, end: bytes) -> tuple[list[str], bytes]:
     """The header's lines and the body: the header ends at the first line that is `end` alone (a comment may hold
     the word), within MAX_HEADER_BYTES. Latin-1 decodes any byte: a stray non-ASCII comment is still parsed."""
-    match = re.search(rb"(?:^|\n)" + re.escape(end) + rb"[ \t\r]*\n", data[: MAX_HEADER_BYTES + len(end) + 3])
+    # any line ending (rply reads CR-only files too), blanks around the word
+    pattern = rb"(?:^|[\r\n])[ \t]*" + re.escape(end) + rb"[ \t]*(?:\r\n|\n|\r)"
+    match = re.search(pattern, data[: MAX_HEADER_BYTES + len(end) + 8])
     if match is None:
         raise _Unsupported(f"no '{end.decode()}' line within the first {MAX_HEADER_BYTES // 1024} KiB")
-    stop = match.start() + (data[match.start() : match.start() + 1] == b"\n")
-    lines = data[:stop].decode("latin-1").splitlines()
+    lines = data[: match.start() + 1].decode("latin-1").splitlines()
     return lines, data[match.end() :]
 
 
@@ -161,7 +162,8 @@ def read_pcd(path: Path) -> np.ndarray | None:
     """
     data = path.read_bytes()
     try:
-        stop = data.find(b"DATA", 0, MAX_HEADER_BYTES)
+        found = re.search(rb"(?:^|\n)DATA[ \t]", data[:MAX_HEADER_BYTES])  # the DATA line, not the word in a comment
+        stop = -1 if found is None else found.end()
         newline = data.find(b"\n", stop)
         if stop < 0 or newline < 0:
             return None

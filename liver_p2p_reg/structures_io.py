@@ -151,18 +151,18 @@ def read_structures(
 
 def far_from_model(structure: Structure, model_mm: np.ndarray) -> str:
     """Why a structure cannot belong to this preop model ("" when it can): a point farther outside the model's
-    bounding box than half the model's size (a tumour lies inside the organ, a vessel leaves it by centimetres;
-    farther means another frame or unit)."""
+    bounding box than the model's size (a tumour lies inside the organ; a vessel such as the vena cava may run on
+    for ten centimetres or more; farther means another frame or unit)."""
     model = np.asarray(model_mm, dtype=np.float64).reshape(-1, 3)
     lo, hi = model.min(axis=0), model.max(axis=0)
-    margin = 0.5 * float(np.linalg.norm(hi - lo))
+    margin = float(np.linalg.norm(hi - lo))
     outside = np.linalg.norm(np.maximum(lo - structure.points_mm, 0) + np.maximum(structure.points_mm - hi, 0), axis=1)
     worst = float(outside.max()) if len(outside) else 0.0
     if worst <= margin:
         return ""
     return (
         f"structure '{structure.label}': a point lies {worst:.0f} mm outside the preop model's bounding box "
-        f"(more than half the model's size, {margin:.0f} mm): another frame or unit than the model's?"
+        f"(more than the model's size, {margin:.0f} mm): another frame or unit than the model's?"
     )
 
 

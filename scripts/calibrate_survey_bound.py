@@ -33,13 +33,16 @@ from tqdm import tqdm
 from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_fit import COVERAGES, conformal_quantile, coverage_at, scores
 from liver_p2p_reg.bench.readme import write_headline
+from liver_p2p_reg.config import Config
 from liver_p2p_reg.phantom.real import load_real_liver, real_split
 from liver_p2p_reg.registration.error_calibration import (
     BUNDLED_DEFORMED_CALIBRATION,
     BUNDLED_SURVEY_CALIBRATION,
     SURVEY,
+    deform_settings,
     read_calibration,
 )
+from liver_p2p_reg.registration.weights_id import weights_sha256
 
 MARK = "SURVEY-BOUND"
 DEFORMATIONS_PER_LIVER = 2  # calibration sweeps per validation liver
@@ -103,9 +106,14 @@ def fit(data: dict, single: dict) -> dict:
     w_pose = sweep_weights(data)
     w_point = np.repeat(w_pose / data["count"], data["count"])
     n = len(pose)
+    config = Config(mode="survey", deform=True)  # what the sweeps ran with (survey_outputs)
     out = dict(single)
     out.update(
         {
+            "method": config.method,
+            "weights_sha256": weights_sha256(config),
+            "deform": deform_settings(config),
+            "left_out_failed_poses": 0,  # a frame without a pose has no survey fit to bound
             "visibility_edges": [],
             "point_quantiles": [[conformal_quantile(point, w_point, c, n) for c in COVERAGES]],
             "pose_quantiles": [[conformal_quantile(pose, w_pose, c, n) for c in COVERAGES]],
@@ -146,7 +154,11 @@ def main(argv: list[str] | None = None) -> int:
     single = json.loads(Path(BUNDLED_DEFORMED_CALIBRATION).read_text())
     out = Path(args.out)
     cal = collect(
-        out / "val_fem.npz", [int(v) for v in single["calibration_livers"]], "fem", DEFORMATIONS_PER_LIVER, args.frames
+        out / f"val_fem_{args.frames}.npz",
+        [int(v) for v in single["calibration_livers"]],
+        "fem",
+        DEFORMATIONS_PER_LIVER,
+        args.frames,
     )
     survey = fit(cal, single)
     survey["provenance"] = {
@@ -181,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         "|---|---|---|---|---|---|---|---|",
     ]
     for family in ("fem", "arap"):
-        data = collect(out / f"test_{family}.npz", test_ids, family, 1, args.frames)
+        data = collect(out / f"test_{family}_{args.frames}.npz", test_ids, family, 1, args.frames)
         for name, calibration in (("single views", old), ("survey", new)):
             point_cov, (lo, hi), pose_cov, bound, err = judged(data, calibration)
             lines.append(

@@ -445,3 +445,34 @@ def test_obj_vertices_alone_are_a_cloud(tmp_path: Path, rng: np.random.Generator
     short.write_text("v 1 2 3\nv 4 5\n")
     with pytest.raises(InputError, match="no points found"):
         load_points(short)
+
+
+def test_ply_line_ending_quirks_rply_reads_are_read_too(tmp_path: Path) -> None:
+    body = "0 0 0\n100 0 0\n0 100 0\n"
+    header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    expected = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0]], float)
+    for name, text in (("cr.ply", (header + "end_header\n" + body).replace("\n", "\r")),
+                       ("blank.ply", header + "  end_header \n" + body)):  # fmt: skip
+        path = tmp_path / name
+        path.write_bytes(text.encode())
+        np.testing.assert_array_equal(load_points(path), expected)
+
+
+def test_pcd_with_the_word_data_in_a_comment_is_still_checked(tmp_path: Path, rng: np.random.Generator) -> None:
+    whole = tmp_path / "cloud.pcd"
+    save_points(whole, _blob(rng, 100))
+    data = whole.read_bytes().replace(b"VERSION", b"# DATA from the scanner\nVERSION", 1)
+    commented = tmp_path / "commented.pcd"
+    commented.write_bytes(data)
+    np.testing.assert_array_equal(load_points(commented), load_points(whole))
+    cut = tmp_path / "cut.pcd"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(InputError, match="truncated: its header declares 100 points"):
+        load_points(cut)
+
+
+def test_an_obj_mesh_open3d_cannot_read_is_no_cloud(tmp_path: Path) -> None:
+    path = tmp_path / "broken.obj"
+    path.write_text("v 0 0 0\nv 100 0 0\nv 0 100 0\nv 0 0 100\nf 1 2 9\n")  # a face of a vertex that is not there
+    with pytest.raises(InputError, match="no points found"):
+        load_points(path)

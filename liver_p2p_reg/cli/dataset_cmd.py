@@ -10,6 +10,9 @@ from pathlib import Path
 from liver_p2p_reg.cli.output_paths import output_file
 from liver_p2p_reg.errors import InputError
 
+# what matplotlib writes (its suffix picks the format)
+PICTURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("dataset", help="generate in silico liver datasets and print their statistics")
@@ -51,7 +54,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     g.set_defaults(func=run_generate)
     s = sub.add_parser("stats", help="print distributions and write Fig. 4-style histograms")
     s.add_argument("dir", help="a generated dataset directory")
-    s.add_argument("--png", help="histogram picture path, .png/.pdf/.svg (default DIR/stats.png, replaced each run)")
+    s.add_argument(
+        "--png", help="histogram picture path, .png/.pdf/.svg/... (default DIR/stats.png, replaced each run)"
+    )
     s.add_argument("--force", action="store_true", help="overwrite an existing --png file")
     s.add_argument("--json", action="store_true", help="print JSON instead of text")
     s.set_defaults(func=run_stats)
@@ -102,7 +107,7 @@ def run_stats(args: argparse.Namespace) -> int:
 
     directory = Path(args.dir)
     # a path the user names is theirs: replaced only with --force (the default DIR/stats.png is this command's own)
-    target = output_file(args.png, args.force, "--png", suffixes=(".png", ".pdf", ".svg")) or directory / "stats.png"
+    target = output_file(args.png, args.force, "--png", suffixes=PICTURE_SUFFIXES) or directory / "stats.png"
     rows = read_manifest(directory)
     summary = summarize(rows)
     png = plot_histograms(rows, target, title=directory.name)

@@ -226,14 +226,10 @@ def attach_deformed_error_model(result: Any, config: Any, view: str = FRAME) -> 
     result.deformed_error_bound_mm = model.pose_bound_mm()
     ours, theirs = deform_settings(config), calibration.deform or {}
     differ = [k for k in sorted(set(ours) | set(theirs)) if theirs.get(k) != ours.get(k)]
+    notes = [calibration_note(calibration, result.method, config)]
     if differ:
-        result.deformed_error_calibration_note = (
-            f"deformed-position bound calibrated with other {', '.join(differ)}: its coverage is not known"
-        )
-    elif calibration.view != view:
+        notes.append(f"deformed-position bound calibrated with other {', '.join(differ)}: its coverage is not known")
+    if calibration.view != view:
         fits = "single views" if calibration.view == FRAME else "fused surveys"
-        result.deformed_error_calibration_note = (
-            f"calibrated on {fits}; this fit used {'a fused survey' if view == SURVEY else 'one view'}"
-        )
-    else:
-        result.deformed_error_calibration_note = calibration_note(calibration, result.method, config)
+        notes.append(f"calibrated on {fits}; this fit used {'a fused survey' if view == SURVEY else 'one view'}")
+    result.deformed_error_calibration_note = "; ".join(n for n in notes if n)

@@ -242,8 +242,8 @@ class RegisterWiring(RegisterOutputs):
             try:
                 done.set_result(work())
             except Exception as exc:
+                done.set_result(exc)  # first: the request is answered whatever reporting does
                 self._report([Diagnostic(ERROR, DIAG_NAME, f"{name} failed: {type(exc).__name__}: {exc}", {})])
-                done.set_result(exc)
 
         self._submit(job)
         return done
@@ -322,18 +322,27 @@ class RegisterWiring(RegisterOutputs):
                 if self._stopping:
                     return
                 jobs, self._jobs = self._jobs, []
-            try:
-                for job in jobs:
-                    job()
-                output = self.core.process_pending(time.monotonic(), on_pose=self._publish_pose)
-                if output is not None:
-                    self._publish(output)
-            except Exception as exc:  # the worker must outlive anything; at shutdown, stay silent
-                if self._stopping:
-                    return
-                text = f"registration worker: {type(exc).__name__}: {exc}"
-                self.get_logger().error(text)
-                self._report([Diagnostic(ERROR, DIAG_NAME, text, {})])  # said on /diagnostics too, not only logged
+            # each job alone: one that raises must not drop the next (a service's job left unanswered hangs it)
+            for step in [*jobs, self._process_pending]:
+                try:
+                    step()
+                except Exception as exc:  # the worker must outlive anything; at shutdown, stay silent
+                    if self._stopping:
+                        return
+                    self._worker_error(exc)
+
+    def _process_pending(self) -> None:
+        output = self.core.process_pending(time.monotonic(), on_pose=self._publish_pose)
+        if output is not None:
+            self._publish(output)
+
+    def _worker_error(self, exc: Exception) -> None:
+        """Log an unexpected worker error and say it on /diagnostics (never raising: the worker must go on)."""
+        text = f"registration worker: {type(exc).__name__}: {exc}"
+        try:
+            self._report([Diagnostic(ERROR, DIAG_NAME, text, {})])  # logged there too, at ERROR
+        except Exception:
+            self.get_logger().error(text)
 
     def _preload(self) -> None:
         ms = self.core.preload()
