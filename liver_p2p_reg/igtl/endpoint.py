@@ -27,6 +27,10 @@ _LOG = logging.getLogger("liver_p2p_reg.igtl")
 RECV_BYTES = 65536
 
 
+MAX_PEERS = 16  # a server's peers at most: Slicer connects once; each peer may hold a message being read
+ACCEPT_RETRY_S = 1.0  # after accept() failed (out of file descriptors), the pause before listening again
+
+
 class _Peer:
     """One connected socket, its outgoing queue and its incoming stream."""
 
@@ -284,7 +288,7 @@ class IgtlServer(Endpoint):
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             self._listener.bind(address)
-            self._listener.listen(8)
+            self._listener.listen(64)  # 8 dropped connects in a burst: each client then waited a second to retry
         except OSError as exc:
             self._listener.close()
             raise InputError(
@@ -292,6 +296,7 @@ class IgtlServer(Endpoint):
                 "(another bridge or a Slicer server on that port?)"
             ) from None
         self._listener.setblocking(False)
+        self._resume_accept_s: float | None = None  # while accept() fails: when to listen again
         self._selector.register(self._listener, selectors.EVENT_READ, "listen")
         self.host = host
         self.port = self._listener.getsockname()[1]
@@ -303,10 +308,24 @@ class IgtlServer(Endpoint):
                 sock, address = self._listener.accept()
             except (BlockingIOError, InterruptedError):
                 return
-            except OSError as exc:  # e.g. out of file descriptors: keep serving the others
-                self._log(logging.WARNING, f"OpenIGTLink accept failed: {exc.strerror or exc}")
+            except OSError as exc:  # out of file descriptors: pause, or the still-readable listener spins a core
+                self._log(logging.WARNING, f"OpenIGTLink accept failed: {exc.strerror or exc}; retrying in 1 s")
+                self._selector.unregister(self._listener)
+                self._resume_accept_s = time.monotonic() + ACCEPT_RETRY_S
                 return
+            if len(self._peers) >= MAX_PEERS:  # counted in the stats, not logged per try (a flood would flood it)
+                sock.close()
+                self.counters["refused_connections"] = self.counters.get("refused_connections", 0) + 1
+                continue
             self._add_peer(sock, f"{address[0]}:{address[1]}")
+
+    def _before_select(self) -> None:
+        if self._resume_accept_s is not None and time.monotonic() >= self._resume_accept_s:
+            self._resume_accept_s = None
+            self._selector.register(self._listener, selectors.EVENT_READ, "listen")
+
+    def _select_timeout(self) -> float | None:
+        return None if self._resume_accept_s is None else max(0.0, self._resume_accept_s - time.monotonic())
 
     def _close_own_sockets(self) -> None:
         self._listener.close()

@@ -12,6 +12,7 @@ from typing import Any, TypeVar
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
@@ -69,6 +70,8 @@ def run_node(
         status = 0
     except LiverP2PError as exc:
         get_logger(name).fatal(str(exc))
+    except ParameterException as exc:  # `-p units:=5` for a string parameter: one line, not rclpy's traceback
+        get_logger(name).fatal(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
     finally:
         if exit_process:
             _exit_after(exit_grace_s, status, name)

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
 from liver_p2p_reg.errors import LiverP2PError
+from liver_p2p_reg.ros.managed import ManagedNode
 from liver_p2p_reg.ros.node_main import run_node
 from liver_p2p_reg.ros.preop_loader_node import PreopLoaderWiring
 
 
-class ManagedPreopLoaderNode(PreopLoaderWiring, LifecycleNode):
+class ManagedPreopLoaderNode(PreopLoaderWiring, ManagedNode):
     """preop_loader_node under the ROS 2 node lifecycle: configure reads model_path (a missing or unreadable
     file fails the transition with the reason; the node stays up to be configured again; a bad structure file
     does not: it is an ERROR on /diagnostics once active), activate publishes the model and its structures

@@ -47,15 +47,18 @@ FILE_PARAMETERS = (("model_path", ""), ("fiducials_path", ""), ("mesh_path", "")
 STATUS_PERIOD_S = 1.0  # the loader's status on /diagnostics, repeated for late joiners (diagnostics are volatile)
 
 
-def load_model_m(path: str, units: str) -> np.ndarray:
-    """Load a mesh/cloud file and return (N, 3) metres; InputError for missing/unreadable files."""
+def load_model_m(path: str, units: str, parameter: str = "model_path") -> np.ndarray:
+    """Load a mesh/cloud file and return (N, 3) metres; InputError (naming `parameter`) for missing/unreadable files."""
     if units not in UNITS_TO_M:
         raise InputError(f"units must be 'mm' or 'm', got {units!r}")
     if not path:
-        raise InputError("parameter model_path is required (PLY/STL/OBJ/VTK mesh or point cloud)")
-    if not Path(path).is_file():
-        raise InputError(f"model_path not found: {path}")
-    points = load_points(path)
+        raise InputError(f"parameter {parameter} is required (PLY/STL/OBJ/VTK mesh or point cloud)")
+    if not Path(path).exists():
+        raise InputError(f"{parameter} not found: {path}")
+    try:
+        points = load_points(path)  # a folder or a pipe: said as such (require_regular_file)
+    except InputError as exc:
+        raise InputError(f"{parameter}: {exc}") from None
     points = points[np.isfinite(points).all(axis=1)]
     if len(points) == 0:
         raise InputError(f"{path} holds no valid points")
@@ -83,6 +86,8 @@ def mesh_marker(path: str, units: str, frame_id: str, stamp: Time, *, required: 
 def structure_specs(value: Any) -> list[str]:
     """The structures_paths parameter as a list of 'FILE[:LABEL]' specs: a string array, or one string of
     comma-separated specs (what a launch argument gives); empty entries are skipped."""
+    if not isinstance(value, (str, list, tuple)) and value is not None:  # `structures_paths:=true` raised a TypeError
+        raise InputError(f"structures_paths must be a string or a list of strings, got {value!r}")
     items = value.split(",") if isinstance(value, str) else list(value or [])
     return [str(item).strip() for item in items if str(item).strip()]
 
@@ -122,7 +127,8 @@ class PreopLoaderWiring:
         structure files: a bad one is left out, reported as an ERROR on /diagnostics with its reason."""
         param = {n: self.get_parameter(n).value for n, _ in FILE_PARAMETERS}
         model_m = load_model_m(param["model_path"], param["units"])
-        fiducials_m = load_model_m(param["fiducials_path"], param["units"]) if param["fiducials_path"] else None
+        fiducials_path = param["fiducials_path"]
+        fiducials_m = load_model_m(fiducials_path, param["units"], "fiducials_path") if fiducials_path else None
         specs = structure_specs(self.get_parameter("structures_paths").value)
         structures, errors = read_structures(specs, to_mm=UNITS_TO_M[param["units"]] * 1e3)
         far = {s.label: far_from_model(s, model_m * 1e3) for s in structures}  # another frame or unit: not published

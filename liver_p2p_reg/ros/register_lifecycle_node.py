@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
 from liver_p2p_reg.errors import LiverP2PError
+from liver_p2p_reg.ros.managed import ManagedNode
 from liver_p2p_reg.ros.node_main import run_node
 from liver_p2p_reg.ros.register_node import RegisterWiring
 
 
-class ManagedRegisterNode(RegisterWiring, LifecycleNode):
+class ManagedRegisterNode(RegisterWiring, ManagedNode):
     """register_node under the ROS 2 node lifecycle (same name, topics, parameters and services once active).
 
     unconfigured -> configure: parameters read and checked, the method's weights loaded, `/preop/*`

@@ -221,3 +221,29 @@ def test_picture_is_drawn_from_what_a_peer_received(bridge: SlicerBridge, tmp_pa
     ) == 4
     png = draw(arrived, tmp_path / "what.png", title="test")
     assert png.stat().st_size > 10_000
+
+
+def test_peers_beyond_the_limit_are_refused_and_a_good_one_still_served(bridge: SlicerBridge) -> None:
+    from liver_p2p_reg.igtl.endpoint import MAX_PEERS
+
+    # each idle peer may hold a message being read: without a limit, many of them grew the bridge without bound
+    idle = [socket.create_connection(("127.0.0.1", bridge.endpoint.port), timeout=10) for _ in range(MAX_PEERS + 4)]
+    try:
+        deadline = time.monotonic() + 10
+        while bridge.endpoint.stats().get("refused_connections", 0) < 4 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stats = bridge.endpoint.stats()
+        assert stats["peers"] == MAX_PEERS and stats["refused_connections"] == 4
+        assert all(hung_up(s, timeout_s=5.0) for s in idle[MAX_PEERS:])  # the last four were closed at once
+    finally:
+        for s in idle:
+            s.close()
+    deadline = time.monotonic() + 10
+    while bridge.endpoint.stats()["peers"] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    good = Recorder.connect(bridge.endpoint.port)
+    try:
+        bridge.send_pose(pose(5.0), 5)
+        assert_wire_equal(good.wait_for("CTToSensor")[-1].value, expected_transform(pose(5.0)))
+    finally:
+        good.close()

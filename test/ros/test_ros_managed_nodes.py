@@ -46,6 +46,9 @@ def test_register_node_through_every_transition(managed):
     graph, probe = managed, managed.probe
     assert probe.wait_for(lambda: state_or_none(probe) == State.PRIMARY_STATE_UNCONFIGURED, 90), graph.node.stderr()
     assert subscribers(probe, TOPIC_PREOP) == 0 and subscribers(probe, TOPIC_INTRAOP) == 0
+    # a transition the state does not offer, asked by id (as nav2's lifecycle manager asks): refused, not fatal
+    assert not change(probe, "register_node", Transition.TRANSITION_ACTIVATE)
+    assert state(probe, "register_node") == State.PRIMARY_STATE_UNCONFIGURED and graph.node.alive()
     # a bad parameter is only checked at configure: the transition fails, the node stays up and unconfigured
     graph.set(method="no-such-method")
     assert not change(probe, "register_node", Transition.TRANSITION_CONFIGURE)

@@ -4,6 +4,7 @@ import json
 import time
 
 import numpy as np
+import pytest
 from conftest import require_rclpy
 
 rclpy = require_rclpy()
@@ -120,3 +121,15 @@ def test_a_comma_separated_string_parameter_and_no_structures(tmp_path, rng):
         bare.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def test_loader_parameters_of_the_wrong_kind_are_one_line_naming_the_parameter(tmp_path) -> None:
+    from liver_p2p_reg.errors import InputError
+    from liver_p2p_reg.ros.preop_loader_node import load_model_m, structure_specs
+
+    with pytest.raises(InputError, match="structures_paths must be a string or a list"):  # was a TypeError
+        structure_specs(True)
+    with pytest.raises(InputError, match="fiducials_path not found"):  # it used to blame model_path
+        load_model_m(str(tmp_path / "missing.xyz"), "mm", "fiducials_path")
+    with pytest.raises(InputError, match="model_path: expected a file, got a directory"):  # was "not found"
+        load_model_m(str(tmp_path), "mm")
