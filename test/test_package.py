@@ -123,6 +123,7 @@ RCLPY_ADAPTERS = {
     "ros/preop_loader_node.py",
     "ros/register_lifecycle_node.py",
     "ros/preop_loader_lifecycle_node.py",
+    "ros/managed.py",  # the managed nodes' base
     "ros/slicer_bridge_node.py",
     "ros/node_main.py",
     "ros/rclpy_types.py",  # the rclpy message classes the nodes share

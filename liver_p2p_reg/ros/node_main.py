@@ -14,6 +14,7 @@ import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
 from rclpy.node import Node
 
@@ -68,6 +69,10 @@ def run_node(
         status = 0
     except (KeyboardInterrupt, ExternalShutdownException):
         status = 0
+    except _rclpy.RCLError:
+        if rclpy.ok():
+            raise
+        status = 0  # SIGINT/SIGTERM shut the context down while the executor was building its wait set
     except LiverP2PError as exc:
         get_logger(name).fatal(str(exc))
     except ParameterException as exc:  # `-p units:=5` for a string parameter: one line, not rclpy's traceback

@@ -60,6 +60,20 @@ def pose_graph(overrides: list, helper_name: str):
         helper.destroy_node()
 
 
+def publish_model(helper, preop_m: np.ndarray, fid_m: np.ndarray, offset: np.ndarray) -> None:
+    """The preop model and its fiducials (ct) and the intraop fiducials (camera, stamp 7: the cloud's to come)."""
+    types = RCLPY_TYPES.cloud
+    helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
+        points_to_cloud(preop_m, types, frame_id="ct")
+    )
+    helper.create_publisher(PointCloud2, TOPIC_PREOP_FIDUCIALS, rclpy_qos(TOPIC_PREOP_FIDUCIALS)).publish(
+        points_to_cloud(fid_m, types, frame_id="ct")
+    )
+    helper.create_publisher(PointCloud2, TOPIC_INTRAOP_FIDUCIALS, rclpy_qos(TOPIC_INTRAOP_FIDUCIALS)).publish(
+        points_to_cloud(fid_m + offset, types, frame_id="camera", stamp_ns=7)
+    )
+
+
 def spin_until(executor, condition, timeout_s=30.0):
     end = time.monotonic() + timeout_s
     while not condition() and time.monotonic() < end:
@@ -92,15 +106,7 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
     offset = np.array([0.01, -0.02, 0.3])
     with pose_graph([Parameter("method", value="procrustes")], "test_helper") as (node, helper, executor, poses):
         types = RCLPY_TYPES.cloud
-        helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
-            points_to_cloud(preop_m, types, frame_id="ct")
-        )
-        helper.create_publisher(PointCloud2, TOPIC_PREOP_FIDUCIALS, rclpy_qos(TOPIC_PREOP_FIDUCIALS)).publish(
-            points_to_cloud(fid_m, types, frame_id="ct")
-        )
-        helper.create_publisher(PointCloud2, TOPIC_INTRAOP_FIDUCIALS, rclpy_qos(TOPIC_INTRAOP_FIDUCIALS)).publish(
-            points_to_cloud(fid_m + offset, types, frame_id="camera", stamp_ns=7)
-        )
+        publish_model(helper, preop_m, fid_m, offset)
         assert spin_until(executor, lambda: node.core.preop_mm is not None)
         intraop = helper.create_publisher(PointCloud2, TOPIC_INTRAOP, rclpy_qos(TOPIC_INTRAOP))
         intraop.publish(points_to_cloud(preop_m[preop_m[:, 0] > 0] + offset, types, frame_id="camera", stamp_ns=7))
@@ -256,15 +262,7 @@ def test_bad_runtime_input_never_takes_the_node_down(ros_context):
         long_name = node.set_parameters([Parameter("record_path", value="/tmp/" + "r" * 300 + ".mcap")])[0]
         assert not long_name.successful and "not usable" in long_name.reason  # OSError: file name too long
         types = RCLPY_TYPES.cloud
-        helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
-            points_to_cloud(preop_m, types, frame_id="ct")
-        )
-        helper.create_publisher(PointCloud2, TOPIC_PREOP_FIDUCIALS, rclpy_qos(TOPIC_PREOP_FIDUCIALS)).publish(
-            points_to_cloud(fid_m, types, frame_id="ct")
-        )
-        helper.create_publisher(PointCloud2, TOPIC_INTRAOP_FIDUCIALS, rclpy_qos(TOPIC_INTRAOP_FIDUCIALS)).publish(
-            points_to_cloud(fid_m + offset, types, frame_id="camera", stamp_ns=7)
-        )
+        publish_model(helper, preop_m, fid_m, offset)
         assert spin_until(executor, lambda: node.core.preop_mm is not None)
         intraop = helper.create_publisher(PointCloud2, TOPIC_INTRAOP, rclpy_qos(TOPIC_INTRAOP))
         client = helper.create_client(Trigger, "/register_node/reregister")
