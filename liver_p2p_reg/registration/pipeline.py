@@ -68,6 +68,15 @@ def feature_provider(
     raise InputError(f"unknown features {features!r}; choose fpfh or learned")
 
 
+def require_device(device: str) -> None:
+    """InputError when `device` is one torch cannot use here (cuda without a CUDA device)."""
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
+
+
 def p2p_settings(config: Config, use_p2p: bool) -> P2PSection:
     """The P2P module's settings: Config's P2P section; k = 0 (no patches) for the methods without P2P."""
     return config.p2p if use_p2p else dataclasses.replace(config.p2p, k=0)
@@ -104,8 +113,7 @@ def run_feature_pipeline(
 
     from liver_p2p_reg.registration.p2p import p2p_register
 
-    if config.device == "cuda" and not torch.cuda.is_available():
-        raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
+    require_device(config.device)
     if callable(provider):  # first call in a process: the model's loading counts in "total" only
         provider = provider()
     t = time.perf_counter()

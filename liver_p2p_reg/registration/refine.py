@@ -45,40 +45,9 @@ def source_search_index(source: np.ndarray, normal_radius: float) -> tuple[Neare
     return NearestIndex(source), outward_normals(source, normal_radius)
 
 
-def trimmed_icp(
-    T_init: np.ndarray,
-    source: np.ndarray,
-    target: np.ndarray,
-    *,
-    max_iterations: int = 50,
-    max_corr: float = 0.1,
-    trim_ratio: float = 0.8,
-    normal_radius: float = 0.1,
-    max_target_points: int = 4000,
-    tol: float = 1e-3,
-    source_index: tuple[NearestIndex, np.ndarray] | None = None,
-) -> np.ndarray:
-    """Refine T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.
-
-    Pairs go from each target point to its closest source point: the target is partial, so
-    every target point has a counterpart on the complete source but not the other way round.
-    The source k-d tree and normals are built once; target points are moved into the source
-    frame instead. Units are whatever the clouds use (normalized in the pipelines). It stops
-    when a step moves less than `tol` (1e-3 normalized, ~0.1 mm / 0.06 deg): the trimmed pair set
-    keeps changing below that, so a tighter tol mostly runs to `max_iterations` for nothing.
-    """
-    return trimmed_icp_many(
-        [T_init],
-        source,
-        target,
-        max_iterations=max_iterations,
-        max_corr=max_corr,
-        trim_ratio=trim_ratio,
-        normal_radius=normal_radius,
-        max_target_points=max_target_points,
-        tol=tol,
-        source_index=source_index,
-    )[0]
+def trimmed_icp(T_init: np.ndarray, source: np.ndarray, target: np.ndarray, **options: Any) -> np.ndarray:
+    """`trimmed_icp_many` from one start (its keyword options)."""
+    return trimmed_icp_many([T_init], source, target, **options)[0]
 
 
 def trimmed_icp_many(
@@ -94,17 +63,24 @@ def trimmed_icp_many(
     tol: float = 1e-3,
     source_index: tuple[NearestIndex, np.ndarray] | None = None,
 ) -> list[np.ndarray]:
-    """`trimmed_icp` from several starts at once: each result is bitwise the one `trimmed_icp` gives alone.
+    """Refine each start T (source -> target) by point-to-plane ICP that keeps the best `trim_ratio` pairs.
 
-    Why: screening runs ~6 short ICPs on the same clouds. Each iteration's closest-point search is asked once for
-    the moved targets of every start still running (one k-d tree call of a few thousand points instead of one
-    per start; each point's closest point does not depend on the others in the call); the rest of each step is
-    each start's own arithmetic, unchanged.
+    Pairs go from each target point to its closest source point: the target is partial, so
+    every target point has a counterpart on the complete source but not the other way round.
+    The source k-d tree and normals are built once; target points are moved into the source
+    frame instead. Units are whatever the clouds use (normalized in the pipelines). It stops
+    when a step moves less than `tol` (1e-3 normalized, ~0.1 mm / 0.06 deg): the trimmed pair set
+    keeps changing below that, so a tighter tol mostly runs to `max_iterations` for nothing.
+
+    Several starts run together, each result bitwise the one its start gives alone. Why: screening runs ~6 short
+    ICPs on the same clouds; each iteration's closest-point search is asked once for the moved targets of every
+    start still running (one k-d tree call of a few thousand points instead of one per start; each point's closest
+    point does not depend on the others in the call); the rest of each step is each start's own arithmetic.
     """
     if len(target) > max_target_points:  # even subsample keeps the cost bounded
         target = target[:: int(np.ceil(len(target) / max_target_points))]
     tree, normals = source_index if source_index is not None else source_search_index(source, normal_radius)
-    T_invs = [np.linalg.inv(np.asarray(T, dtype=np.float64).copy()) for T in T_inits]
+    T_invs = [np.linalg.inv(np.asarray(T, dtype=np.float64)) for T in T_inits]
     running = list(range(len(T_invs)))
     for _ in range(max_iterations):
         if not running:

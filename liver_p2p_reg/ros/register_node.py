@@ -28,9 +28,9 @@ from visualization_msgs.msg import Marker
 
 from liver_p2p_reg.bags.recorder import recording_path
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_calibration import read_calibration
 from liver_p2p_reg.registration.methods import check_method_name
+from liver_p2p_reg.registration.pipeline import require_device
 from liver_p2p_reg.ros import openmp_wait_warning
 from liver_p2p_reg.ros.messages import (
     feed_intraop_fiducials_msg,
@@ -286,11 +286,7 @@ class RegisterWiring(RegisterOutputs):
                 self._accepted.error_coverage,
             ):
                 read_calibration(config.error_calibration_path).column(config.error_coverage)
-            if config.device == "cuda" and config.device != self._accepted.device:
-                import torch
-
-                if not torch.cuda.is_available():
-                    raise InputError("device 'cuda' requested but torch sees no CUDA device; use device: cpu")
+            require_device(config.device)
         except Exception as exc:  # a parameter must never take the node down: refused, with why
             return SetParametersResult(successful=False, reason=f"{str(exc) or type(exc).__name__}"[:500])
         # ... and apply on the worker, between registrations, without blocking this callback

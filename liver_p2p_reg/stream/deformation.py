@@ -173,7 +173,7 @@ def stage_values(
     bound_mm: float | None = None,
     bound_note: str = "",
     *,
-    view: str = "frame",
+    view: str = FRAME,
     view_points: int = 0,
 ) -> dict[str, str]:
     """The registration diagnostic's `deform_*` key/values (`bound_mm`: the deformed positions' interior bound;
@@ -213,13 +213,13 @@ def run_stage(
     the model's points; sensor frame, mm) and structures. `view_mm`: what it fits instead of the frame's points
     (the survey's fused surface, in the frame's sensor frame). Never raises; pose and verdict stand."""
     result, start = rigid.result, time.perf_counter()
-    view = frame.points_mm if view_mm is None else view_mm
+    view, fitted = (frame.points_mm, FRAME) if view_mm is None else (view_mm, SURVEY)
     T = np.asarray(result.T_target_source, dtype=np.float64).copy()
     kwargs: dict[str, Any] = {"source_fiducials_mm": frame.fid_s, "target_fiducials_mm": frame.fid_t}
     kwargs.update({} if mesh is None else mesh.stage_kwargs)
     deformed, placed = None, rigid.structures
     try:
-        registrar.deform(result, frame.preop_mm, view, **kwargs, view=FRAME if view_mm is None else SURVEY)
+        registrar.deform(result, frame.preop_mm, view, **kwargs, view=fitted)
         if result.deformation.applied:
             # on a mesh: its vertices, so that a holder of /preop/mesh (welded alike) pairs them with its triangles
             surface = frame.preop_mm if mesh is None else mesh.vertices_mm
@@ -236,7 +236,7 @@ def run_stage(
     ms = (time.perf_counter() - start) * 1e3
     diag = rigid.diagnostics[0]
     deformation: Deformation = result.deformation
-    seen = {"view": FRAME if view_mm is None else SURVEY, "view_points": len(view)}
+    seen = {"view": fitted, "view_points": len(view)}
     values = {**diag.values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm, *_bound(result), **seen)}
     diagnostics = [Diagnostic(diag.level, diag.name, diag.message, values, diag.hardware_id), *rigid.diagnostics[1:]]
     return dataclasses.replace(rigid, diagnostics=diagnostics, structures=placed, deformed_preop_mm=deformed)
