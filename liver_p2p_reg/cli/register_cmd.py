@@ -181,14 +181,21 @@ def run(args: argparse.Namespace) -> int:
     outputs = _output_paths(args.output, targets, args.force, "--output", (), ".json", inputs)
     plots = _output_paths(args.plot, targets, args.force, "--plot", PLOT_SUFFIXES, ".png", inputs)
     moved = _output_paths(args.moved, targets, args.force, "--moved", MOVED_SUFFIXES, ".ply", inputs)
-    record = getattr(args, "record", None)
-    args.record_path = output_file(record, args.force, "--record", inputs=inputs, suffixes=(".mcap",))
-    distinct_outputs({"--output": outputs, "--plot": plots, "--moved": moved, "--record": [args.record_path]})
+    config = _config(args)
+    # --record wins; a config's record_path records too, as the node reads it: a folder gets flight_<time>.mcap,
+    # and an existing recording is evidence, so a new name is taken rather than --force asked for
+    record, record_option = getattr(args, "record", None), "--record"
+    if not record and config.record_path:
+        from liver_p2p_reg.bags.recorder import recording_path
+
+        record, record_option = recording_path(config.record_path, "new"), "record_path (--config)"
+        LOG.info("recording to %s (record_path of --config)", record)
+    args.record_path = output_file(record, args.force, record_option, inputs=inputs, suffixes=(".mcap",))
+    distinct_outputs({"--output": outputs, "--plot": plots, "--moved": moved, record_option: [args.record_path]})
     if (args.source_fiducials is None) != (args.target_fiducials is None):
         raise InputError("give both --source-fiducials and --target-fiducials, or neither")
     if several and args.target_fiducials is not None:
         raise InputError("--source-fiducials/--target-fiducials go with a single TARGET")
-    config = _config(args)
     check_method_name(config.method)
     warn_unused_weights(config.method, config.weights_path)
     prior = METHODS.get(config.method, Method("")).prior  # track (ICP from it) and evaluate (as is)

@@ -23,7 +23,7 @@ def parse_address(text: str) -> tuple[str, int]:
     host, sep, port_text = text.rpartition(":")
     if not sep:
         host, port_text = "localhost", text
-    host = host.strip("[]")
+    host = host.strip("[]") or "localhost"  # ':18944' is this machine, as a bare port is
     try:
         port = int(port_text)
     except ValueError:

@@ -210,3 +210,20 @@ def test_a_prior_pose_or_sensor_far_beyond_any_scene_is_one_line(files, tmp_path
     assert rc == 2 and "initial_T_mm moves the organ inf mm" in err and err.count("\n") == 1, err
     rc, err = _run(["register", files["source"], files["view"], *METHOD, "--sensor-origin=1e308,1e308,1e308"], capsys)
     assert rc == 2 and "more than 1e+06 mm away" in err and err.count("\n") == 1, err
+
+
+def test_a_configs_record_path_records_and_never_replaces_a_recording(files, tmp_path, capsys) -> None:
+    recording = tmp_path / "flight.mcap"
+    config = tmp_path / "record.yaml"
+    config.write_text(f"method: fpfh-p2p-icp\nrecord_path: {recording}\n")
+    register = ["register", files["source"], files["view"], "--config", config]
+    assert _run(register, capsys)[0] == 0 and recording.is_file()  # it used to be ignored silently
+    data = recording.read_bytes()
+    assert _run(register, capsys)[0] == 0  # the second run takes a new name: a recording is evidence
+    assert recording.read_bytes() == data and len(list(tmp_path.glob("flight*.mcap"))) == 2
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    config.write_text(f"method: fpfh-p2p-icp\nrecord_path: {folder}\n")  # a folder, as for the node
+    assert _run(register, capsys)[0] == 0 and len(list(folder.glob("flight_*.mcap"))) == 1
+    rc, err = _run([*register, "--record", tmp_path / "own.mcap"], capsys)  # --record wins
+    assert rc == 0 and (tmp_path / "own.mcap").is_file() and len(list(folder.glob("*.mcap"))) == 1

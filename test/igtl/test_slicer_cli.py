@@ -95,6 +95,9 @@ def test_register_without_slicer_is_one_line_and_exit_2(mesh_files: dict, capsys
     assert time.monotonic() - start < 5.0  # refused at once, not after a timeout
     assert main(["register", mesh_files["stl"], mesh_files["xyz"], "--slicer", "localhost:http"]) == 2
     assert "expected HOST:PORT" in capsys.readouterr().err
+    # ':PORT' is this machine, as a bare PORT is (it was refused as if the port were wrong)
+    assert main(["register", mesh_files["stl"], mesh_files["xyz"], "--method", "icp", "--slicer", f":{port}"]) == 2
+    assert f"cannot connect to 3D Slicer at localhost:{port}" in capsys.readouterr().err
 
 
 def bag_outputs(bag: Path) -> tuple[list[np.ndarray], list[str], np.ndarray]:
