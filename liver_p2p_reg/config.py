@@ -11,6 +11,7 @@ stage takes its section's view (`config.p2p`, a copy), so no stage keeps default
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, TypeVar
@@ -18,60 +19,19 @@ from typing import Any, TypeVar
 import yaml
 
 from liver_p2p_reg.config_io import from_mapping, read_yaml_mapping
+
+# Choices and ranges validated in `Config.validate` (a module of their own: the CLI lists the choices in --help)
+from liver_p2p_reg.config_ranges import (  # noqa: E402
+    CLOSED,
+    DEVICES,
+    FINITE,
+    HALF_OPEN,
+    MAX_SEED,
+    MINIMUMS,
+    NODE_MODES,
+    SELECTION_RULES,
+)
 from liver_p2p_reg.errors import InputError
-
-# Choices validated in `Config.validate`; kept here so the CLI can list them in --help.
-SELECTION_RULES = ("closest-point", "inlier-count")
-NODE_MODES = ("continuous", "once", "on_demand", "survey")
-DEVICES = ("cpu", "cuda")
-
-# Lower bounds of the numeric fields that have nothing but a lower bound.
-MINIMUMS: dict[str, float] = {
-    "min_points": 3,
-    "outlier_neighbors": 3,
-    "max_patch_rows": 0,
-    "consensus_seeds": 0,
-    "refit_iterations": 0,
-    "icp_max_points": 100,
-    "refine_candidates": 1,
-    "screen_icp_points": 100,
-    "screen_icp_iterations": 1,
-    "track_residual_ratio": 1,
-    "track_max_frames": 1,
-    "survey_max_points": 1000,
-    "residual_warn_mm": 0,
-    "uncertainty_warn_mm": 0,
-    "structure_error_warn_mm": 0,
-    "free_space_band_mm": 0,
-    "free_space_weight": 0,
-    "free_space_warn": 0,
-    "record_max_mb": 0,
-    "stale_after_s": 0.1,
-    "deform_modes": 1,
-    "deform_target_tets": 60,
-    "deform_regularization": 0,
-    "deform_iterations": 1,
-    "deform_min_points": 3,
-    "deform_max_residual_mm": 0,
-    "deform_max_displacement_mm": 0,
-    "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
-    "max_input_points": 1000,
-    "icp_max_iterations": 1,
-    "ransac_max_iterations": 1,
-    "ambiguity_pose_mm": 0,
-    "ambiguity_residual_ratio": 1,
-}
-# Open3D's random.seed() (RANSAC, FGR) takes a C int: a larger seed would pass NumPy and fail mid-registration.
-MAX_SEED = 2**31 - 1
-# [low, high] of integer settings: threads per registration (torch, Open3D), P2P patches (the default 5)
-CLOSED: dict[str, tuple[int, int]] = {"num_threads": (0, 256), "open3d_threads": (1, 256), "k": (1, 64)}
-# (low, high] of fractions, and of lengths in normalized units (the organ fits in the unit sphere; a voxel above
-# 0.5 leaves a handful of points)
-HALF_OPEN: dict[str, tuple[float, float]] = {
-    **dict.fromkeys(("ransac_confidence", "icp_trim_ratio", "error_coverage"), (0, 1)),
-    **dict.fromkeys(("normal_radius_norm", "fpfh_radius_norm", "icp_max_corr_norm", "ransac_max_corr_norm"), (0, 2)),
-    "voxel_size_norm": (0, 0.5),
-}
 
 
 @dataclass
@@ -326,6 +286,9 @@ class Config(
         for name, (low, high) in HALF_OPEN.items():
             if not low < getattr(self, name) <= high:
                 raise InputError(f"{name} must be in ({low}, {high}], got {getattr(self, name)}")
+        for name in FINITE:
+            if not math.isfinite(getattr(self, name)):
+                raise InputError(f"{name} must be a finite number, got {getattr(self, name)}")
         if not self.seed <= MAX_SEED:
             raise InputError(f"seed must be in [0, {MAX_SEED}] (Open3D takes a 32-bit seed), got {self.seed}")
         if not self.max_target_ratio >= 1:  # below 1 would refuse a full view of an undeformed liver
@@ -344,8 +307,6 @@ class Config(
             raise InputError(f"mode must be one of {NODE_MODES}, got {self.mode!r}")
         if self.device not in DEVICES:
             raise InputError(f"device must be one of {DEVICES}, got {self.device!r}")
-        if self.outlier_std_ratio < 0:
-            raise InputError(f"outlier_std_ratio must be >= 0 (0 disables), got {self.outlier_std_ratio}")
         if not 0 < self.refit_radius_end_norm <= self.refit_radius_start_norm:
             raise InputError(
                 "need 0 < refit_radius_end_norm <= refit_radius_start_norm, got "

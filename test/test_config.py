@@ -100,6 +100,10 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"icp_max_iterations": -3}, "icp_max_iterations must be >= 1"),
         ({"ambiguity_residual_ratio": float("nan")}, "ambiguity_residual_ratio must be >= 1"),
         ({"max_input_points": 0}, "max_input_points must be >= 1000"),
+        # NaN made a benchmark's OUT folder refuse every later run ("nan then, nan now": NaN != NaN)
+        ({"outlier_std_ratio": float("nan")}, "outlier_std_ratio must be >= 0"),
+        ({"temperature": float("inf")}, "temperature must be a finite number"),
+        ({"free_space_weight": float("inf")}, "free_space_weight must be a finite number"),
     ],
 )
 def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:

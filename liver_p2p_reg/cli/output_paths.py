@@ -80,6 +80,8 @@ def output_file(
         raise InputError(f"output folder does not exist: {path.parent}")
     if path.is_symlink() and not path.resolve().parent.is_dir():  # checked now, not after the work: a dangling link
         raise InputError(f"{option} {path} links to {path.resolve()}, whose folder does not exist")
+    if path.is_symlink() and not force:  # a link to nothing yet is still the user's (a writer may replace it)
+        raise InputError(f"{option} {path} is a link to {path.resolve()}; pass --force to write over it")
     return path
 
 

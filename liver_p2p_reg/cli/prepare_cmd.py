@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
+from liver_p2p_reg.cli.output_paths import output_file
+from liver_p2p_reg.config_ranges import MAX_SEED
 from liver_p2p_reg.errors import InputError
 
 
@@ -33,26 +36,29 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="train exactly this many steps (reproduces a card's run) instead of fitting the budget",
     )
     p.add_argument("--weights", default="", help="general weights to start from (default: the bundled ones)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing --out")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="overwrite an existing --out, and start afresh a preparation left in OUT.work with other settings",
+    )
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Check everything cheap first, then prepare and print the model card's summary."""
-    mesh, out = Path(args.preop_mesh), Path(args.out)
+    mesh = Path(args.preop_mesh)
     if not mesh.is_file():
         raise InputError(f"file not found: {mesh}")
-    if out.suffix != ".safetensors":
-        raise InputError(f"--out must end in .safetensors, got {out}")
-    if out.exists() and not args.force:
-        raise InputError(f"{out} exists; pass --force to overwrite it")
-    if not args.minutes > 0:
-        raise InputError(f"--minutes must be > 0, got {args.minutes}")
-    if args.seed < 0:
-        raise InputError(f"--seed must be >= 0, got {args.seed}")
     if args.weights and not Path(args.weights).is_file():
         raise InputError(f"--weights {args.weights} not found")
+    # checked before hours of work: a folder, an input, an existing file or link without --force
+    inputs = [mesh, *([Path(args.weights)] if args.weights else [])]
+    out = output_file(args.out, args.force, "--out", inputs=inputs, suffixes=(".safetensors",))
+    if not 0 < args.minutes < math.inf:  # inf was accepted and crashed once the budget became a step count
+        raise InputError(f"--minutes must be a finite number > 0, got {args.minutes}")
+    if not 0 <= args.seed <= MAX_SEED:  # a larger seed overflowed torch's, after the simulation
+        raise InputError(f"--seed must be in [0, {MAX_SEED}], got {args.seed}")
     if args.device == "cuda":
         import torch
 
@@ -68,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
         steps=args.steps,
         device=args.device,
         base_weights=args.weights,
+        fresh=args.force,
         progress=not args.no_progress,
     )
     b, a = card["validation_before"], card["validation_after"]

@@ -157,6 +157,37 @@ def _probe_rate(work: Path, cfg: Any) -> float:
     return (s1 - s0) / max(1e-3, t1 - t0)
 
 
+def _read_plan(path: Path) -> dict[str, Any]:
+    """A preparation's plan.json ({} when there is none); a damaged one is one line."""
+    if not path.is_file():
+        return {}
+    try:
+        plan = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path} is damaged ({exc}); remove its folder or pass --force") from None
+    if not isinstance(plan, dict):
+        raise InputError(f"{path} is not a preparation's plan; remove its folder or pass --force")
+    return plan
+
+
+def _plan_differences(plan: dict, digest: str, seed: int, base: str, steps: int | None, minutes: float) -> list[str]:
+    """What an earlier preparation's plan was made with that this one asks otherwise ([] when it may resume)."""
+    differ = [
+        name
+        for name, ours, theirs in (("mesh", digest, plan.get("mesh_sha256")), ("--seed", seed, plan.get("seed")))
+        if ours != theirs
+    ]
+    if plan.get("base") != base:
+        differ.append("--weights")
+    if steps is not None and (plan.get("from_budget", True) or plan.get("steps") != steps):
+        differ.append(f"--steps (it planned {plan.get('steps')})")
+    elif steps is None and not plan.get("from_budget", True):
+        differ.append(f"--steps (it planned {plan.get('steps')}; this run fits the budget)")
+    elif steps is None and plan.get("minutes", minutes) != minutes:  # plans before 'minutes' was kept: as asked
+        differ.append(f"--minutes (it had {plan.get('minutes')})")
+    return differ
+
+
 def prepare_liver(
     vertices_mm: np.ndarray,
     triangles: np.ndarray,
@@ -169,11 +200,15 @@ def prepare_liver(
     steps: int | None = None,
     device: str = "cpu",
     base_weights: str = "",
+    fresh: bool = False,
     progress: bool = True,
     size: PrepareSize | None = None,
 ) -> dict[str, Any]:
     """Prepare a matcher for the liver with this closed surface; `source_mm` is the preoperative cloud
-    registrations will use (for the precomputed features and the signature). Returns the model card."""
+    registrations will use (for the precomputed features and the signature). Returns the model card.
+
+    An interrupted preparation resumes from OUT.work when asked again with the same settings; with other
+    settings it is refused, or with `fresh` discarded and started anew."""
     from liver_p2p_reg.phantom.real import liver_from_surface
     from liver_p2p_reg.registration.features.learned.descriptors import local_features
     from liver_p2p_reg.registration.features.learned.weights import BUNDLED_WEIGHTS, load_weights
@@ -194,9 +229,16 @@ def prepare_liver(
     base_model = load_weights(base)
     work = out.with_name(out.name + ".work")
     plan_path = work / "plan.json"
-    plan = json.loads(plan_path.read_text()) if plan_path.is_file() else {}
-    if plan and (plan.get("mesh_sha256") != digest or plan.get("seed") != seed or plan.get("base") != base):
-        raise InputError(f"{work} holds another preparation; remove it or choose another --out")
+    plan = _read_plan(plan_path)
+    differ = _plan_differences(plan, digest, seed, base, steps, minutes) if plan else []
+    if differ and not fresh:
+        raise InputError(
+            f"{work} holds a preparation with other {', '.join(differ)}: rerun its command to resume it, "
+            "or pass --force to start afresh"
+        )
+    if differ:
+        shutil.rmtree(work)
+        plan = {}
     work.mkdir(parents=True, exist_ok=True)
     log.info("prepare %s: simulating %d FEM deformations", name, size.train_deformations + size.val_deformations)
     store = _store(work, liver, liver_id, size)
@@ -218,6 +260,7 @@ def prepare_liver(
             "base": base,
             "steps": int(steps),
             "from_budget": from_budget,
+            "minutes": minutes,
             "before": before,
         }
         plan_path.write_text(json.dumps(plan, indent=2))

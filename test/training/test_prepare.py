@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import pickle
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -164,12 +166,42 @@ def test_cli_refuses_to_overwrite_and_bad_budgets(tmp_path, liver) -> None:
     mesh = _write_obj(tmp_path / "liver.obj", liver.vertices_mm, liver.triangles)
     existing = tmp_path / "p.safetensors"
     existing.write_bytes(b"keep me")
+    folder = tmp_path / "folder.safetensors"
+    folder.mkdir()
+    link = tmp_path / "link.safetensors"
+    link.symlink_to(tmp_path / "not_yet.safetensors")
     base = [sys.executable, "-m", "liver_p2p_reg", "prepare", str(mesh), "--out"]
     for extra, words in (
         ([str(existing), "--minutes", "1"], "exists; pass --force"),
-        ([str(tmp_path / "q.safetensors"), "--minutes", "0"], "--minutes must be > 0"),
-        ([str(tmp_path / "q.pt"), "--minutes", "1"], "must end in .safetensors"),
+        ([str(tmp_path / "q.safetensors"), "--minutes", "0"], "--minutes must be a finite number > 0"),
+        ([str(tmp_path / "q.pt"), "--minutes", "1"], "use one of .safetensors"),
+        # refused before the work, not after it (inf crashed once the budget became steps; a huge seed overflowed
+        # torch's after the simulation; a folder was found when the weights were written)
+        ([str(tmp_path / "q.safetensors"), "--minutes", "inf"], "--minutes must be a finite number > 0"),
+        ([str(tmp_path / "q.safetensors"), "--minutes", "1", "--seed", str(2**64)], "--seed must be in"),
+        ([str(folder), "--minutes", "1", "--force"], "is a folder"),
+        ([str(link), "--minutes", "1"], "is a link to"),
     ):
         proc = subprocess.run(base + extra, capture_output=True, text=True, timeout=120)
-        assert proc.returncode == 2 and words in proc.stderr, proc.stderr
-    assert existing.read_bytes() == b"keep me"
+        assert proc.returncode == 2 and words in proc.stderr and len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert existing.read_bytes() == b"keep me" and link.is_symlink()
+
+
+def test_a_rerun_with_other_settings_is_refused_or_started_afresh(prepared, liver, tmp_path) -> None:
+    """A new --steps or --minutes was silently ignored: the work folder's plan was resumed as it was."""
+    out, card = prepared
+    args = (liver.vertices_mm, liver.triangles, liver.vertices_mm, out)
+    for minutes, steps, words in ((5.0, 40, "other --steps (it planned 100)"), (5.0, None, "this run fits the budget")):
+        with pytest.raises(LiverP2PError, match=re.escape(words)):
+            prepare_liver(*args, minutes, name="liver21", steps=steps, progress=False, size=SMALL)
+    # --force (fresh): the other preparation's folder is discarded and this one made from the start
+    other = tmp_path / "other.safetensors"
+    work = other.with_name(other.name + ".work")
+    work.mkdir()
+    (work / "plan.json").write_text(json.dumps({**json.loads((out.with_name(out.name + ".work") / "plan.json")
+                                                             .read_text()), "seed": 7}))  # fmt: skip
+    (work / "stale.txt").write_text("from the other preparation")
+    with pytest.raises(LiverP2PError, match="other --seed"):
+        prepare_liver(*args[:3], other, 5.0, name="liver21", steps=2, progress=False, size=SMALL)
+    card = prepare_liver(*args[:3], other, 5.0, name="liver21", steps=2, fresh=True, progress=False, size=SMALL)
+    assert card["steps"] == 2 and card["seed"] == 0 and not (work / "stale.txt").exists()
