@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+import os
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +21,13 @@ from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.pools import spawn_pool
 from liver_p2p_reg.registration.error_bound import FEATURES
 
+log = logging.getLogger(__name__)
+
 # Verdict reasons recorded per pose besides the bound itself (which the calibration decides afterwards).
 OTHER_REASONS = ("residual", "ambiguous", "uncertainty", "free_space")
+# Per-pose arrays of a collection besides the per-marker `errors` and `features` (stack_rows).
+POSE_KEYS = ("liver_id", "visibility", "method_visibility", "rms_mm", "ok", "reasons", "bound_ms", "deform_applied")
+CACHE_KEYS = ("set", "case_id", "noise_mm", "count", "errors", "features", *POSE_KEYS)
 
 
 def collect_set(folder: Path, noise_mm: float, config: Config, workers: int, progress: bool = True) -> dict:
@@ -125,7 +134,7 @@ def stack_rows(rows: list[dict[str, Any]], name: str, noise_mm: float) -> dict[s
         "errors": np.concatenate([r["errors"] for r in rows]) if rows else np.zeros(0),
         "features": np.concatenate([r["features"] for r in rows]) if rows else np.zeros((0, len(FEATURES))),
     }
-    for key in ("liver_id", "visibility", "method_visibility", "rms_mm", "ok", "reasons", "bound_ms", "deform_applied"):
+    for key in POSE_KEYS:
         out[key] = np.array([r[key] for r in rows])
     return out
 
@@ -148,9 +157,15 @@ def subset(data: dict[str, np.ndarray], poses: np.ndarray) -> dict[str, np.ndarr
 
 
 def save(path: Path, data: dict[str, np.ndarray]) -> Path:
-    """Write a collection as a compressed NPZ (no pickled objects)."""
+    """Write a collection as a compressed NPZ (no pickled objects), atomically: a run cut short leaves no
+    half-written cache that a later run would take for a finished one."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, **data)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:  # a file object: np.savez would append .npz to a name
+        np.savez_compressed(fh, **data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
     return path
 
 
@@ -158,3 +173,17 @@ def load(path: Path) -> dict[str, np.ndarray]:
     """Read a collection written by `save`."""
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
+
+
+def load_cached(path: Path) -> dict[str, np.ndarray] | None:
+    """A cached collection, or None (one warning line) when it is damaged: the set is then collected again."""
+    try:
+        data = load(path)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        log.warning("%s: unreadable cache (%s); collecting the set again", path, exc)
+        return None
+    missing = [k for k in CACHE_KEYS if k not in data]
+    if missing:
+        log.warning("%s: cache lacks %s; collecting the set again", path, ", ".join(missing))
+        return None
+    return data

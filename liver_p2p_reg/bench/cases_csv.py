@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import csv
+import io
+import logging
 import math
 import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 CASES_CSV = "cases.csv"
 # Columns before the per-stage runtimes / after them; per-stage columns are `runtime_<stage>_ms`.
@@ -75,7 +79,10 @@ def _format(value: Any) -> str:
 
 
 def _parse(column: str, text: str) -> Any:
+    """A cell as its column's type; ValueError when it is none (a row cut short or damaged)."""
     if column in BOOL_COLUMNS:
+        if text not in ("true", "false", ""):  # "" where a column does not apply (deform_applied of a rigid row)
+            raise ValueError(f"{column} {text!r} is not true or false")
         return text == "true"
     if column in INT_COLUMNS:
         return int(text) if text else 0
@@ -91,9 +98,34 @@ def columns_for(rows: Iterable[dict[str, Any]]) -> list[str]:
 
 
 def read_rows(path: Path) -> list[dict[str, Any]]:
-    """Rows of a cases.csv with typed values (floats, ints, bools)."""
+    """Rows of a cases.csv with typed values (floats, ints, bools); damaged rows are left out with one warning,
+    so a resumed run registers them again instead of trusting them."""
     with open(path, newline="") as fh:
-        return [{k: _parse(k, v) for k, v in row.items() if v is not None} for row in csv.DictReader(fh)]
+        text = fh.read()
+    cut = bool(text) and not text.endswith("\n")  # an append cut off mid-line (killed, disk full)
+    text = text[: text.rfind("\n") + 1]
+    rows, damaged = [], int(cut)
+    for row in csv.DictReader(io.StringIO(text, newline="")):
+        typed = _typed(row)
+        if typed is None:
+            damaged += 1
+        else:
+            rows.append(typed)
+    if damaged:
+        log.warning(
+            "%s: left out %d damaged row(s) (cut short or unparsable); a run registers them again", path, damaged
+        )
+    return rows
+
+
+def _typed(row: dict[str | None, Any]) -> dict[str, Any] | None:
+    """A row with typed values, or None when a column is missing, extra or unparsable or it names no case/method."""
+    if None in row or any(v is None for v in row.values()) or not row.get("case_id") or not row.get("method"):
+        return None
+    try:
+        return {k: _parse(k, v) for k, v in row.items() if k is not None}
+    except ValueError:
+        return None
 
 
 def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
@@ -124,7 +156,12 @@ class CsvLog:
             self.header = columns_for(self.rows)
             write_rows(self.path, self.rows)
             return
+        line = io.StringIO()
+        csv.writer(line).writerow(
+            [_format(row.get(c, math.nan if c.startswith("runtime_") else "")) for c in self.header]
+        )
+        # one write of the whole line, on disk before the next run starts: a kill leaves at most one cut line
         with open(self.path, "a", newline="") as fh:
-            csv.writer(fh).writerow(
-                [_format(row.get(c, math.nan if c.startswith("runtime_") else "")) for c in self.header]
-            )
+            fh.write(line.getvalue())
+            fh.flush()
+            os.fsync(fh.fileno())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -159,11 +160,29 @@ def build_jobs(spec: BenchmarkSpec) -> list[tuple[CaseInfo, Variant]]:
     return jobs
 
 
+def read_json(path: Path) -> dict[str, Any]:
+    """A JSON object a benchmark run recorded in its OUT; InputError naming the file when it is damaged."""
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path} is not readable JSON ({exc}); use a new --out or delete it") from None
+    if not isinstance(value, dict):
+        raise InputError(f"{path} holds no JSON object; use a new --out or delete it")
+    return value
+
+
+def _write_settings(path: Path, settings: dict[str, Any]) -> None:
+    """settings.json in one step: a run cut short never leaves a half-written one that locks the OUT."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(settings, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
 def check_settings(out: Path, settings: dict[str, Any]) -> None:
     """Refuse to mix runs with different settings in one OUT; record the settings of a new OUT."""
     path = out / SETTINGS_JSON
     if path.exists():
-        old = json.loads(path.read_text())
+        old = read_json(path)
         diffs = _diff(old, settings)
         if diffs:
             raise InputError(
@@ -176,12 +195,12 @@ def check_settings(out: Path, settings: dict[str, Any]) -> None:
                 settings[key] = bool(old.get(key, False) or settings[key])
             else:
                 settings[key] = max(old.get(key, 0), settings[key])
-        path.write_text(json.dumps(settings, indent=2, sort_keys=True) + "\n")
+        _write_settings(path, settings)
         return
     if (out / CASES_CSV).exists():
         raise InputError(f"{out / CASES_CSV} exists without {SETTINGS_JSON}; use a new --out")
     out.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(settings, indent=2, sort_keys=True) + "\n")
+    _write_settings(path, settings)
 
 
 def _diff(old: Any, new: Any, prefix: str = "") -> list[str]:

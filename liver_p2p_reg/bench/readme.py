@@ -13,16 +13,30 @@ def readme_markers(name: str = "BENCHMARK") -> tuple[str, str]:
     return f"<!-- {name}:START -->", f"<!-- {name}:END -->"
 
 
-def replace_readme_block(readme: Path, block: str, name: str = "BENCHMARK") -> None:
-    """Replace the text between the `name` markers of `readme` with `block`."""
+def _block_span(readme: Path, name: str) -> tuple[str, int, int]:
+    """The README's text and where its `name` block's markers start; InputError when unreadable or unmarked."""
     start_marker, end_marker = readme_markers(name)
+    if not readme.exists():
+        raise InputError(f"README {readme} does not exist")
     try:
         text = readme.read_text()
-    except OSError as exc:
-        raise InputError(f"cannot read {readme}: {exc.strerror or exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read {readme}: {getattr(exc, 'strerror', None) or exc}") from None
     start, end = text.find(start_marker), text.find(end_marker)
     if start < 0 or end < 0 or end < start:
         raise InputError(f"{readme} lacks the {start_marker} ... {end_marker} markers")
+    return text, start, end
+
+
+def check_readme(readme: str | Path, name: str = "BENCHMARK") -> None:
+    """Before the work: the README exists and holds the `name` block (not an error after hours of registrations)."""
+    _block_span(Path(readme), name)
+
+
+def replace_readme_block(readme: Path, block: str, name: str = "BENCHMARK") -> None:
+    """Replace the text between the `name` markers of `readme` with `block`."""
+    start_marker, _ = readme_markers(name)
+    text, start, end = _block_span(readme, name)
     new = text[: start + len(start_marker)] + "\n" + block.strip() + "\n" + text[end:]
     tmp = readme.with_name(readme.name + ".tmp")
     tmp.write_text(new)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shlex
 from pathlib import Path
 
@@ -119,6 +120,14 @@ def _command_line(args: argparse.Namespace, methods: list[str]) -> str:
     return " ".join(shlex.quote(p) for p in parts)
 
 
+def _check_readme(args: argparse.Namespace) -> None:
+    """--readme names a README holding the block's markers: checked before the run, not after it."""
+    from liver_p2p_reg.bench.readme import check_readme
+
+    if args.readme:
+        check_readme(args.readme, getattr(args, "readme_block", "BENCHMARK"))
+
+
 def _cuda_available() -> bool:
     try:
         import torch
@@ -172,8 +181,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"unknown method(s) {', '.join(unknown)}; choose from: {', '.join(benchmark_methods())}")
     if config.device == "cuda" and not _cuda_available():
         raise InputError("--device cuda: no CUDA device is available to torch here")
-    if args.readme and not Path(args.readme).is_file():
-        raise InputError(f"README {args.readme} does not exist")
+    _check_readme(args)
     if args.ablation_cases_per_bin < 1:
         raise InputError(f"--ablation-cases-per-bin must be >= 1, got {args.ablation_cases_per_bin}")
     if args.workers < 1:  # here too (the harness checks it), before the test set is generated
@@ -182,8 +190,9 @@ def run(args: argparse.Namespace) -> int:
 
     output_folder(args.out, "--out", inputs=given_paths(args.config, args.dataset))
     noise_levels = _noise_levels(args.noise_levels)
-    if args.prepare_minutes < 0:
-        raise InputError(f"--prepare-minutes must be >= 0, got {args.prepare_minutes}")
+    # NaN would be recorded in settings.json, and NaN != NaN refuses every later run into that OUT
+    if not (math.isfinite(args.prepare_minutes) and args.prepare_minutes >= 0):
+        raise InputError(f"--prepare-minutes must be a finite number >= 0, got {args.prepare_minutes}")
     plan = planned_cases(args.dataset, args.preset, args.limit)  # a named set: only the livers these cases need
     root = Path(args.data_root) if args.data_root else None
     folder, dataset_id = resolve_dataset(args.dataset, root, livers=plan[0] if plan else None)
@@ -245,11 +254,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dict, command: str) -> None:
-    from liver_p2p_reg.bench.jobs import SETTINGS_JSON
+    from liver_p2p_reg.bench.jobs import SETTINGS_JSON, read_json
     from liver_p2p_reg.bench.readme import relative_link, replace_readme_block
     from liver_p2p_reg.bench.summary import write_summary
 
-    settings = json.loads((out / SETTINGS_JSON).read_text())
+    settings = read_json(out / SETTINGS_JSON)
     summary = write_summary(out, rows, settings, machine, command)
     if args.readme:
         readme = Path(args.readme)
@@ -263,20 +272,19 @@ def _write_reports(args: argparse.Namespace, out: Path, rows: list, machine: dic
 def _summary_only(args: argparse.Namespace) -> int:
     """Rewrite the reports of an existing OUT; machine and command are those recorded by its last run."""
     from liver_p2p_reg.bench.cases_csv import CASES_CSV, read_rows
-    from liver_p2p_reg.bench.jobs import SETTINGS_JSON
+    from liver_p2p_reg.bench.jobs import SETTINGS_JSON, read_json
 
     out = Path(args.out)
     if not (out / CASES_CSV).is_file() or not (out / SETTINGS_JSON).is_file():
         raise InputError(f"--summary-only: {out} holds no benchmark run ({CASES_CSV}, {SETTINGS_JSON})")
-    if args.readme and not Path(args.readme).is_file():
-        raise InputError(f"README {args.readme} does not exist")
+    _check_readme(args)
     machine_path = out / "machine.json"
     if machine_path.is_file():
-        machine = json.loads(machine_path.read_text())
+        machine = read_json(machine_path)
     else:  # a run from before machine.json existed: describe this machine, as the run likely used it
         from liver_p2p_reg.bench.sysinfo import machine_info
 
-        settings = json.loads((out / SETTINGS_JSON).read_text())
+        settings = read_json(out / SETTINGS_JSON)
         machine = {**machine_info(settings.get("config", {}).get("device", "cpu")), "note": "recorded at summary time"}
     command = machine.pop("command", "")
     _write_reports(args, out, read_rows(out / CASES_CSV), machine, command)

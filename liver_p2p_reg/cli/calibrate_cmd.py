@@ -111,8 +111,7 @@ def run(args: argparse.Namespace) -> int:
     elif out.exists() and not args.force:
         raise InputError(f"{out} exists and differs from this calibration; give --force to replace it")
     else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text)
+        _write_atomic(out, text)
         print(f"wrote {out}")
     if args.judge:
         _judge(args, config, weights, read_calibration(out))
@@ -123,19 +122,80 @@ def _check_args(args: argparse.Namespace) -> None:
     """The numbers and paths checked before any registration: one line each, not an error after minutes of work."""
     import math
 
-    from liver_p2p_reg.cli.output_paths import given_paths, output_folder, refuse_inputs
-
     if not (math.isfinite(args.noise_mm) and args.noise_mm >= 0):
         raise InputError(f"--noise-mm must be a finite number >= 0, got {args.noise_mm}")
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
+    _check_sets(args.val, "--val")
+    _check_sets(args.judge, "--judge")
+    for option, value in (("--readme", args.readme), ("--report", args.report)):
+        if value and not args.judge:  # both are written from the judged test sets only
+            raise InputError(f"{option} writes the judged results: give --judge DIR... too")
+    _check_outputs(args)
+
+
+def _check_sets(folders: list[str], option: str) -> None:
+    """Each set a folder of cases, given once: a set's poses are keyed by its folder's name, so a repeat (or
+    another folder of the same name) would count its poses twice."""
+    from liver_p2p_reg.bench.cases import list_case_paths
+
+    seen: dict[str, str] = {}
+    for given in folders:
+        folder = Path(given)
+        if not folder.is_dir():
+            raise InputError(f"{folder} is not a folder of cases (make it with liver-p2p dataset)")
+        for key in (str(folder.resolve()), folder.name):
+            if key in seen:
+                raise InputError(f"{option} names {seen[key]} and {given}: give each set once, under its own name")
+            seen[key] = given
+        list_case_paths(folder)  # one line now when it holds no case, not after the other sets' registrations
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """--cache, --out, --report and --readme: none an input nor inside a set's folder, an existing --report
+    only with --force, the README with its block's markers; all before the registrations."""
+    from liver_p2p_reg.bench.readme import check_readme
+    from liver_p2p_reg.cli.output_paths import distinct_outputs, given_paths, output_file, output_folder, refuse_inputs
+
     inputs = given_paths(args.val, args.judge, args.config)
+    sets = [Path(d) for d in [*args.val, *args.judge]]
     output_folder(args.cache, "--cache", inputs=inputs)
-    if args.out:
-        out = Path(args.out)
+    _outside_sets(Path(args.cache), "--cache", sets)
+    out = Path(args.out) if args.out else None
+    if out is not None:
         if out.is_dir():
             raise InputError(f"--out {out} is a folder; give the calibration file's path (.json)")
         refuse_inputs(out, "--out", inputs)
+        _outside_sets(out, "--out", sets)
+    if args.report:  # before output_file: --force replaces an earlier page, never a set's file
+        _outside_sets(Path(args.report), "--report", sets)
+    report = output_file(args.report, args.force, "--report", inputs=inputs)
+    if args.readme:
+        check_readme(args.readme, "ERROR_BOUND_DEFORMED" if args.deformed else "ERROR_BOUND")
+        refuse_inputs(Path(args.readme), "--readme", inputs)
+    readme = Path(args.readme) if args.readme else None
+    if args.judge and report is None:  # the default page is written too
+        report = DEFORMED_RESULTS_PAGE if args.deformed else RESULTS_PAGE
+    distinct_outputs({"--out": [out], "--report": [report], "--readme": [readme]})
+
+
+def _outside_sets(path: Path, option: str, sets: list[Path]) -> None:
+    """An output never lands in a set's folder: it would replace its files or be read as one of its cases."""
+    for folder in sets:
+        try:
+            inside = path.resolve().is_relative_to(folder.resolve())
+        except (OSError, RuntimeError):  # RuntimeError: a symlink loop
+            continue
+        if inside:
+            raise InputError(f"{option} {path} is inside {folder}, a set this command reads; choose another path")
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    """Write a file in one step: a run cut short never leaves half a calibration or page."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def _applied(data: dict, args: argparse.Namespace) -> dict:
@@ -158,14 +218,26 @@ def _collected(folder: Path, args: argparse.Namespace, config: Config, weights: 
 
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder of cases (make it with liver-p2p dataset)")
-    key = json.dumps([config.to_dict(), weights, FEATURES, args.noise_mm, [p.name for p in list_case_paths(folder)]])
+    # keyed by the cases' content, not their names: a set regenerated under the same names is registered again
+    cases = [[p.name, _file_sha256(p)] for p in list_case_paths(folder)]
+    key = json.dumps([config.to_dict(), weights, FEATURES, args.noise_mm, cases])
     stamp = hashlib.sha256(key.encode()).hexdigest()[:16]
     cache = Path(args.cache) / f"{folder.name}-noise{args.noise_mm:g}mm-{stamp}.npz"
-    if cache.exists():
-        return bound_data.load(cache)
+    cached = bound_data.load_cached(cache) if cache.exists() else None
+    if cached is not None:
+        return cached
     data = bound_data.collect_set(folder, args.noise_mm, config, args.workers, progress=sys.stderr.isatty())
     bound_data.save(cache, data)
     return data
+
+
+def _file_sha256(path: Path) -> str:
+    """The SHA-256 of a case file's bytes (read in blocks: a set is hundreds of MB)."""
+    try:
+        with open(path, "rb") as fh:
+            return hashlib.file_digest(fh, "sha256").hexdigest()
+    except OSError as exc:
+        raise InputError(f"cannot read case {path}: {exc.strerror or exc}") from None
 
 
 def _judge(args: argparse.Namespace, config: Config, weights: str, calibration) -> None:
@@ -189,8 +261,7 @@ def _judge(args: argparse.Namespace, config: Config, weights: str, calibration) 
         args.deformed,
         link,
     )
-    report.parent.mkdir(parents=True, exist_ok=True)
-    report.write_text(page)
+    _write_atomic(report, page)
     print(f"wrote {report}")
     if args.readme:
         name = "ERROR_BOUND_DEFORMED" if args.deformed else "ERROR_BOUND"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -89,7 +90,8 @@ def read_case(path: str | Path) -> dict:
     try:
         with np.load(path, allow_pickle=False) as data:
             raw = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
+    # BadZipFile: a bad CRC or a cut archive; zlib.error / EOFError: a damaged compressed member
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise InputError(f"{path}: not a readable case NPZ ({exc})") from exc
     for key in ("src_pcd", "tgt_pcd"):
         if key not in raw:
@@ -110,4 +112,28 @@ def read_case(path: str | Path) -> dict:
             case[ours] = case[theirs]
     if "t_gt" in case and np.size(case["t_gt"]) == 3:
         case["t_gt"] = np.asarray(case["t_gt"], dtype=np.float64).reshape(3)
+    _check_markers(path, case)
+    _check_visibility(path, case)
     return case
+
+
+def _check_markers(path: Path, case: dict) -> None:
+    """Source and target markers pair up, one (x, y, z) each: else every error computed from them is wrong."""
+    if "src_marker" not in case or "tgt_marker" not in case:
+        return  # the readers that need them say so
+    src, tgt = np.shape(case["src_marker"]), np.shape(case["tgt_marker"])
+    if len(src) != 2 or src[1] != 3 or src != tgt:
+        raise InputError(f"{path}: src_marker {src} and tgt_marker {tgt} must both be (N, 3) with the same N")
+
+
+def _check_visibility(path: Path, case: dict) -> None:
+    """A stored visibility is a share of the surface; NaN stays allowed (unknown, as when the key is absent)."""
+    value = case.get("visibility")
+    if value is None:
+        return
+    try:
+        share = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: visibility must be a number in [0, 1], got {value!r}") from None
+    if not (np.isnan(share) or 0 <= share <= 1):
+        raise InputError(f"{path}: visibility must lie in [0, 1], got {share:g}")

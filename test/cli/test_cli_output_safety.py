@@ -170,10 +170,13 @@ def test_config_and_calibration_outputs_are_checked_before_any_work(tmp_path, ca
     mine.write_text("k: 4\n")
     rc, err = _run(["config", "--config", mine, "--write", mine, "--force"], capsys)
     assert rc == 2 and "is an input" in err and mine.read_text() == "k: 4\n"
+    val = tmp_path / "val"  # a set of one case (its name is all these checks read)
+    val.mkdir()
+    (val / "case.npz").write_bytes(b"")
     for extra, message in ((["--noise-mm", "nan"], "--noise-mm"), (["--noise-mm", "-1"], "--noise-mm"),
                            (["--seed", "-1"], "--seed"), (["--out", tmp_path], "is a folder"),
                            (["--cache", mine], "is a file")):  # fmt: skip
-        rc, err = _run(["calibrate-bound", "--val", tmp_path, *extra], capsys)
+        rc, err = _run(["calibrate-bound", "--val", val, *extra], capsys)
         assert rc == 2 and message in err, extra
 
 
