@@ -158,7 +158,7 @@ class VerdictSection:
     # per-point error bounds (error_bound.py), calibrated by `liver-p2p calibrate-bound` on validation sets:
     error_coverage: float = 0.9  # the share of true positions each bound contains (one the calibration holds)
     structure_error_warn_mm: float = 10.0  # a structure's (no structures: the interior's) bound above this -> WARN
-    error_calibration_path: str = ""  # empty: the calibration bundled with the package
+    error_calibration_path: str = ""  # empty: the calibrations bundled with the package (single views; survey frames)
 
 
 @dataclass

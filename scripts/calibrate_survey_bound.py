@@ -1,18 +1,23 @@
-"""The deformed positions' error bound for survey mode: split-conformal quantiles on fused-survey fits of validation
-sweeps, judged on test sweeps.
+"""Survey mode's error bounds: split-conformal quantiles on survey-mode frames of validation sweeps, judged on test
+sweeps; of the deformed positions where the stage fitted the fused survey (`--positions deformed`), or of the rigid
+pose of the frames tracked on the fused survey (`--positions rigid`).
 
-    .venv/bin/python scripts/calibrate_survey_bound.py [--frames 70] [--out out/survey_bound] \
+    .venv/bin/python scripts/calibrate_survey_bound.py [--positions deformed] [--frames 70] [--out out/survey_bound] \
         [--write liver_p2p_reg/weights/error_bound_deformed_survey_v1.json] [--readme docs/results/survey_deform.md]
+    .venv/bin/python scripts/calibrate_survey_bound.py --positions rigid \
+        [--write liver_p2p_reg/weights/error_bound_survey_v1.json] [--readme docs/results/survey_deform.md]
 
 Why: the stage on a fused survey is far more accurate than on one view, and the frame's pose evidence does not
 show it: the single-view calibration's bound (`error_bound_deformed_v1.json`) over-covers those fits (the judged
-table's `single views` rows).
+table's `single views` rows). The same holds for the rigid pose of a frame tracked on the fused survey (method
+`evaluate`, scored on the frame alone): the single-view `error_bound_v1.json` over-covered it.
 
 Calibration: the deformed calibration's livers of the validation split (those that calibrated its quantiles, not
 those that fitted its scale model: 4 real, 3 procedural), two FEM deformations each, one simulated 70-frame sweep per
 deformation (`survey_real_sweeps.real_sweep`'s camera, depth noise, flying pixels), fed to the node core in survey
-mode with the stage fitting the fused survey. Every frame where the stage was applied to the survey is one pose;
-the scale model (its coefficients) is the deformed calibration's, unchanged; the quantiles are new, one group (the
+mode with the stage fitting the fused survey. Every frame where the stage was applied to the survey is one pose
+(rigid: every frame whose pose was tracked on the fused survey, the stage off: the same poses);
+the scale model (its coefficients) is the single-view calibration's, unchanged; the quantiles are new, one group (the
 frame's own visibility does not tell how much of the organ the survey holds), each sweep weighing the same.
 Judged: the 8 real test livers, one deformation per family (FEM and ARAP, which the stage does not model), the
 same sweeps as `survey_real_sweeps.py`; the single-view bound beside the survey bound.
@@ -36,29 +41,45 @@ from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.phantom.real import load_real_liver, real_split
 from liver_p2p_reg.registration.error_calibration import (
+    BUNDLED_CALIBRATION,
     BUNDLED_DEFORMED_CALIBRATION,
     BUNDLED_SURVEY_CALIBRATION,
+    BUNDLED_SURVEY_RIGID_CALIBRATION,
+    DEFORMED,
+    RIGID,
     SURVEY,
+    SURVEY_TRACKED_METHOD,
     deform_settings,
     read_calibration,
 )
+from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.weights_id import weights_sha256
 
-MARK = "SURVEY-BOUND"
+# per kind of positions: the single-view calibration it starts from, the survey one it writes, its results block,
+# and the prefix of its cached collections
+POSITIONS = {
+    DEFORMED: (BUNDLED_DEFORMED_CALIBRATION, BUNDLED_SURVEY_CALIBRATION, "SURVEY-BOUND", ""),
+    RIGID: (BUNDLED_CALIBRATION, BUNDLED_SURVEY_RIGID_CALIBRATION, "SURVEY-RIGID-BOUND", "rigid_"),
+}
 DEFORMATIONS_PER_LIVER = 2  # calibration sweeps per validation liver
 
 
-def survey_poses(sweep: dict, sweep_id: int) -> list[dict]:
-    """Per frame where the stage fitted the fused survey: the deformed positions' errors at the interior markers and
-    the bound's features there (the frame's pose evidence), as `bound_data` rows."""
+def survey_poses(sweep: dict, sweep_id: int, positions: str = DEFORMED) -> list[dict]:
+    """Per frame where the stage fitted the fused survey (rigid: per frame tracked on the fused survey): the
+    positions' errors at the interior markers and the bound's features there (the frame's pose evidence), as
+    `bound_data` rows."""
     rows = []
-    for k, output, fid_t in survey_outputs(sweep, fused=True):
-        if output.deformed_preop_mm is None:
-            continue
-        if output.diagnostics[0].values.get("deform_view") != SURVEY:
-            continue
+    for k, output, fid_t in survey_outputs(sweep, fused=True, deform=positions == DEFORMED):
         result = output.result
-        err = np.linalg.norm(result.deformation.deformed_position_mm(sweep["fiducials"]) - fid_t, axis=1)
+        if positions == RIGID:
+            if result.method != SURVEY_TRACKED_METHOD or result.error_model is None:
+                continue
+            moved = transform_points(result.T_target_source, sweep["fiducials"])
+        elif output.deformed_preop_mm is None or output.diagnostics[0].values.get("deform_view") != SURVEY:
+            continue
+        else:
+            moved = result.deformation.deformed_position_mm(sweep["fiducials"])
+        err = np.linalg.norm(moved - fid_t, axis=1)
         rows.append(
             {
                 "case_id": f"{sweep_id}:{k}",
@@ -68,7 +89,7 @@ def survey_poses(sweep: dict, sweep_id: int) -> list[dict]:
                 "ok": True,
                 "reasons": "",
                 "bound_ms": np.nan,
-                "deform_applied": True,
+                "deform_applied": positions == DEFORMED,
                 "errors": err,
                 "features": result.error_model.evidence.features(sweep["fiducials"]),
                 "rms_mm": float(np.sqrt(np.mean(err**2))),
@@ -77,14 +98,14 @@ def survey_poses(sweep: dict, sweep_id: int) -> list[dict]:
     return rows
 
 
-def collect(path: Path, livers: list[int], family: str, n_deformations: int, n_frames: int) -> dict:
+def collect(path: Path, livers: list[int], family: str, n_deformations: int, n_frames: int, positions: str) -> dict:
     """The survey poses of every sweep over `livers` (cached at `path`), with `sweep` (its index) per pose."""
     if path.exists():
         return bound_data.load(path)
     rows, sweep_of, n_sweeps = [], [], 0
     for liver_id in tqdm(livers, desc=f"{path.stem}", unit="liver"):
         for sweep in liver_sweeps(liver_id, family, n_deformations, n_frames):
-            poses = survey_poses(sweep, n_sweeps)
+            poses = survey_poses(sweep, n_sweeps, positions)
             rows += poses
             sweep_of += [n_sweeps] * len(poses)
             n_sweeps += 1
@@ -100,19 +121,20 @@ def sweep_weights(data: dict) -> np.ndarray:
 
 
 def fit(data: dict, single: dict) -> dict:
-    """The survey calibration (JSON-ready): the single-view deformed calibration with one group's new quantiles."""
+    """The survey calibration (JSON-ready): the single-view calibration with one group's new quantiles."""
     coef = np.asarray(single["coefficients"], float)
     point, pose = scores(data, coef)
     w_pose = sweep_weights(data)
     w_point = np.repeat(w_pose / data["count"], data["count"])
     n = len(pose)
-    config = Config(mode="survey", deform=True)  # what the sweeps ran with (survey_outputs)
+    deformed = single.get("positions") == DEFORMED
+    config = Config(mode="survey", deform=deformed)  # what the sweeps ran with (survey_outputs)
     out = dict(single)
     out.update(
         {
             "method": config.method,
             "weights_sha256": weights_sha256(config),
-            "deform": deform_settings(config),
+            **({"deform": deform_settings(config)} if deformed else {}),
             "left_out_failed_poses": 0,  # a frame without a pose has no survey fit to bound
             "visibility_edges": [],
             "point_quantiles": [[conformal_quantile(point, w_point, c, n) for c in COVERAGES]],
@@ -146,38 +168,45 @@ def judged(data: dict, calibration, coverage: float = 0.9) -> tuple[float, tuple
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--positions", choices=sorted(POSITIONS), default=DEFORMED)
     parser.add_argument("--frames", type=int, default=70)
     parser.add_argument("--out", default="out/survey_bound", help="cache of the collected poses")
     parser.add_argument("--write", help="write the calibration JSON here (the bundled file is the default's)")
     parser.add_argument("--readme", help="write the judgement block into this markdown file")
     args = parser.parse_args(argv)
-    single = json.loads(Path(BUNDLED_DEFORMED_CALIBRATION).read_text())
+    single_path, bundled, mark, prefix = POSITIONS[args.positions]
+    deformed = args.positions == DEFORMED
+    single = json.loads(Path(single_path).read_text())
     out = Path(args.out)
     cal = collect(
-        out / f"val_fem_{args.frames}.npz",
+        out / f"{prefix}val_fem_{args.frames}.npz",
         [int(v) for v in single["calibration_livers"]],
         "fem",
         DEFORMATIONS_PER_LIVER,
         args.frames,
+        args.positions,
     )
     survey = fit(cal, single)
     survey["provenance"] = {
         "summary": (
             f"survey-mode fits of {len(set(cal['sweep'].tolist()))} simulated {args.frames}-frame sweeps (FEM, "
-            f"{DEFORMATIONS_PER_LIVER} per validation liver of the deformed calibration's quantile half: "
-            f"{survey['calibration_livers']}), {len(cal['count'])} frames where the stage fitted the fused survey; "
-            "scale model of error_bound_deformed_v1.json"
+            f"{DEFORMATIONS_PER_LIVER} per validation liver of the {'deformed ' if deformed else ''}calibration's "
+            f"quantile half: {survey['calibration_livers']}), {len(cal['count'])} frames "
+            + ("where the stage fitted the fused survey" if deformed else "tracked on the fused survey")
+            + f"; scale model of {Path(single_path).name}"
         ),
-        "command": "scripts/calibrate_survey_bound.py",
+        "command": "scripts/calibrate_survey_bound.py" + ("" if deformed else " --positions rigid"),
         "date": time.strftime("%Y-%m-%d", time.gmtime()),
     }
     if args.write:
         Path(args.write).write_text(json.dumps(survey, indent=1) + "\n")
     test_ids = [load_real_liver(s).seed for s in real_split()["test"]]
-    new = read_calibration(args.write) if args.write else read_calibration("", BUNDLED_SURVEY_CALIBRATION)
-    old = read_calibration("", BUNDLED_DEFORMED_CALIBRATION)
+    new = read_calibration(args.write) if args.write else read_calibration("", bundled)
+    old = read_calibration("", single_path)
     lines = [
-        f"Command: `.venv/bin/python scripts/calibrate_survey_bound.py --frames {args.frames}"
+        f"Command: `.venv/bin/python scripts/calibrate_survey_bound.py"
+        + ("" if deformed else " --positions rigid")
+        + f" --frames {args.frames}"
         + (f" --write {args.write}" if args.write else "")
         + "`",
         "",
@@ -185,22 +214,23 @@ def main(argv: list[str] | None = None) -> int:
         f"interior {survey['pose_quantiles'][0][1]:.2f} (the single-view calibration's: "
         f"{', '.join(f'{q[1]:.2f}' for q in single['pose_quantiles'])} per visibility group).",
         "",
-        f"Judged on the {len(test_ids)} real test livers, one sweep per family (the frames where the stage fitted the "
-        "fused survey); 90 % bound, each sweep weighing the same:",
+        f"Judged on the {len(test_ids)} real test livers, one sweep per family ("
+        + ("the frames where the stage fitted the fused survey" if deformed else "the frames tracked on the fused survey")
+        + "); 90 % bound, each sweep weighing the same:",
         "",
         "| family | frames | bound | marker coverage [95 % interval over sweeps] | interior coverage | median bound "
         "| median interior error | ratio |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for family in ("fem", "arap"):
-        data = collect(out / f"test_{family}_{args.frames}.npz", test_ids, family, 1, args.frames)
+        data = collect(out / f"{prefix}test_{family}_{args.frames}.npz", test_ids, family, 1, args.frames, args.positions)
         for name, calibration in (("single views", old), ("survey", new)):
             point_cov, (lo, hi), pose_cov, bound, err = judged(data, calibration)
             lines.append(
                 f"| {family.upper()} | {len(data['count'])} | {name} | {100 * point_cov:.1f} % [{100 * lo:.1f}, "
                 f"{100 * hi:.1f}] | {100 * pose_cov:.1f} % | {bound:.2f} mm | {err:.2f} mm | {bound / err:.2f} |"
             )
-    write_headline(lines[0], lines[2:], args.readme, MARK)
+    write_headline(lines[0], lines[2:], args.readme, mark)
     return 0
 
 

@@ -74,10 +74,10 @@ def real_sweep(stem: str, family: str, n_frames: int) -> dict:
     return liver_sweeps(load_real_liver(stem).seed, family, 1, n_frames)[0]
 
 
-def survey_outputs(sweep: dict, fused: bool) -> Iterator[tuple[int, CoreOutput, np.ndarray]]:
+def survey_outputs(sweep: dict, fused: bool, deform: bool = True) -> Iterator[tuple[int, CoreOutput, np.ndarray]]:
     """Each frame that got a pose from the node core (survey mode, `deform` on, the stage fitting the fused survey or
-    the frame): its index, the output and the frame's true fiducials."""
-    core = NodeCore(Config(mode="survey", deform=True, survey_deform_fused=fused))
+    the frame; with `deform` off the same rigid poses): its index, the output and the frame's true fiducials."""
+    core = NodeCore(Config(mode="survey", deform=deform, survey_deform_fused=fused))
     core.set_preop_mesh(sweep["vertices"], sweep["triangles"], "ct", 5)
     core.set_preop(sweep["vertices"], "ct", 5)
     core.set_preop_fiducials(sweep["fiducials"], 5)

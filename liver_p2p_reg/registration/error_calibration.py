@@ -20,6 +20,10 @@ BUNDLED_DEFORMED_CALIBRATION = BUNDLED_CALIBRATION.with_name("error_bound_deform
 # ... and where the stage fitted survey mode's fused sweep (scripts/calibrate_survey_bound.py): far more accurate
 # than on one view, which the frame's pose evidence does not show
 BUNDLED_SURVEY_CALIBRATION = BUNDLED_CALIBRATION.with_name("error_bound_deformed_survey_v1.json")
+# ... and the rigid pose of a frame tracked on survey mode's fused surface (scored on the frame alone by
+# SURVEY_TRACKED_METHOD): more accurate than a single view's global registration, which its evidence does not show
+BUNDLED_SURVEY_RIGID_CALIBRATION = BUNDLED_CALIBRATION.with_name("error_bound_survey_v1.json")
+SURVEY_TRACKED_METHOD = "evaluate"
 RIGID, DEFORMED = "rigid", "deformed"  # which positions a calibration's errors were measured at
 FRAME, SURVEY = "frame", "survey"  # what the non-rigid stage fitted: one frame, or survey mode's fused surface
 FORMAT = "liver_p2p_reg error-bound calibration"
@@ -39,7 +43,7 @@ class BoundCalibration:
     provenance: dict[str, Any]  # data, seed, command: what `liver-p2p calibrate-bound` recorded
     positions: str = RIGID  # RIGID: the pose's; DEFORMED: the non-rigid stage's (of `deform` settings)
     deform: dict[str, Any] | None = None  # the non-rigid stage's settings a DEFORMED calibration ran with
-    view: str = FRAME  # a DEFORMED calibration's fits: of single frames, or of fused surveys
+    view: str = FRAME  # the poses or fits it was made of: of single frames, or survey mode's (fused surveys)
 
     def scale_mm(self, features: np.ndarray) -> np.ndarray:
         """Predicted error scale (mm) of each row of features; inf where a feature is not finite."""
@@ -161,12 +165,29 @@ def attach_error_model(
     result.error_calibration_note = calibration_note(calibration, result.method, config)
 
 
+def use_survey_calibration(result: Any, config: Any) -> None:
+    """Re-bound a frame's pose tracked on survey mode's fused surface with the bundled survey calibration (the same
+    evidence, its quantiles); a user's own `error_calibration_path` is kept as it is."""
+    if result.error_model is None or config.error_calibration_path:
+        return
+    try:  # a missing or damaged bundled file leaves the single-view bound, said, never the pose without one
+        calibration = read_calibration("", BUNDLED_SURVEY_RIGID_CALIBRATION)
+        calibration.column(config.error_coverage)
+    except InputError as exc:
+        result.error_calibration_note = f"single-view error bound on a survey frame: {exc}"
+        return
+    model = ErrorModel(result.error_model.evidence, calibration, config.error_coverage)
+    result.error_model = model
+    result.error_bound_mm = model.pose_bound_mm()
+    result.error_calibration_note = calibration_note(calibration, result.method, config)
+
+
 def calibration_note(calibration: BoundCalibration, method: str, config: Any) -> str:
     """Why a calibration's coverage is not known for this method and weights ("" when it is)."""
     # Not a WARN: the bound is still the best estimate there is; the user is told it is not a calibrated one.
     # A tracked pose is the calibrated method's ICP refinement from the previous pose: its calibration holds.
     # A survey calibration was made of survey mode's frames, its tracked ones scored by `evaluate` among them.
-    if method not in (calibration.method, "track", *(("evaluate",) if calibration.view == SURVEY else ())):
+    if method not in (calibration.method, "track", *((SURVEY_TRACKED_METHOD,) if calibration.view == SURVEY else ())):
         return f"error bound calibrated for {calibration.method}, not {method}: its coverage is not known"
     if calibration.weights_sha256 and weights_sha256(config) != calibration.weights_sha256:
         return (

@@ -20,6 +20,7 @@ from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.confidence import pose_warnings
+from liver_p2p_reg.registration.error_calibration import SURVEY_TRACKED_METHOD, use_survey_calibration
 from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.registration.preprocess import statistical_inliers, voxel_keys
 from liver_p2p_reg.registration.refine import source_search_index, trimmed_icp
@@ -119,7 +120,7 @@ class Survey:
             # Frame to fused surface: the sensor moves rigidly over a still organ, so the frames
             # agree with one another better than each agrees with the preop model (deformation).
             T = self._track(preop_mm, points_mm)
-            tracked = self.registrar.register(preop_mm, points_mm, method="evaluate", initial_T_mm=T, **fid)
+            tracked = self._score(preop_mm, points_mm, T, fid)
             problem = self._tracking_problem(tracked)
             if not problem:
                 result = self._fuse(preop_mm, points_mm, tracked, fid)
@@ -194,9 +195,15 @@ class Survey:
         self.fused.transform(np.linalg.inv(C))
         self.registrations += 1
         self.registered_visibility = self.visibility
-        corrected = self.registrar.register(preop_mm, points_mm, method="evaluate", initial_T_mm=self.T_mm @ C, **fid)
+        corrected = self._score(preop_mm, points_mm, self.T_mm @ C, fid)
         self.T_mm = np.asarray(corrected.T_target_source, dtype=np.float64)
         return corrected
+
+    def _score(self, preop_mm: np.ndarray, points_mm: np.ndarray, T_mm: np.ndarray, fid: dict) -> RegistrationResult:
+        """The frame's result at a pose found on the fused surface, its bound of survey mode's calibration."""
+        result = self.registrar.register(preop_mm, points_mm, method=SURVEY_TRACKED_METHOD, initial_T_mm=T_mm, **fid)
+        use_survey_calibration(result, self.config)
+        return result
 
     def _tracking_problem(self, tracked: RegistrationResult) -> str:
         """Why a tracked frame cannot be fused ("" when it can)."""

@@ -72,6 +72,32 @@ def test_survey_fusion_grows_visibility_on_a_sweep_bag_and_resets(sweep) -> None
     assert float(diag.values["survey_visibility"]) < visibility[-1] - 0.15
 
 
+def test_frames_tracked_on_the_survey_get_the_survey_calibrations_bound(sweep) -> None:
+    """The global first frame keeps the single-view bound; tracked frames get survey mode's own, with no note; a
+    user's calibration applies to every frame as it is (and says it was made for another method)."""
+    from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION
+
+    runs = {}
+    for path in ("", str(BUNDLED_CALIBRATION)):
+        core = NodeCore(Config(mode="survey", error_calibration_path=path))
+        assert core.set_preop(sweep["preop"]).level == OK
+        core.set_preop_fiducials(sweep["preop_fiducials"])
+        runs[path] = [feed(core, sweep, k, float(i)) for i, k in enumerate(range(0, 12, 4))]
+    first, *tracked = runs[""]
+    assert first[0].result.method != "evaluate" and first[0].result.error_model.calibration.view == "frame"
+    for output, diag in tracked:
+        result = output.result
+        assert result.method == "evaluate" and result.error_model.calibration.view == "survey"
+        assert result.error_calibration_note == "" and "error_calibration_note" not in diag.values
+        assert float(diag.values["error_bound_mm"]) == pytest.approx(result.error_bound_mm, rel=1e-3)
+    for (output, _), (theirs, diag) in zip(tracked, runs[str(BUNDLED_CALIBRATION)][1:], strict=True):
+        assert np.array_equal(output.pose.T_sensor_ct_mm, theirs.pose.T_sensor_ct_mm)  # the bound only
+        assert theirs.result.error_model.calibration.view == "frame"
+        assert "not evaluate" in diag.values["error_calibration_note"]
+        # the survey's calibration is tighter on these frames (its judged coverage: docs/results/survey_deform.md)
+        assert output.result.error_bound_mm < theirs.result.error_bound_mm
+
+
 def test_a_tracking_failure_stops_fusion_with_a_diagnostic(sweep) -> None:
     core = survey_core(sweep)
     for i, k in enumerate((0, 3, 6)):
