@@ -10,14 +10,9 @@ DEVICES = ("cpu", "cuda")
 # Lower bounds of the numeric fields that have nothing but a lower bound.
 MINIMUMS: dict[str, float] = {
     "min_points": 3,
-    "outlier_neighbors": 3,
     "max_patch_rows": 0,
-    "consensus_seeds": 0,
-    "refit_iterations": 0,
     "icp_max_points": 100,
-    "refine_candidates": 1,
     "screen_icp_points": 100,
-    "screen_icp_iterations": 1,
     "track_residual_ratio": 1,
     "track_max_frames": 1,
     "survey_max_points": 1000,
@@ -29,25 +24,36 @@ MINIMUMS: dict[str, float] = {
     "free_space_warn": 0,
     "record_max_mb": 0,
     "stale_after_s": 0.1,
-    "deform_modes": 1,
-    "deform_target_tets": 60,
     "deform_regularization": 0,
-    "deform_iterations": 1,
     "deform_min_points": 3,
     "deform_max_residual_mm": 0,
     "deform_max_displacement_mm": 0,
     "seed": 0,  # NumPy generators (mesh sampling, crops) refuse negative seeds
     "outlier_std_ratio": 0,  # 0 disables the outlier filter
     "max_input_points": 1000,
-    "icp_max_iterations": 1,
-    "ransac_max_iterations": 1,
     "ambiguity_pose_mm": 0,
     "ambiguity_residual_ratio": 1,
 }
 # Open3D's random.seed() (RANSAC, FGR) takes a C int: a larger seed would pass NumPy and fail mid-registration.
 MAX_SEED = 2**31 - 1
 # [low, high] of integer settings: threads per registration (torch, Open3D), P2P patches (the default 5)
-CLOSED: dict[str, tuple[int, int]] = {"num_threads": (0, 256), "open3d_threads": (1, 256), "k": (1, 64)}
+CLOSED: dict[str, tuple[int, int]] = {
+    "num_threads": (0, 256),
+    "open3d_threads": (1, 256),
+    "k": (1, 64),
+    # counts of work per registration: a huge one held the node's worker for minutes (deform_target_tets 1e6:
+    # 3 GB and no answer to ~/reregister) or ran out of memory (outlier_neighbors: a k-NN table of k per point)
+    "outlier_neighbors": (3, 256),
+    "consensus_seeds": (0, 4096),
+    "refit_iterations": (0, 100),
+    "refine_candidates": (1, 256),
+    "screen_icp_iterations": (1, 1000),
+    "icp_max_iterations": (1, 1000),
+    "ransac_max_iterations": (1, 10_000_000),
+    "deform_modes": (1, 256),
+    "deform_target_tets": (60, 50_000),  # 60000: 43 s to build here; the target is <= 10 s at 20k vertices
+    "deform_iterations": (1, 1000),
+}
 # (low, high] of fractions, and of lengths in normalized units (the organ fits in the unit sphere; a voxel above
 # 0.5 leaves a handful of points)
 HALF_OPEN: dict[str, tuple[float, float]] = {

@@ -22,6 +22,7 @@ from liver_p2p_reg.ros.pointcloud2 import (
 )
 from liver_p2p_reg.ros.topics import TOPIC_PREOP_MESH, TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS
 from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.deformation import MAX_MESH_TRIANGLES
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, PREOP_DIAG_NAME, WARN, Diagnostic, PoseOutput
 from liver_p2p_reg.structures_io import PlacedStructure, Structure
 
@@ -43,6 +44,8 @@ def mesh_marker_mm(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     Equal corners become one vertex. InputError (one line) when the marker is not such a mesh."""
     if int(msg.type) != MARKER_TRIANGLE_LIST:
         raise InputError(f"marker type {msg.type} is not TRIANGLE_LIST ({MARKER_TRIANGLE_LIST})")
+    if len(msg.points) > 3 * MAX_MESH_TRIANGLES:  # before welding: seconds of the executor's time per million
+        raise InputError(f"{len(msg.points) // 3} triangles (more than {MAX_MESH_TRIANGLES}); decimate the mesh")
     corners = np.array([(p.x, p.y, p.z) for p in msg.points], dtype=np.float64).reshape(-1, 3) * MM_PER_M
     if len(corners) == 0 or len(corners) % 3:
         raise InputError(f"{len(corners)} points (a positive multiple of 3 needed)")

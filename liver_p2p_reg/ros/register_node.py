@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -64,10 +63,12 @@ from liver_p2p_reg.ros.topics import (
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.health import StreamHealth
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, WARN, Diagnostic
+from liver_p2p_reg.stream.worker import Worker
 
 DIAGNOSTICS_PERIOD_S = 1.0
 JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
-MAX_WAIT_S = 60.0  # the worker wakes at least this often, however far the next due registration lies
+REPLACE_WAIT_S = 10.0  # configure waits this long for a worker abandoned at cleanup to finish its registration
+REPEAT_QUIET_S = 5.0  # the same intraop problem (no model yet, ...) is logged once per this, not once per cloud
 
 
 class RegisterWiring(RegisterOutputs):
@@ -87,23 +88,41 @@ class RegisterWiring(RegisterOutputs):
         self._live: list[Any] = []  # what _go_live made and _go_quiet destroys
         self._kept: list[Any] = []  # what _bring_up made and _tear_down destroys
         self.active = False
+        self._worker: Worker | None = None
+        self._pending: set[Future] = set()  # requests handed to the worker and not answered yet
+        self._intake_said: tuple[str, float] = ("", 0.0)  # the last intraop problem logged, and when
+        # The services live as long as the node: a request waiting on the worker when the node is deactivated or
+        # cleaned up is answered through them (a destroyed service crashed the process then); outside `active`
+        # they answer at once that the node is inactive. In a group of their own: while one waits for the worker,
+        # the default group's callbacks (topics, parameters, status) run.
+        self._service_group = MutuallyExclusiveCallbackGroup()  # not `_services`: rclpy's Node has a list so named
+        for name, callback in (("~/reregister", self._on_reregister), ("~/reset_survey", self._on_reset_survey)):
+            self.create_service(Trigger, name, callback, callback_group=self._service_group)
+
+    @property
+    def _stopping(self: Any) -> bool:
+        """No output any more: the worker is stopped (or was never started)."""
+        return self._worker is None or self._worker.stopping
 
     def _bring_up(self: Any, preload_now: bool = False) -> None:
         from liver_p2p_reg.bags.recorder import recorder_factory  # the flight recorder (record_path)
 
-        self.core = NodeCore(read_from(self, Config, self.declared), recorder_factory=recorder_factory())
+        config = read_from(self, Config, self.declared)
+        refuse_unusable(config)  # configure fails with the reason, not every frame after it
+        self.core = NodeCore(config, recorder_factory=recorder_factory())
         self._accepted = self.core.config  # the configuration the parameter sets so far describe
         self.health = StreamHealth()
         self._status_level: int | None = None  # the last status level published (a change is published at once)
         self._log_handler = RclpyLogHandler(self._log)  # the package's `logging` records, to /rosout
         logging.getLogger("liver_p2p_reg").addHandler(self._log_handler)
-        self._wake = threading.Condition()
-        self._jobs: list[Callable[[], None]] = []
-        self._stopping = False
+        if self._worker is not None:  # one abandoned in a registration at cleanup: let it end before another starts
+            self._worker.join(REPLACE_WAIT_S)
+        core = self.core  # the worker's own: one abandoned at cleanup never publishes for the next configuration
+        self._worker = Worker(lambda: self._process_pending(core), core.next_due_s, self._worker_error)
         if preload_now:  # configure: the weights are loaded when the transition returns
             self._preload()
         else:
-            self._jobs.append(self._preload)
+            self._worker.submit(self._preload)
         self.add_on_set_parameters_callback(self._on_parameters)
         self.pose_pub = self.create_publisher(PoseStamped, TOPIC_POSE, rclpy_qos(TOPIC_POSE))
         self.transform_pub = self.create_publisher(TransformStamped, TOPIC_TRANSFORM, rclpy_qos(TOPIC_TRANSFORM))
@@ -129,11 +148,6 @@ class RegisterWiring(RegisterOutputs):
             self.get_logger().info("tf2_ros not importable: publishing /registration/transform only, no /tf")
         if (spinning := openmp_wait_warning()) is not None:
             self.get_logger().warning(spinning)
-        # the services wait for the worker: in a group of their own, the default group's callbacks run meanwhile
-        self._service_group = (
-            MutuallyExclusiveCallbackGroup()
-        )  # not `_services`: rclpy's Node keeps a list by that name
-        self._worker = threading.Thread(target=self._work, name="registration", daemon=True)
         self._worker.start()
 
     def _go_live(self: Any) -> None:
@@ -141,9 +155,6 @@ class RegisterWiring(RegisterOutputs):
         self._live = [
             self._subscribe(TOPIC_INTRAOP_FIDUCIALS, self._on_intraop_fiducials),
             self._subscribe(TOPIC_INTRAOP, self._on_intraop),
-            self.create_service(Trigger, "~/reregister", self._on_reregister, callback_group=self._service_group),
-            # survey mode: start over
-            self.create_service(Trigger, "~/reset_survey", self._on_reset_survey, callback_group=self._service_group),
             # on the steady clock: with use_sim_time a ROS-time timer stops while a looped bag's /clock runs
             # back over time it has already passed
             self.create_timer(
@@ -201,7 +212,7 @@ class RegisterWiring(RegisterOutputs):
         diag = feed_preop_msg(self.core, msg, warm_up=False)
         if diag.level == OK and diag.values.get("unchanged") != "true":  # reported once warmed up, with warm_up_ms
             self.get_logger().info(f"preop model of {diag.values['points']} points: warming up")
-            self._submit(self._warm_up)
+            self._submit(self._warm_up, key="warm_up")  # it warms the model current when it runs: one is enough
         else:
             self._report([diag])
 
@@ -210,7 +221,7 @@ class RegisterWiring(RegisterOutputs):
         self._report([diag])
         # a mesh of the current model: its elastic model is built again (deform on); a next model's waits for it
         if diag.level == OK and diag.values.get("for_current_model") == "true":
-            self._submit(lambda: self._report_any(self.core.prepare_deformation()))
+            self._submit(lambda: self._report_any(self.core.prepare_deformation()), key="prepare")
 
     def _on_preop_fiducials(self, msg: PointCloud2) -> None:
         self._report_any(feed_preop_fiducials_msg(self.core, msg))
@@ -228,7 +239,9 @@ class RegisterWiring(RegisterOutputs):
         self.health.on_cloud(now_s, stamp_to_ns(msg.header.stamp), self._now_ns())
         self._publish_status_on_change()  # a silence ended: STALE no more
         diags = feed_intraop_msg(self.core, msg, now_s)  # O(1): decoding happens in the worker
-        if diags:
+        said, at_s = self._intake_said
+        if diags and (diags[0].message != said or now_s - at_s >= REPEAT_QUIET_S):  # clouds at 20 kHz: not each
+            self._intake_said = (diags[0].message, now_s)
             self._report(diags)
         self._submit()
 
@@ -236,14 +249,19 @@ class RegisterWiring(RegisterOutputs):
         """A Future the worker completes with `work()`'s value, after any registration in progress; with the exception
         where `work` raised (reported as an ERROR): a request must be answered whatever happens, or it waits forever."""
         done = Future(executor=self.executor)
-        done.add_done_callback(lambda _: None)  # makes set_result wake the executor
+        done.add_done_callback(self._pending.discard)  # also makes set_result wake the executor
+        self._pending.add(done)
 
         def job() -> None:
             try:
-                done.set_result(work())
+                value = work()
             except Exception as exc:
-                done.set_result(exc)  # first: the request is answered whatever reporting does
+                if not done.done():
+                    done.set_result(exc)  # first: the request is answered whatever reporting does
                 self._report([Diagnostic(ERROR, DIAG_NAME, f"{name} failed: {type(exc).__name__}: {exc}", {})])
+                return
+            if not done.done():  # stop() may have answered it already
+                done.set_result(value)
 
         self._submit(job)
         return done
@@ -253,9 +271,18 @@ class RegisterWiring(RegisterOutputs):
         self._publish(output)
         return output
 
+    def _inactive(self: Any, response: Trigger.Response) -> Trigger.Response | None:
+        """The answer of a service called outside the active state (None when active)."""
+        if self.active and self.core is not None:
+            return None
+        response.success, response.message = False, "register_node is not active (lifecycle): activate it first"
+        return response
+
     async def _on_reregister(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         # The registration runs on the worker; this coroutine waits without holding a thread (its own callback group:
         # the node's topics, parameters and status are served meanwhile).
+        if self._inactive(response) is not None:
+            return response
         output = await self._on_worker("reregister", self._reregister_now)
         failed = isinstance(output, Exception)
         response.success = not failed and output.pose is not None
@@ -264,7 +291,10 @@ class RegisterWiring(RegisterOutputs):
 
     async def _on_reset_survey(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         # On the worker, after any registration in progress; this coroutine waits without a thread.
-        message = await self._on_worker("reset_survey", self.core.reset_survey)
+        if self._inactive(response) is not None:
+            return response
+        core = self.core
+        message = await self._on_worker("reset_survey", core.reset_survey)
         response.success = not isinstance(message, Exception)
         response.message = str(message) if response.success else f"reset_survey failed: {message}"
         self.get_logger().info(response.message)
@@ -277,21 +307,12 @@ class RegisterWiring(RegisterOutputs):
             return SetParametersResult(successful=True)
         try:  # validate now (against earlier sets not yet applied), so the answer carries the reason ...
             config = self._accepted.replace(**changes)
-            check_method_name(config.method)
-            if config.record_path and config.record_path != self._accepted.record_path:
-                recording_path(config.record_path, "new")  # a folder that does not exist: refused now, with why
-            # settings every registration would fail on: refused now, not reported frame after frame
-            if (config.error_calibration_path, config.error_coverage) != (
-                self._accepted.error_calibration_path,
-                self._accepted.error_coverage,
-            ):
-                read_calibration(config.error_calibration_path).column(config.error_coverage)
-            require_device(config.device)
+            refuse_unusable(config, self._accepted)
         except Exception as exc:  # a parameter must never take the node down: refused, with why
             return SetParametersResult(successful=False, reason=f"{str(exc) or type(exc).__name__}"[:500])
         # ... and apply on the worker, between registrations, without blocking this callback
         self._accepted = config
-        self._submit(lambda: self._reconfigure(config))
+        self._submit(lambda: self._reconfigure(self._accepted), key="reconfigure")  # the latest: it holds all sets
         return SetParametersResult(successful=True)
 
     def _reconfigure(self, config: Config) -> None:
@@ -299,37 +320,14 @@ class RegisterWiring(RegisterOutputs):
         self._report_any(self.core.prepare_deformation())  # deform turned on, or its model's settings changed
 
     # ---------------------------------------------------------------- worker thread
-    def _submit(self, job: Callable[[], None] | None = None) -> None:
-        with self._wake:
-            if job is not None:
-                self._jobs.append(job)
-            self._wake.notify()
+    def _submit(self, job: Callable[[], None] | None = None, key: str | None = None) -> None:
+        if self._worker is not None:
+            self._worker.submit(job, key)
 
-    def _work(self) -> None:
-        while True:
-            with self._wake:
-                while not self._stopping and not self._jobs:
-                    due_s = self.core.next_due_s()
-                    wait_s = None if due_s is None else due_s - time.monotonic()
-                    if wait_s is not None and wait_s <= 0:
-                        break
-                    # bounded: a wait beyond threading.TIMEOUT_MAX (max_rate_hz 1e-10) raised and ended this thread
-                    self._wake.wait(None if wait_s is None else min(wait_s, MAX_WAIT_S))
-                if self._stopping:
-                    return
-                jobs, self._jobs = self._jobs, []
-            # each job alone: one that raises must not drop the next (a service's job left unanswered hangs it)
-            for step in [*jobs, self._process_pending]:
-                try:
-                    step()
-                except Exception as exc:  # the worker must outlive anything; at shutdown, stay silent
-                    if self._stopping:
-                        return
-                    self._worker_error(exc)
-
-    def _process_pending(self) -> None:
-        output = self.core.process_pending(time.monotonic(), on_pose=self._publish_pose)
-        if output is not None:
+    def _process_pending(self, core: NodeCore) -> None:
+        current = lambda: core is self.core  # noqa: E731
+        output = core.process_pending(time.monotonic(), on_pose=lambda o: self._publish_pose(o) if current() else None)
+        if output is not None and current():
             self._publish(output)
 
     def _worker_error(self, exc: Exception) -> None:
@@ -348,16 +346,17 @@ class RegisterWiring(RegisterOutputs):
         self._report([self.core.warm_up_model()])
 
     def stop(self) -> bool:
-        """Stop the worker; False when a registration is still running (it is abandoned)."""
-        if self.core is None:
+        """Stop the worker; False when a registration is still running (it is abandoned). Requests it had not
+        answered are answered now, as failed: a request must never wait forever."""
+        if self.core is None or self._worker is None:
             return True
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
+        ended = self._worker.stop(JOIN_ON_EXIT_S)
         logging.getLogger("liver_p2p_reg").removeHandler(self._log_handler)
-        self._worker.join(JOIN_ON_EXIT_S)
+        for request in list(self._pending):
+            if not request.done():
+                request.set_result(RuntimeError("register_node stopped (cleanup or shutdown) before the request ran"))
         self.core.close_recording()  # its file complete; a registration still running is not recorded
-        return not self._worker.is_alive()
+        return ended
 
     def destroy_node(self) -> None:
         self.stop()  # first: the worker must not publish through a destroyed node
@@ -372,6 +371,18 @@ class RegisterNode(RegisterWiring, Node):
         self._declare()
         self._bring_up()
         self._go_live()
+
+
+def refuse_unusable(config: Config, accepted: Config | None = None) -> None:
+    """InputError for settings every registration would fail on (checked where they change from `accepted`):
+    refused when set or at configure, not reported frame after frame."""
+    check_method_name(config.method)
+    if config.record_path and (accepted is None or config.record_path != accepted.record_path):
+        recording_path(config.record_path, "new")  # a folder that does not exist: refused now, with why
+    calibration = (config.error_calibration_path, config.error_coverage)
+    if accepted is None or calibration != (accepted.error_calibration_path, accepted.error_coverage):
+        read_calibration(config.error_calibration_path).column(config.error_coverage)
+    require_device(config.device)
 
 
 def main(args: list[str] | None = None) -> int:

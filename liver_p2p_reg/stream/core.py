@@ -216,8 +216,8 @@ class NodeCore:
 
     def _prepare_stage_locked(self, force: bool) -> PreparedStage | None:
         with self._lock:
-            points, mesh = self.preop_mm, self.mesh.for_model(self.preop_frame, self.preop_stamp_ns)
-        return self._elastic.prepare(self.registrar, self.config, points, mesh, force)
+            points, key = self.preop_mm, (self.preop_frame, self.preop_stamp_ns)
+        return self._elastic.prepare(self.registrar, self.config, points, *self.mesh.find(*key, points), force=force)
 
     def set_preop_fiducials(self, points_mm: np.ndarray | None, stamp_ns: int | None = None) -> None:
         """Ordered fiducials inside the preop model stamped `stamp_ns` (None: the current model), mm."""
@@ -362,7 +362,7 @@ class NodeCore:
                 LOG.exception("the pose hook raised")
         if not self.config.deform:
             return output
-        mesh = self.mesh.for_model(preop_frame, preop_stamp)
+        mesh = self.mesh.for_model(preop_frame, preop_stamp, preop)
         view = stage_view_mm(self._survey_state, self.config, reason)  # survey mode: the fused surface
         return run_stage(self.registrar, output, frame, structures, mesh, view)
 

@@ -28,6 +28,10 @@ from liver_p2p_reg.stream.solve import Frame
 from liver_p2p_reg.structures_io import Structure, place_structures
 
 LOG = logging.getLogger("liver_p2p_reg.node")
+# A CT liver mesh has 10^4-10^5 triangles; one of 300k triangles took 3 GB and 35 s to build on: 10^6 is refused.
+MAX_MESH_TRIANGLES = 1_000_000
+MESHES_KEPT = 4  # meshes kept for models of other stamps (the next model's may come before its points)
+FIT_SURFACE_SAMPLES = 20_000  # points drawn on a mesh to measure how far a model's points lie from its surface
 
 
 @dataclass(frozen=True)
@@ -57,25 +61,75 @@ def checked_mesh(vertices_mm: np.ndarray, triangles: np.ndarray, frame_id: str, 
         raise InputError(f"mesh triangles must be a non-empty (F, 3) integer array, got shape {tris.shape}")
     if tris.min() < 0 or tris.max() >= len(vertices):
         raise InputError(f"mesh triangles index vertex {int(tris.max())} of {len(vertices)}")
+    if len(tris) > MAX_MESH_TRIANGLES:
+        raise InputError(f"mesh of {len(tris)} triangles (more than {MAX_MESH_TRIANGLES}); decimate it")
     return PreopMesh(vertices, tris.astype(np.int64), frame_id or "ct", int(stamp_ns))
 
 
+def mesh_fit_problem(mesh: PreopMesh, points_mm: np.ndarray) -> str:
+    """Why `mesh` is not the surface of the model with these points ("" when they lie on it): a frame and a stamp
+    do not tell two models apart (every bundled bag stamps its model alike), so the geometry must."""
+    from liver_p2p_reg.registration.nearest import NearestIndex
+
+    v, t = mesh.vertices_mm, mesh.triangles
+    area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    if not area.sum() > 0:
+        return "its triangles have no area"
+    rng = np.random.default_rng(0)  # the same samples for the same mesh: the same answer
+    pick = rng.choice(len(t), size=FIT_SURFACE_SAMPLES, p=area / area.sum())
+    u, w = rng.random((2, FIT_SURFACE_SAMPLES, 1))
+    flip = (u + w) > 1
+    u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
+    a = v[t[pick, 0]]
+    # the triangles' corners and points on them: a vertex no triangle uses is no part of the surface
+    surface = np.concatenate([v[np.unique(t)], a + u * (v[t[pick, 1]] - a) + w * (v[t[pick, 2]] - a)])
+    points = np.asarray(points_mm, dtype=np.float64)
+    distances, _ = NearestIndex(surface).query(points[:: max(len(points) // 2000, 1)])
+    p90_mm = float(np.quantile(distances, 0.9))
+    tolerance_mm = max(3.0, 0.02 * float(np.linalg.norm(np.ptp(points, axis=0))))
+    if p90_mm <= tolerance_mm:
+        return ""
+    return (
+        f"its /preop/mesh of the same frame and stamp lies {p90_mm:.1f} mm from the model's points (90th "
+        f"percentile; tolerance {tolerance_mm:.1f} mm): not this model's surface, not used"
+    )
+
+
 class MeshStore:
-    """The latest preop mesh received; it serves the model of its own frame and stamp only."""
+    """The latest preop meshes received (one per frame and stamp, the last MESHES_KEPT); each serves only the model
+    of its frame and stamp whose points lie on its surface."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._mesh: PreopMesh | None = None
+        self._meshes: dict[tuple[str, int], PreopMesh] = {}
+        self._fits: list[tuple[PreopMesh, np.ndarray, str]] = []  # the last answers of mesh_fit_problem
 
     def set(self, mesh: PreopMesh) -> None:
         with self._lock:
-            self._mesh = mesh
+            key = (mesh.frame_id, mesh.stamp_ns)
+            self._meshes.pop(key, None)
+            self._meshes[key] = mesh  # the newest last
+            while len(self._meshes) > MESHES_KEPT:
+                self._meshes.pop(next(iter(self._meshes)))
 
-    def for_model(self, frame_id: str, stamp_ns: int) -> PreopMesh | None:
-        """The mesh of the model with this frame and stamp, or None (the surface is then rebuilt from its points)."""
+    def for_model(self, frame_id: str, stamp_ns: int, points_mm: np.ndarray | None = None) -> PreopMesh | None:
+        """The mesh of the model with this frame, stamp and points, or None (the surface is then rebuilt from its
+        points); `find` says why a mesh of that frame and stamp was not taken."""
+        return self.find(frame_id, stamp_ns, points_mm)[0]
+
+    def find(self, frame_id: str, stamp_ns: int, points_mm: np.ndarray | None) -> tuple[PreopMesh | None, str]:
+        """(the mesh of this model or None, why a mesh of its frame and stamp does not serve it: "" when it does or
+        when there is none)."""
         with self._lock:
-            mesh = self._mesh
-        return mesh if mesh is not None and (mesh.frame_id, mesh.stamp_ns) == (frame_id, int(stamp_ns)) else None
+            mesh = self._meshes.get((frame_id, int(stamp_ns)))
+            if mesh is None or points_mm is None:
+                return mesh, ""
+            known = next((p for m, pts, p in self._fits if m is mesh and pts is points_mm), None)
+        if known is None:  # once per mesh and model (~20 ms), outside the lock
+            known = mesh_fit_problem(mesh, points_mm)
+            with self._lock:
+                self._fits = [*self._fits[-(2 * MESHES_KEPT - 1) :], (mesh, points_mm, known)]
+        return (None if known else mesh), known
 
 
 def rigid_registrar(config: Config, registrar: Registrar | None = None) -> Registrar:
@@ -122,14 +176,18 @@ class PreparedStage:
         """The preop model's diagnostic (`base`: the model's warm-up, its values added); WARN when the stage cannot run."""
         values, mesh = self.values, self.mesh
         problem = "" if values["deform_model"] == "ready" else values["deform_model"]
+        ignored = values.get("deform_mesh_problem", "")  # a mesh that is not this model's: said, and a WARN
         if base is not None:
             message = base.message + (f"; non-rigid stage unavailable: {problem}" if problem else "")
-            return Diagnostic(WARN if problem else base.level, base.name, message, {**base.values, **values})
+            message += f"; {ignored}" if ignored else ""
+            level = WARN if problem or ignored else base.level
+            return Diagnostic(level, base.name, message, {**base.values, **values})
         built = (
             f"its mesh ({len(mesh.triangles)} triangles)" if mesh is not None else "the surface rebuilt from its points"
         )
         message = f"non-rigid stage unavailable: {problem}" if problem else f"elastic model built on {built}"
-        return Diagnostic(WARN if problem else OK, PREOP_DIAG_NAME, message, values)
+        message += f"; {ignored}" if ignored else ""
+        return Diagnostic(WARN if problem or ignored else OK, PREOP_DIAG_NAME, message, values)
 
 
 class ElasticPreparation:
@@ -137,18 +195,32 @@ class ElasticPreparation:
 
     def __init__(self) -> None:
         self._for: tuple[Any, ...] | None = None
+        self._problem = ""  # why the last mesh of the model was refused (said once per mesh)
 
     def prepare(
-        self, registrar: Registrar, config: Config, points: np.ndarray | None, mesh: PreopMesh | None, force: bool
+        self,
+        registrar: Registrar,
+        config: Config,
+        points: np.ndarray | None,
+        mesh: PreopMesh | None,
+        mesh_problem: str = "",
+        *,
+        force: bool = False,
     ) -> PreparedStage | None:
-        """Prepare it when `deform` is on and (or `force`) it was not prepared for these; None when nothing was done."""
+        """Prepare it when `deform` is on and (or `force`) it was not prepared for these; None when nothing was done.
+        `mesh_problem`: why a /preop/mesh of the model's frame and stamp was not taken (said in the diagnostic)."""
         if not config.deform or points is None:
             return None
         key = (points, mesh, config.deform_modes, config.deform_target_tets)
         if not force and self._for is not None and all(a is b for a, b in zip(key, self._for, strict=True)):
-            return None
+            if not mesh_problem or mesh_problem == self._problem:
+                return None
+        self._problem = mesh_problem
         self._for = key
-        return PreparedStage(prepare_stage(registrar, points, mesh), mesh)
+        values = prepare_stage(registrar, points, mesh)
+        if mesh_problem:
+            values["deform_mesh_problem"] = mesh_problem
+        return PreparedStage(values, mesh)
 
 
 def mesh_diagnostic(mesh: PreopMesh, for_current_model: bool) -> Diagnostic:

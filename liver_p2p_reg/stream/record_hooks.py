@@ -122,7 +122,7 @@ class Recording:
         core = self._core
         recorder.config(config, snapshot=True)
         if core.preop_mm is not None:
-            mesh = core.mesh.for_model(core.preop_frame, core.preop_stamp_ns)
+            mesh = core.mesh.for_model(core.preop_frame, core.preop_stamp_ns, core.preop_mm)
             if mesh is not None:  # before its points, as bags log it: a re-run builds the elastic model once
                 recorder.preop_mesh(mesh, snapshot=True)
             recorder.preop(core.preop_mm, core.preop_frame, core.preop_stamp_ns, snapshot=True)

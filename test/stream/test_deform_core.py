@@ -225,9 +225,10 @@ def test_the_mesh_serves_the_model_of_its_stamp_and_a_late_one_rebuilds_the_elas
     assert rebuilt.level == OK and "elastic model built on its mesh" in rebuilt.message, rebuilt.message
     assert rebuilt.values["deform_surface"] == "mesh" and core.prepare_deformation() is None
     assert core.reregister().diagnostics[0].values["deform_surface"] == "mesh"
-    # a mesh that cannot be an elastic model's surface (an open cap): the preop status says why; frames still register
-    cap = case["triangles"][: len(case["triangles"]) // 4]
-    core.set_preop_mesh(case["vertices"], cap, "ct", 5)
+    # a mesh that cannot be an elastic model's surface (a hole): the preop status says why; frames still register
+    v, t = case["vertices"], case["triangles"]
+    holed = t[np.argsort(np.linalg.norm(v[t].mean(axis=1) - v[0], axis=1))[len(t) // 50 :]]
+    core.set_preop_mesh(v, holed, "ct", 5)
     unusable = core.prepare_deformation()
     assert unusable.level == WARN and "non-rigid stage unavailable" in unusable.message
     again = core.reregister()
@@ -248,3 +249,33 @@ def test_deform_turned_on_later_builds_then_and_the_rigid_registrar_never_deform
     assert not rigid.config.deform and rigid.cache is given.cache
     plain = Registrar(Config(**SMALL))
     assert rigid_registrar(plain.config, plain) is plain
+
+
+def test_a_mesh_of_the_same_stamp_that_is_not_the_models_surface_is_not_used(case) -> None:
+    """Every bundled bag stamps its model alike: another liver's mesh (or this one's 5 m away) under the model's
+    frame and stamp was deformed as this model's surface, and published at OK."""
+    core, _, _, _, _ = registered(case, deform=True)
+    for moved, cut in ((case["vertices"] + 50.0, slice(None)), (case["vertices"], slice(len(case["triangles"]) // 4))):
+        core.set_preop_mesh(moved, case["triangles"][cut], "ct", 5)
+        said = core.prepare_deformation()
+        assert said.level == WARN and "not this model's surface, not used" in said.message, said.message
+        assert said.values["deform_surface"] == "points" and said.values["deform_model"] == "ready"
+        assert core.prepare_deformation() is None  # said once
+        output = core.reregister()
+        assert output.diagnostics[0].values["deform_surface"] == "points"
+        assert output.deformed_preop_mm is None or len(output.deformed_preop_mm) == len(case["points"])
+    core.set_preop_mesh(case["vertices"], case["triangles"], "ct", 5)  # its own mesh again: taken
+    assert core.prepare_deformation().values["deform_surface"] == "mesh"
+    # a mesh for the next model does not replace the current model's
+    core.set_preop_mesh(case["vertices"] + 50.0, case["triangles"], "ct", 6)
+    assert core.mesh.for_model("ct", 5, core.preop_mm) is not None
+    assert core.reregister().diagnostics[0].values["deform_surface"] == "mesh"
+
+
+def test_meshes_beyond_the_triangle_limit_are_refused() -> None:
+    from liver_p2p_reg.stream.deformation import MAX_MESH_TRIANGLES, checked_mesh
+
+    vertices, faces = octahedron_mm()
+    many = np.tile(faces, (MAX_MESH_TRIANGLES // len(faces) + 1, 1))
+    with pytest.raises(InputError, match="decimate"):
+        checked_mesh(vertices, many, "ct", 5)

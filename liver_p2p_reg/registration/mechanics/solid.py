@@ -37,6 +37,9 @@ class VoxelSolid:
         return map_coordinates(self.sdf_mm, coords, order=1, mode="nearest").reshape(pts.shape[:-1])
 
 
+MAX_SURFACE_SAMPLES = 4_000_000  # lattice points on a mesh's triangles (a CT liver mesh needs ~1M)
+
+
 def surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_mm: float) -> np.ndarray:
     """The vertices plus points on every triangle no further apart than `spacing_mm` (deterministic)."""
     if len(triangles) == 0:
@@ -44,6 +47,10 @@ def surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_m
     a, b, c = (vertices_mm[triangles[:, i]] for i in range(3))
     longest = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1)])
     n = int(min(max(np.ceil(longest / spacing_mm), 1), 16))
+    # at most MAX_SURFACE_SAMPLES in all: one sliver set n for all of 300k triangles (46M points, 3 GB); a mesh
+    # sampled coarser than the voxels leaves holes, and the solid then says it encloses no volume
+    while n > 1 and len(triangles) * (n + 1) * (n + 2) // 2 > MAX_SURFACE_SAMPLES:
+        n -= 1
     i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
     keep = i + j <= n
     u, v = i[keep] / n, j[keep] / n  # barycentric lattice on each triangle
