@@ -17,9 +17,11 @@ class ManagedRegisterNode(RegisterWiring, ManagedNode):
 
     unconfigured -> configure: parameters read and checked, the method's weights loaded, `/preop/*`
     subscribed (a model arriving now is warmed up at once), publishers created -> inactive ->
-    activate: `/intraop/*` subscribed, `~/reregister`, `~/reset_survey` and the status timer live ->
+    activate: `/intraop/*` subscribed, `~/reregister`, `~/reset_survey` served and the status timer live ->
     active -> deactivate: those removed, nothing published, model and pose state kept -> inactive ->
     cleanup: everything released -> unconfigured. shutdown from any state releases everything.
+    The two services exist in every state (outside active they answer `not active`): a request waiting on the
+    worker is answered whatever transition comes meanwhile.
     """
 
     def __init__(self, **node_kwargs: Any) -> None:

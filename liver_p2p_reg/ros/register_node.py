@@ -77,8 +77,8 @@ class RegisterWiring(RegisterOutputs):
     Callbacks only hand work over; one worker thread does every heavy step (start-up preload,
     a new model's warm-up, registrations, service requests), woken by events, never polling.
     `_bring_up` (configure): parameters, the method's weights, the `/preop/*` subscriptions, the
-    publishers and the worker; `_go_live` (activate): the `/intraop/*` subscriptions, the services
-    and the status timer; `_go_quiet` (deactivate): those removed, no output, state kept;
+    publishers and the worker; `_go_live` (activate): the `/intraop/*` subscriptions and the status timer, the
+    services served (they live as long as the node); `_go_quiet` (deactivate): those removed, no output, state kept;
     `_tear_down` (cleanup, shutdown): everything released. The plain node does the first two at once.
     """
 
