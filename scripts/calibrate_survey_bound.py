@@ -39,6 +39,7 @@ from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_fit import COVERAGES, conformal_quantile, coverage_at, scores
 from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
+from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.phantom.real import load_real_liver, real_split
 from liver_p2p_reg.registration.error_calibration import (
     BUNDLED_CALIBRATION,
@@ -52,7 +53,6 @@ from liver_p2p_reg.registration.error_calibration import (
     deform_settings,
     read_calibration,
 )
-from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.weights_id import weights_sha256
 
 # per kind of positions: the single-view calibration it starts from, the survey one it writes, its results block,
@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     new = read_calibration(args.write) if args.write else read_calibration("", bundled)
     old = read_calibration("", single_path)
     lines = [
-        f"Command: `.venv/bin/python scripts/calibrate_survey_bound.py"
+        "Command: `.venv/bin/python scripts/calibrate_survey_bound.py"
         + ("" if deformed else " --positions rigid")
         + f" --frames {args.frames}"
         + (f" --write {args.write}" if args.write else "")
@@ -215,7 +215,11 @@ def main(argv: list[str] | None = None) -> int:
         f"{', '.join(f'{q[1]:.2f}' for q in single['pose_quantiles'])} per visibility group).",
         "",
         f"Judged on the {len(test_ids)} real test livers, one sweep per family ("
-        + ("the frames where the stage fitted the fused survey" if deformed else "the frames tracked on the fused survey")
+        + (
+            "the frames where the stage fitted the fused survey"
+            if deformed
+            else "the frames tracked on the fused survey"
+        )
         + "); 90 % bound, each sweep weighing the same:",
         "",
         "| family | frames | bound | marker coverage [95 % interval over sweeps] | interior coverage | median bound "
@@ -223,7 +227,9 @@ def main(argv: list[str] | None = None) -> int:
         "|---|---|---|---|---|---|---|---|",
     ]
     for family in ("fem", "arap"):
-        data = collect(out / f"{prefix}test_{family}_{args.frames}.npz", test_ids, family, 1, args.frames, args.positions)
+        data = collect(
+            out / f"{prefix}test_{family}_{args.frames}.npz", test_ids, family, 1, args.frames, args.positions
+        )
         for name, calibration in (("single views", old), ("survey", new)):
             point_cov, (lo, hi), pose_cov, bound, err = judged(data, calibration)
             lines.append(
