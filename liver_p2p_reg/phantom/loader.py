@@ -10,6 +10,8 @@ and target, then a fresh crop, pose and noise: the same target pipeline as the t
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,19 +34,90 @@ from liver_p2p_reg.pools import spawn_pool
 from liver_p2p_reg.registration.visibility import VisibilityMeter
 
 STORE_VERSION = 1
+MIN_VISIBILITY = 0.05  # the smallest visibility a pair may be asked for (smaller views hold a handful of points)
+
+
+class StoreFileError(InputError):
+    """A store's liver file is missing or damaged: drawing another pair would not help."""
+
+
+def read_store_meta(store: Path) -> dict:
+    """A store's store.json as a mapping whose `livers` is a list of file names; InputError naming the file."""
+    path = Path(store) / "store.json"
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path} is unreadable or damaged ({exc}); remove it to rebuild the store") from None
+    livers = meta.get("livers", []) if isinstance(meta, dict) else None
+    if not isinstance(livers, list) or not all(isinstance(name, str) for name in livers):
+        raise InputError(f"{path} is damaged (no list of liver files); remove it to rebuild the store")
+    return meta
+
+
+DAMAGE = (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error)  # a missing, truncated or corrupt .npz
+
+
+def _store_file_error(path: Path, why: object) -> StoreFileError:
+    """The one-line error of a missing or damaged store liver, saying how to mend the store."""
+    if isinstance(why, FileNotFoundError):
+        return StoreFileError(f"store liver {path} is missing; rebuild the store (remove its store.json)")
+    return StoreFileError(f"store liver {path} is damaged ({why}); remove it and its store.json to rebuild it")
+
+
+def liver_file_shapes(path: Path) -> dict[str, tuple[int, ...]]:
+    """The array shapes of a store liver file, read from the .npy headers (no array decompressed);
+    StoreFileError naming a missing or damaged file."""
+    fmt = np.lib.format
+    try:
+        with zipfile.ZipFile(path) as archive:
+            shapes = {}
+            for name in archive.namelist():
+                with archive.open(name) as member:
+                    header = (
+                        fmt.read_array_header_1_0 if fmt.read_magic(member) == (1, 0) else fmt.read_array_header_2_0
+                    )
+                    shapes[name.removesuffix(".npy")] = header(member)[0]
+    except DAMAGE as exc:
+        raise _store_file_error(path, exc) from None
+    missing = sorted({"vertices_mm", "triangles", "surfaces_mm", "fiducials_mm"} - set(shapes))
+    if missing:
+        raise _store_file_error(path, f"no {', '.join(missing)}")
+    return shapes
+
+
+def _check_reused_liver(path: Path, deformations: int, target_tets: int) -> None:
+    """A liver file left by an interrupted build is reused only when it was simulated as this build asks
+    (files written before the tets were recorded are checked for their deformations only)."""
+    shapes = liver_file_shapes(path)
+    found = shapes["surfaces_mm"][0]
+    recorded = None
+    if "target_tets" in shapes:
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                recorded = int(data["target_tets"])
+        except DAMAGE as exc:
+            raise _store_file_error(path, exc) from None
+    if found != deformations or recorded not in (None, target_tets):
+        tets = "" if recorded is None else f" and {recorded} target tets"
+        raise InputError(
+            f"{path} holds a liver simulated with {found} deformations{tets}; this store asks {deformations} "
+            f"and {target_tets}; remove it or use another store directory"
+        )
 
 
 def _store_liver(args: tuple[int, int, int, str]) -> str:
     liver_id, deformations, target_tets, out = args
     path = Path(out) / f"liver_{liver_id:07d}.npz"
     if path.exists():
+        _check_reused_liver(path, deformations, target_tets)
         return path.name
-    write_store_liver(path, simulate_liver(liver_id, deformations, target_tets=target_tets))
+    write_store_liver(path, simulate_liver(liver_id, deformations, target_tets=target_tets), target_tets)
     return path.name
 
 
-def write_store_liver(path: Path, sim: SimulatedLiver) -> None:
-    """One liver of a store (atomically); livers read from a file also keep their coarse vertices."""
+def write_store_liver(path: Path, sim: SimulatedLiver, target_tets: int | None = None) -> None:
+    """One liver of a store (atomically); livers read from a file also keep their coarse vertices.
+    `target_tets` is recorded so an interrupted build can tell whether the file fits it."""
     arrays = {
         "liver_id": np.int64(sim.liver_id),
         "vertices_mm": sim.vertices_mm.astype(np.float32),
@@ -58,6 +131,8 @@ def write_store_liver(path: Path, sim: SimulatedLiver) -> None:
     if sim.coarse_vertices_mm is not None:
         arrays["coarse_vertices_mm"] = sim.coarse_vertices_mm.astype(np.float32)
         arrays["coarse_surfaces_mm"] = np.stack([d.coarse_mm for d in sim.deformations]).astype(np.float32)
+    if target_tets is not None:
+        arrays["target_tets"] = np.int64(target_tets)
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez_compressed(tmp, **arrays)
     tmp.replace(path)
@@ -68,9 +143,11 @@ def _store_real_liver(args: tuple[str, int, int, str]) -> str:
 
     stem, deformations, target_tets, out = args
     path = Path(out) / f"liver_{real_liver_id(stem):07d}.npz"
-    if not path.exists():
-        liver = load_real_liver(stem)
-        write_store_liver(path, simulate_liver(liver.seed, deformations, target_tets=target_tets, liver=liver))
+    if path.exists():
+        _check_reused_liver(path, deformations, target_tets)
+        return path.name
+    liver = load_real_liver(stem)
+    write_store_liver(path, simulate_liver(liver.seed, deformations, target_tets=target_tets, liver=liver), target_tets)
     return path.name
 
 
@@ -98,37 +175,42 @@ def build_real_store(
         "deformations": deformations,
         "target_tets": target_tets,
     }
-    _check_same_store(store, meta)
+    listed = _check_same_store(store, meta)
     jobs = [(stem, deformations, target_tets, str(store)) for stem in sorted(stems)]
-    _run_jobs(_store_real_liver, jobs, workers, progress)
-    return _finish_store(store, meta)
+    return _finish_store(store, meta, listed + _run_jobs(_store_real_liver, jobs, workers, progress))
 
 
-def _check_same_store(store: Path, meta: dict) -> None:
-    meta_path = store / "store.json"
-    if meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        if {k: old.get(k) for k in meta} != meta:
-            raise InputError(f"{store} holds a store with different parameters; use another directory")
+def _check_same_store(store: Path, meta: dict) -> list[str]:
+    """Refuse a store.json of other parameters; the livers it lists (none without one)."""
+    if not (store / "store.json").exists():
+        return []
+    old = read_store_meta(store)
+    if {k: old.get(k) for k in meta} != meta:
+        raise InputError(f"{store} holds a store with different parameters; use another directory")
+    return old["livers"]
 
 
-def _run_jobs(fn, jobs: list, workers: int, progress: bool) -> None:
+def _run_jobs(fn, jobs: list, workers: int, progress: bool) -> list[str]:
+    """Run the liver jobs (in `workers` processes); the file names they return."""
     from tqdm import tqdm
 
+    names = []
     with tqdm(total=len(jobs), desc="livers", unit="liver", disable=not progress) as bar:
         if workers == 1:
             for job in jobs:
-                fn(job)
+                names.append(fn(job))
                 bar.update(1)
         else:
             with spawn_pool(workers) as pool:
-                for _ in pool.map(fn, jobs):
+                for name in pool.map(fn, jobs):
+                    names.append(name)
                     bar.update(1)
+    return names
 
 
-def _finish_store(store: Path, meta: dict) -> Path:
-    files = sorted(p.name for p in store.glob("liver_*.npz") if not p.name.endswith(".tmp.npz"))
-    meta["livers"] = files
+def _finish_store(store: Path, meta: dict, names: list[str]) -> Path:
+    """Write store.json listing `names` (built now or listed before), never a stray file of another build."""
+    meta["livers"] = sorted(set(names))
     (store / "store.json").write_text(json.dumps(meta, indent=2))
     return store
 
@@ -162,10 +244,9 @@ def build_store(
         "deformations": deformations,
         "target_tets": target_tets,
     }
-    _check_same_store(store, meta)
+    listed = _check_same_store(store, meta)
     jobs = [(liver_id_for(seed, i), deformations, target_tets, str(store)) for i in range(livers)]
-    _run_jobs(_store_liver, jobs, workers, progress)
-    return _finish_store(store, meta)
+    return _finish_store(store, meta, listed + _run_jobs(_store_liver, jobs, workers, progress))
 
 
 class PairSampler:
@@ -187,13 +268,13 @@ class PairSampler:
         meta_path = self.store / "store.json"
         if not meta_path.is_file():
             raise InputError(f"{self.store}: no store.json (build one with `liver-p2p dataset generate --store`)")
-        self.files = sorted(self.store / name for name in json.loads(meta_path.read_text()).get("livers", []))
+        self.files = sorted(self.store / name for name in read_store_meta(self.store)["livers"])
         self.files = [f for f in self.files if f.is_file()]
         if not self.files:
             raise InputError(f"{self.store}: the store holds no livers")
         lo, hi = visibility_range
-        if not 0.05 <= lo <= hi <= 1.0:
-            raise InputError(f"visibility range must satisfy 0.05 <= lo <= hi <= 1, got {visibility_range}")
+        if not MIN_VISIBILITY <= lo <= hi <= 1.0:
+            raise InputError(f"visibility range must satisfy {MIN_VISIBILITY} <= lo <= hi <= 1, got {visibility_range}")
         bad = [m for m in crop_modes if m not in CROP_MODES]
         if bad or not crop_modes:
             raise InputError(f"crop modes must be among {CROP_MODES}, got {list(crop_modes)}")
@@ -231,8 +312,11 @@ class PairSampler:
         if path in self._cache:
             self._cache.move_to_end(path)
             return self._cache[path]
-        with np.load(path, allow_pickle=False) as data:
-            liver = {k: data[k] for k in data.files}
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                liver = {k: data[k] for k in data.files}
+        except DAMAGE as exc:
+            raise _store_file_error(path, exc) from None
         liver["meters"] = {}
         self._cache[path] = liver
         if len(self._cache) > self._cache_size:

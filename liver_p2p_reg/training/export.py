@@ -8,14 +8,65 @@ from pathlib import Path
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.features.learned.weights import load_weights, save_weights
 
+SIDECARS = (".json", ".md")  # the model card next to the weights
+# The state.json keys (and its config's) the card is written from.
+STATE_KEYS = ("step", "elapsed_s", "config")
+CONFIG_KEYS = (
+    "store_dir",
+    "store_seed",
+    "store_deformations",
+    "store_livers",
+    "val_livers",
+    "val_pairs",
+    "temperature",
+    "overlap_weight",
+)
 
-def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", notes: str = "") -> Path:
-    """Copy a run's best checkpoint to `dest` with a model card (`.json` + `.md` next to it)."""
-    run = Path(run_dir)
+
+def check_destination(run: Path, dest: Path, force: bool) -> None:
+    """Refuse a destination that is no .safetensors file, lies in the run folder (it would replace the run's
+    own files) or, without `force`, exists with or without its card."""
+    if dest.suffix.lower() != ".safetensors":
+        raise InputError(f"--export {dest}: use a .safetensors path (the card goes next to it as .json and .md)")
+    if dest.is_dir():
+        raise InputError(f"--export {dest} is a folder; give a file path")
+    try:
+        inside = dest.resolve().is_relative_to(run.resolve())
+    except (OSError, RuntimeError):  # RuntimeError: a symlink loop (Python 3.11)
+        inside = False
+    if inside:
+        raise InputError(f"--export {dest} is inside the run folder {run}; choose a path outside it")
+    existing = [p for p in [dest, *(dest.with_suffix(s) for s in SIDECARS)] if p.exists() or p.is_symlink()]
+    if existing and not force:
+        raise InputError(f"{', '.join(map(str, existing))} exists; pass --force to overwrite")
+
+
+def read_run_state(run: Path) -> dict:
+    """A finished run's state.json with the keys the card needs; InputError naming a damaged one."""
+    path = run / "state.json"
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path} is unreadable or damaged ({exc})") from None
+    if not isinstance(state, dict) or any(k not in state for k in STATE_KEYS) or not isinstance(state["config"], dict):
+        raise InputError(f"{path} is damaged (no {', '.join(STATE_KEYS)})")
+    missing = [k for k in CONFIG_KEYS if k not in state["config"]]
+    if missing:
+        raise InputError(f"{path} is damaged (its config lacks {', '.join(missing)})")
+    return state
+
+
+def export_weights(
+    run_dir: str | Path, dest: str | Path, commit: str = "", notes: str = "", force: bool = False
+) -> Path:
+    """Copy a run's best checkpoint to `dest` with a model card (`.json` + `.md` next to it); an existing
+    destination or card only with `force`."""
+    run, dest = Path(run_dir), Path(dest)
     best = run / "best.safetensors"
     if not best.is_file() or not (run / "state.json").is_file():
         raise InputError(f"{run}: no best.safetensors/state.json (train first)")
-    state = json.loads((run / "state.json").read_text())
+    check_destination(run, dest, force)
+    state = read_run_state(run)
     cfg = state["config"]
     store_meta_path = Path(cfg["store_dir"]) / "store.json"
     from liver_p2p_reg.phantom.dataset import GENERATOR_VERSION
@@ -30,7 +81,11 @@ def export_weights(run_dir: str | Path, dest: str | Path, commit: str = "", note
         "store_version": STORE_VERSION,
     }
     if store_meta_path.is_file():
-        store_meta.update(json.loads(store_meta_path.read_text()))
+        from liver_p2p_reg.phantom.loader import read_store_meta
+
+        store_meta.update(read_store_meta(store_meta_path.parent))
+        # a larger store: the run trained on its first store_livers (training.data.ensure_store)
+        store_meta["livers"] = store_meta["livers"][: cfg["store_livers"]]
     model = load_weights(best)
     dest = save_weights(model, dest, {"step": str(state.get("best_step", "")), "commit": commit})
     card = {

@@ -2,14 +2,55 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from liver_p2p_reg.config import MAX_SEED
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom.artifacts import DENSITY_MODES
 from liver_p2p_reg.phantom.crop import CROP_MODES
+from liver_p2p_reg.phantom.dataset import MAX_LIVERS_PER_SEED, REAL_LIVER_SEED, RESERVED_SEEDS
+from liver_p2p_reg.phantom.loader import MIN_VISIBILITY
+from liver_p2p_reg.registration.features.learned.descriptors import NUM_FEATURES
 from liver_p2p_reg.registration.features.learned.model import ModelConfig
+
+# Lower bounds of the numbers that have nothing but a lower bound.
+MINIMUMS: dict[str, float] = {
+    "store_deformations": 1,
+    "val_livers": 1,
+    "val_pairs": 1,
+    "steps": 1,
+    "lr": 0,  # 0 is allowed: a frozen run (the fine-tuning test uses it)
+    "weight_decay": 0,
+    "warmup_steps": 0,
+    "overlap_weight": 0,
+    "val_every": 1,
+    "checkpoint_every": 1,
+    "max_minutes": 0,
+    "real_deformations": 1,
+    "real_fraction": 0,
+    "real_val_pairs": 0,
+    "real_livers_limit": 0,
+    "hole_probability": 0,
+    "outlier_fraction": 0,
+    "background_fraction": 0,
+}
+# [low, high] of integer settings, as Config has them: a huge thread or process count failed with a misleading
+# ImportError or a segfault; liver ids are store_seed * MAX_LIVERS_PER_SEED + index and stay 32-bit; a tet mesh of
+# millions of tets takes hours and gigabytes per liver.
+CLOSED: dict[str, tuple[int, int]] = {
+    "seed": (0, MAX_SEED),
+    "store_seed": (0, (MAX_SEED + 1) // MAX_LIVERS_PER_SEED - 1),
+    "store_livers": (2, MAX_LIVERS_PER_SEED),
+    "store_tets": (500, 200_000),
+    "threads": (0, 256),
+    "loader_workers": (0, 256),
+    "val_workers": (0, 256),
+    "store_workers": (1, 256),
+}
+MAX_NOISE_MM = 50.0  # make_target refuses more (phantom/crop.py): every draw would fail
 
 
 @dataclass
@@ -79,85 +120,105 @@ class TrainConfig:
 
     def validate(self) -> TrainConfig:
         """Check types and ranges now, with a one-line InputError, not minutes into building the store."""
-        for f in fields(self):
-            value, default = getattr(self, f.name), getattr(TrainConfig(), f.name)
-            expected = (int, float) if isinstance(default, float) else type(default)
-            if isinstance(value, bool) != isinstance(default, bool) or not isinstance(value, expected):
-                kind = {
-                    "int": "an integer",
-                    "float": "a number",
-                    "str": "a string",
-                    "list": "a list",
-                    "dict": "a mapping",
-                }
-                raise InputError(f"training config: {f.name} must be {kind[type(default).__name__]}, got {value!r}")
-        minimums = {
-            "store_livers": 2,
-            "store_deformations": 1,
-            "store_tets": 500,
-            "val_livers": 1,
-            "val_pairs": 1,
-            "seed": 0,
-            "steps": 1,
-            "lr": 0,  # 0 is allowed: a frozen run (the fine-tuning test uses it)
-            "weight_decay": 0,
-            "warmup_steps": 0,
-            "overlap_weight": 0,
-            "val_every": 1,
-            "checkpoint_every": 1,
-            "threads": 0,
-            "loader_workers": 0,
-            "max_minutes": 0,
-            "real_deformations": 1,
-            "real_fraction": 0,
-            "real_val_pairs": 0,
-            "real_livers_limit": 0,
-            "store_workers": 1,
-            "val_workers": 0,
-            "hole_probability": 0,
-            "outlier_fraction": 0,
-            "background_fraction": 0,
-        }
-        for name, minimum in minimums.items():
-            if getattr(self, name) < minimum:
-                raise InputError(f"training config: {name} must be >= {minimum}, got {getattr(self, name)}")
-        if not self.temperature > 0:
-            raise InputError(f"training config: temperature must be > 0, got {self.temperature}")
+        _check_types(self)
+        _check_numbers(self)
+        _check_visibility(self)
+        _check_lists(self)
+        _check_model(self.model)
+        if not self.store_dir:  # Path("") is the current folder: the store would be built there
+            raise InputError("training config: store_dir must name a folder, got an empty string")
+        if self.store_seed in RESERVED_SEEDS or self.store_seed == REAL_LIVER_SEED:
+            raise InputError(
+                f"training config: store_seed must be outside 900-999 (test livers) and not {REAL_LIVER_SEED} "
+                f"(real livers), got {self.store_seed}"
+            )
         if self.val_livers >= self.store_livers:
             raise InputError(
                 f"training config: val_livers ({self.val_livers}) must be fewer than store_livers ({self.store_livers})"
             )
-        if not 0 < self.visibility_min <= self.visibility_max <= 1:
-            raise InputError(
-                "training config: need 0 < visibility_min <= visibility_max <= 1, got "
-                f"{self.visibility_min} and {self.visibility_max}"
-            )
-        for kind in ("val_visibility", "real_val_visibility"):
-            lo, hi = getattr(self, f"{kind}_min"), getattr(self, f"{kind}_max")
-            if not 0 < lo <= hi <= 1:
-                raise InputError(f"training config: need 0 < {kind}_min <= {kind}_max <= 1, got {lo} and {hi}")
-        if not self.crop_modes or any(mode not in CROP_MODES for mode in self.crop_modes):
-            raise InputError(
-                f"training config: crop_modes must be a non-empty list of {CROP_MODES}, got {self.crop_modes}"
-            )
-        if not self.noise_levels_mm or any(
-            not isinstance(n, int | float) or isinstance(n, bool) or not n >= 0 for n in self.noise_levels_mm
-        ):
-            raise InputError(
-                f"training config: noise_levels_mm must be a non-empty list of numbers >= 0, got {self.noise_levels_mm}"
-            )
-        for name in ("real_fraction", "hole_probability", "outlier_fraction", "background_fraction"):
-            if getattr(self, name) > 1:
-                raise InputError(f"training config: {name} must be <= 1, got {getattr(self, name)}")
         if (self.real_fraction > 0 or self.real_val_pairs > 0) and not self.real_store_dir:
             raise InputError("training config: real_fraction / real_val_pairs need a real_store_dir")
-        if not self.density_modes or any(m not in DENSITY_MODES for m in self.density_modes):
-            raise InputError(
-                f"training config: density_modes must be a non-empty list of {DENSITY_MODES}, got {self.density_modes}"
-            )
-        unknown = sorted(set(self.model) - {f.name for f in fields(ModelConfig)})
-        if unknown:
-            raise InputError(f"training config: unknown model keys: {', '.join(unknown)}")
         if self.init_weights and not Path(self.init_weights).is_file():
             raise InputError(f"training config: init_weights {self.init_weights} not found")
         return self
+
+
+_KINDS = {"int": "an integer", "float": "a number", "str": "a string", "list": "a list", "dict": "a mapping"}
+
+
+def _check_types(cfg: TrainConfig) -> None:
+    """Each field has its default's type (an int stands for a float; a bool is no number)."""
+    defaults = TrainConfig()
+    for f in fields(cfg):
+        value, default = getattr(cfg, f.name), getattr(defaults, f.name)
+        expected = (int, float) if isinstance(default, float) else type(default)
+        if isinstance(value, bool) != isinstance(default, bool) or not isinstance(value, expected):
+            raise InputError(f"training config: {f.name} must be {_KINDS[type(default).__name__]}, got {value!r}")
+
+
+def _check_numbers(cfg: TrainConfig) -> None:
+    """Every number finite, above its minimum, inside its range."""
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if isinstance(value, float) and not math.isfinite(value):  # NaN passes `<` tests; inf diverges the loss
+            raise InputError(f"training config: {f.name} must be a finite number, got {value}")
+    for name, minimum in MINIMUMS.items():
+        if getattr(cfg, name) < minimum:
+            raise InputError(f"training config: {name} must be >= {minimum}, got {getattr(cfg, name)}")
+    for name, (low, high) in CLOSED.items():
+        if not low <= getattr(cfg, name) <= high:
+            raise InputError(f"training config: {name} must be in [{low}, {high}], got {getattr(cfg, name)}")
+    if not cfg.temperature > 0:
+        raise InputError(f"training config: temperature must be > 0, got {cfg.temperature}")
+    for name in ("real_fraction", "hole_probability", "outlier_fraction", "background_fraction"):
+        if getattr(cfg, name) > 1:
+            raise InputError(f"training config: {name} must be <= 1, got {getattr(cfg, name)}")
+
+
+def _check_visibility(cfg: TrainConfig) -> None:
+    """The sampler's rule for every visibility range, now rather than when the first pair is drawn."""
+    for kind in ("visibility", "val_visibility", "real_val_visibility"):
+        lo, hi = getattr(cfg, f"{kind}_min"), getattr(cfg, f"{kind}_max")
+        if not MIN_VISIBILITY <= lo <= hi <= 1:
+            raise InputError(
+                f"training config: need {MIN_VISIBILITY} <= {kind}_min <= {kind}_max <= 1, got {lo} and {hi}"
+            )
+
+
+def _check_lists(cfg: TrainConfig) -> None:
+    """Crop modes, density modes and noise levels: non-empty lists of known choices / finite levels."""
+    if not cfg.crop_modes or any(mode not in CROP_MODES for mode in cfg.crop_modes):
+        raise InputError(f"training config: crop_modes must be a non-empty list of {CROP_MODES}, got {cfg.crop_modes}")
+    if not cfg.density_modes or any(m not in DENSITY_MODES for m in cfg.density_modes):
+        raise InputError(
+            f"training config: density_modes must be a non-empty list of {DENSITY_MODES}, got {cfg.density_modes}"
+        )
+    if not cfg.noise_levels_mm or any(
+        not isinstance(n, int | float) or isinstance(n, bool) or not 0 <= n <= MAX_NOISE_MM for n in cfg.noise_levels_mm
+    ):
+        raise InputError(
+            f"training config: noise_levels_mm must be a non-empty list of numbers in [0, {MAX_NOISE_MM:g}], "
+            f"got {cfg.noise_levels_mm}"
+        )
+
+
+def _check_model(model: dict[str, Any]) -> None:
+    """The `model` overrides: known keys, positive integers (a positive finite distance_max_norm), width a
+    multiple of heads, in_dim the feature count, so the net is built, not refused by torch mid-run."""
+    unknown = sorted(map(str, set(model) - {f.name for f in fields(ModelConfig)}))
+    if unknown:
+        raise InputError(f"training config: unknown model keys: {', '.join(unknown)}")
+    for name, value in model.items():
+        if name == "distance_max_norm":
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+            if not ok:
+                raise InputError(f"training config: model.{name} must be a finite number > 0, got {value!r}")
+        elif not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise InputError(f"training config: model.{name} must be an integer >= 1, got {value!r}")
+    arch = ModelConfig(**model)
+    if arch.in_dim != NUM_FEATURES:  # the descriptors give this many features per point
+        raise InputError(f"training config: model.in_dim must be {NUM_FEATURES}, got {arch.in_dim}")
+    if arch.width % arch.heads:
+        raise InputError(
+            f"training config: model.width ({arch.width}) must be a multiple of model.heads ({arch.heads})"
+        )

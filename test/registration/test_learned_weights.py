@@ -86,6 +86,18 @@ def test_missing_corrupt_and_incompatible_weights_raise_weights_error(tmp_path: 
         load_weights(path)
 
 
+def test_weights_holding_nan_or_inf_raise_weights_error(tmp_path: Path) -> None:
+    # A diverged training run's checkpoint: every registration with it would fail and blame the data.
+    net = MatcherNet(ModelConfig(width=32, layers=1, out_dim=16))
+    with torch.no_grad():
+        net.embed[0].bias[0] = float("nan")
+        net.head[0].weight[0, 0] = float("inf")
+    path = save_weights(net, tmp_path / "diverged.safetensors")
+    with pytest.raises(WeightsError, match="hold NaN or infinite values .* and 1 more") as err:
+        load_weights(path)
+    assert "\n" not in str(err.value)
+
+
 def test_cli_reports_bad_weights_in_one_line(tmp_path: Path) -> None:
     from liver_p2p_reg.cloud_io import save_points
 

@@ -19,6 +19,8 @@ from liver_p2p_reg.training.train import pair_loss, train
 from liver_p2p_reg.training.train_config import TrainConfig
 
 SMALL = {"width": 32, "layers": 1, "out_dim": 16, "max_nodes": 64}
+# The settings the `store` fixture was built with: a run checks its store is the one its config describes.
+STORE = {"store_livers": 2, "store_deformations": 1, "store_seed": 5, "store_tets": 1500}
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +61,7 @@ def test_few_iterations_reduce_the_loss(store: Path) -> None:
 
 def test_train_writes_checkpoints_and_resumes(store: Path, tmp_path: Path) -> None:
     cfg = TrainConfig(
-        store_dir=str(store), val_livers=1, val_pairs=1, steps=2, val_every=2, checkpoint_every=1,
+        store_dir=str(store), **STORE, val_livers=1, val_pairs=1, steps=2, val_every=2, checkpoint_every=1,
         loader_workers=0, warmup_steps=1, crop_modes=["random"], model=dict(SMALL),
     )  # fmt: skip
     out = tmp_path / "run"
@@ -78,7 +80,7 @@ def test_train_writes_checkpoints_and_resumes(store: Path, tmp_path: Path) -> No
 
 def test_training_reproduces_its_first_steps_bitwise_from_the_seed(store: Path, tmp_path: Path) -> None:
     cfg = TrainConfig(
-        store_dir=str(store), val_livers=1, val_pairs=1, steps=3, val_every=3, checkpoint_every=3,
+        store_dir=str(store), **STORE, val_livers=1, val_pairs=1, steps=3, val_every=3, checkpoint_every=3,
         loader_workers=0, warmup_steps=1, crop_modes=["random"], model=dict(SMALL), seed=7,
         visibility_min=0.05, visibility_max=0.35, val_visibility_min=0.05, val_visibility_max=0.35,
     )  # fmt: skip
@@ -98,7 +100,7 @@ def test_a_loader_worker_process_trains_to_the_in_process_weights(
     store: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     cfg = TrainConfig(
-        store_dir=str(store), val_livers=1, val_pairs=1, steps=2, val_every=2, checkpoint_every=2,
+        store_dir=str(store), **STORE, val_livers=1, val_pairs=1, steps=2, val_every=2, checkpoint_every=2,
         loader_workers=0, warmup_steps=1, crop_modes=["random"], model=dict(SMALL), seed=3,
     )  # fmt: skip
     train(cfg, tmp_path / "in_process", progress=False)
@@ -151,7 +153,7 @@ def test_fine_tuning_starts_from_init_weights(store: Path, tmp_path: Path) -> No
     torch.manual_seed(3)
     init = save_weights(MatcherNet(ModelConfig(**SMALL)), tmp_path / "init.safetensors")
     cfg = TrainConfig(
-        store_dir=str(store), val_livers=1, val_pairs=1, steps=1, val_every=1, checkpoint_every=1,
+        store_dir=str(store), **STORE, val_livers=1, val_pairs=1, steps=1, val_every=1, checkpoint_every=1,
         loader_workers=0, warmup_steps=1, crop_modes=["random"], model=dict(SMALL), lr=0.0,
         init_weights=str(init),
     )  # fmt: skip

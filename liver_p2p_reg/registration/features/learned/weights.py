@@ -51,6 +51,10 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         tensors = {k: v for k, v in tensors.items() if not k.startswith("prepared.")}
     elif meta.get("format") != FORMAT:
         raise WeightsError(f"matcher weights {path} have format {meta.get('format')!r}, expected {FORMAT!r}")
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:  # a diverged training run's weights: every registration would fail, and blame the data
+        more = f" and {len(bad) - 1} more" if len(bad) > 1 else ""
+        raise WeightsError(f"matcher weights {path} hold NaN or infinite values ({bad[0]}{more}); not usable")
     try:
         cfg = ModelConfig(**json.loads(meta["model_config"]))
     except (KeyError, TypeError, ValueError) as exc:
