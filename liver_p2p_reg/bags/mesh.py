@@ -25,7 +25,7 @@ def decimated_mesh(
     """
     from liver_p2p_reg.stream.deformation import checked_mesh  # the one check of a preop mesh
 
-    checked = checked_mesh(vertices_mm, triangles, "", 0)
+    checked = checked_mesh(vertices_mm, triangles, "", 0, max_triangles=None)  # a CT mesh of millions: decimated
     vertices, tris = checked.vertices_mm, checked.triangles
     if max_triangles < 4:
         raise InputError(f"a closed mesh needs at least 4 triangles, max_triangles is {max_triangles}")

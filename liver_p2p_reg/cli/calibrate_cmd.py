@@ -233,9 +233,12 @@ def _collected(folder: Path, args: argparse.Namespace, config: Config, weights: 
 
 def _file_sha256(path: Path) -> str:
     """The SHA-256 of a case file's bytes (read in blocks: a set is hundreds of MB)."""
-    try:
+    digest = hashlib.sha256()
+    try:  # in blocks, by hand: hashlib.file_digest is Python 3.11+, and 3.10 is supported
         with open(path, "rb") as fh:
-            return hashlib.file_digest(fh, "sha256").hexdigest()
+            while block := fh.read(1 << 20):
+                digest.update(block)
+        return digest.hexdigest()
     except OSError as exc:
         raise InputError(f"cannot read case {path}: {exc.strerror or exc}") from None
 

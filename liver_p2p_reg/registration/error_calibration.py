@@ -187,7 +187,9 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
     # Not a WARN: the bound is still the best estimate there is; the user is told it is not a calibrated one.
     # A tracked pose is the calibrated method's ICP refinement from the previous pose: its calibration holds.
     # A survey calibration was made of survey mode's frames, its tracked ones scored by `evaluate` among them.
-    if method not in (calibration.method, "track", *((SURVEY_TRACKED_METHOD,) if calibration.view == SURVEY else ())):
+    if calibration.view == SURVEY and method == SURVEY_TRACKED_METHOD:  # the survey of the configured method
+        method = getattr(config, "method", method)
+    if method not in (calibration.method, "track"):
         return f"error bound calibrated for {calibration.method}, not {method}: its coverage is not known"
     if calibration.weights_sha256 and weights_sha256(config) != calibration.weights_sha256:
         return (

@@ -25,11 +25,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
-from liver_p2p_reg.bags.recorder import recording_path
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.registration.error_calibration import read_calibration
-from liver_p2p_reg.registration.methods import check_method_name
-from liver_p2p_reg.registration.pipeline import require_device
 from liver_p2p_reg.ros import openmp_wait_warning
 from liver_p2p_reg.ros.messages import (
     feed_intraop_fiducials_msg,
@@ -60,10 +56,11 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_TRANSFORM,
     rclpy_qos,
 )
+from liver_p2p_reg.stream.checks import refuse_unusable
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.health import StreamHealth
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, WARN, Diagnostic
-from liver_p2p_reg.stream.worker import Worker
+from liver_p2p_reg.stream.worker import Worker, current_worker
 
 DIAGNOSTICS_PERIOD_S = 1.0
 JOIN_ON_EXIT_S = 0.2  # a registration still running at shutdown is abandoned after this
@@ -101,8 +98,10 @@ class RegisterWiring(RegisterOutputs):
 
     @property
     def _stopping(self: Any) -> bool:
-        """No output any more: the worker is stopped (or was never started)."""
-        return self._worker is None or self._worker.stopping
+        """No output (from this thread): the worker is stopped or was never started, or this is a worker abandoned
+        at cleanup, whose late result belongs to no configuration now."""
+        here = current_worker()
+        return self._worker is None or self._worker.stopping or (here is not None and here is not self._worker)
 
     def _bring_up(self: Any, preload_now: bool = False) -> None:
         from liver_p2p_reg.bags.recorder import recorder_factory  # the flight recorder (record_path)
@@ -119,11 +118,11 @@ class RegisterWiring(RegisterOutputs):
             self._worker.join(REPLACE_WAIT_S)
         core = self.core  # the worker's own: one abandoned at cleanup never publishes for the next configuration
         self._worker = Worker(lambda: self._process_pending(core), core.next_due_s, self._worker_error)
+        self.add_on_set_parameters_callback(self._on_parameters)  # first: _tear_down removes it if the preload fails
         if preload_now:  # configure: the weights are loaded when the transition returns
             self._preload()
         else:
             self._worker.submit(self._preload)
-        self.add_on_set_parameters_callback(self._on_parameters)
         self.pose_pub = self.create_publisher(PoseStamped, TOPIC_POSE, rclpy_qos(TOPIC_POSE))
         self.transform_pub = self.create_publisher(TransformStamped, TOPIC_TRANSFORM, rclpy_qos(TOPIC_TRANSFORM))
         self.cloud_pub = self.create_publisher(PointCloud2, TOPIC_REGISTERED, rclpy_qos(TOPIC_REGISTERED))
@@ -263,7 +262,8 @@ class RegisterWiring(RegisterOutputs):
             if not done.done():  # stop() may have answered it already
                 done.set_result(value)
 
-        self._submit(job)
+        if not self._submit(job):  # the worker stopped meanwhile (a transition on another thread): answered now
+            done.set_result(RuntimeError("register_node stopped before the request ran"))
         return done
 
     def _reregister_now(self) -> Any:
@@ -320,9 +320,9 @@ class RegisterWiring(RegisterOutputs):
         self._report_any(self.core.prepare_deformation())  # deform turned on, or its model's settings changed
 
     # ---------------------------------------------------------------- worker thread
-    def _submit(self, job: Callable[[], None] | None = None, key: str | None = None) -> None:
-        if self._worker is not None:
-            self._worker.submit(job, key)
+    def _submit(self, job: Callable[[], None] | None = None, key: str | None = None) -> bool:
+        """Hand `job` to the worker; False when it will never run (no worker, or a stopped one)."""
+        return self._worker is not None and self._worker.submit(job, key)
 
     def _process_pending(self, core: NodeCore) -> None:
         current = lambda: core is self.core  # noqa: E731
@@ -352,10 +352,15 @@ class RegisterWiring(RegisterOutputs):
             return True
         ended = self._worker.stop(JOIN_ON_EXIT_S)
         logging.getLogger("liver_p2p_reg").removeHandler(self._log_handler)
-        for request in list(self._pending):
-            if not request.done():
-                request.set_result(RuntimeError("register_node stopped (cleanup or shutdown) before the request ran"))
-        self.core.close_recording()  # its file complete; a registration still running is not recorded
+        try:
+            for request in list(self._pending):
+                try:  # an executor already shut down cannot schedule the answer: nobody waits for it then
+                    if not request.done():
+                        request.set_result(RuntimeError("register_node stopped before the request ran"))
+                except Exception:
+                    pass
+        finally:
+            self.core.close_recording()  # its file complete; a registration still running is not recorded
         return ended
 
     def destroy_node(self) -> None:
@@ -371,18 +376,6 @@ class RegisterNode(RegisterWiring, Node):
         self._declare()
         self._bring_up()
         self._go_live()
-
-
-def refuse_unusable(config: Config, accepted: Config | None = None) -> None:
-    """InputError for settings every registration would fail on (checked where they change from `accepted`):
-    refused when set or at configure, not reported frame after frame."""
-    check_method_name(config.method)
-    if config.record_path and (accepted is None or config.record_path != accepted.record_path):
-        recording_path(config.record_path, "new")  # a folder that does not exist: refused now, with why
-    calibration = (config.error_calibration_path, config.error_coverage)
-    if accepted is None or calibration != (accepted.error_calibration_path, accepted.error_coverage):
-        read_calibration(config.error_calibration_path).column(config.error_coverage)
-    require_device(config.device)
 
 
 def main(args: list[str] | None = None) -> int:

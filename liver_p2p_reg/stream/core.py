@@ -198,13 +198,13 @@ class NodeCore:
     def set_preop_mesh(
         self, vertices_mm: np.ndarray, triangles: np.ndarray, frame_id: str, stamp_ns: int
     ) -> Diagnostic:
-        """The preop model's mesh (/preop/mesh: welded vertices in mm, triangles): the non-rigid stage's surface
-        for the model of the same frame and stamp. InputError when it is not a mesh; then `prepare_deformation()`."""
+        """A /preop/mesh (welded vertices, mm): the stage's surface for its model; InputError when it is not a mesh."""
         mesh = checked_mesh(vertices_mm, triangles, frame_id, stamp_ns)
         self.mesh.set(mesh)
         self._recording.preop_mesh(mesh)
         with self._lock:
-            current = self.preop_mm is not None and self.mesh.for_model(self.preop_frame, self.preop_stamp_ns) is mesh
+            points, key = self.preop_mm, (self.preop_frame, self.preop_stamp_ns)
+        current = points is not None and self.mesh.for_model(*key, points) is mesh  # a looped bag's next model's: no
         return mesh_diagnostic(mesh, current)
 
     def prepare_deformation(self) -> Diagnostic | None:

@@ -49,8 +49,15 @@ class PreopMesh:
         return {"source_triangles": self.triangles, "mesh_vertices_mm": self.vertices_mm}
 
 
-def checked_mesh(vertices_mm: np.ndarray, triangles: np.ndarray, frame_id: str, stamp_ns: int) -> PreopMesh:
-    """A PreopMesh of finite vertices and triangles that index them; InputError (one line) when it is not one."""
+def checked_mesh(
+    vertices_mm: np.ndarray,
+    triangles: np.ndarray,
+    frame_id: str,
+    stamp_ns: int,
+    max_triangles: int | None = MAX_MESH_TRIANGLES,
+) -> PreopMesh:
+    """A PreopMesh of finite vertices and triangles that index them; InputError (one line) when it is not one.
+    `max_triangles`: the most a mesh to deform on may have (None: no limit, for a mesh about to be decimated)."""
     vertices = np.asarray(vertices_mm, dtype=np.float64)
     tris = np.asarray(triangles)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 4:
@@ -61,8 +68,8 @@ def checked_mesh(vertices_mm: np.ndarray, triangles: np.ndarray, frame_id: str, 
         raise InputError(f"mesh triangles must be a non-empty (F, 3) integer array, got shape {tris.shape}")
     if tris.min() < 0 or tris.max() >= len(vertices):
         raise InputError(f"mesh triangles index vertex {int(tris.max())} of {len(vertices)}")
-    if len(tris) > MAX_MESH_TRIANGLES:
-        raise InputError(f"mesh of {len(tris)} triangles (more than {MAX_MESH_TRIANGLES}); decimate it")
+    if max_triangles is not None and len(tris) > max_triangles:
+        raise InputError(f"mesh of {len(tris)} triangles (more than {max_triangles}); decimate it")
     return PreopMesh(vertices, tris.astype(np.int64), frame_id or "ct", int(stamp_ns))
 
 

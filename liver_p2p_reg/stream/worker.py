@@ -7,6 +7,12 @@ import time
 from collections.abc import Callable
 
 MAX_WAIT_S = 60.0  # it wakes at least this often, however far the next due registration lies
+_running = threading.local()  # the Worker whose thread this is (none in other threads)
+
+
+def current_worker() -> Worker | None:
+    """The Worker running on this thread, None elsewhere (an abandoned one's outputs must not go out)."""
+    return getattr(_running, "worker", None)
 
 
 class Worker:
@@ -35,9 +41,12 @@ class Worker:
         self._thread.start()
         return self
 
-    def submit(self, job: Callable[[], None] | None = None, key: str | None = None) -> None:
-        """Queue `job` (None: only wake up, a cloud may be due); a waiting job of the same `key` is replaced in place."""
+    def submit(self, job: Callable[[], None] | None = None, key: str | None = None) -> bool:
+        """Queue `job` (None: only wake up, a cloud may be due); a waiting job of the same `key` is replaced in place.
+        False once stopped: the job will never run (a request must then be answered by whoever queued it)."""
         with self._wake:
+            if self.stopping:
+                return False
             if job is not None:
                 at = next((i for i, (k, _) in enumerate(self._jobs) if key is not None and k == key), None)
                 if at is None:
@@ -45,6 +54,7 @@ class Worker:
                 else:
                     self._jobs[at] = (key, job)
             self._wake.notify_all()
+        return True
 
     def stop(self, join_s: float) -> bool:
         """Stop taking work and wait up to `join_s` for the step in progress; False when it is still running."""
@@ -64,6 +74,7 @@ class Worker:
             self._thread.join(timeout_s)
 
     def _run(self) -> None:
+        _running.worker = self
         while True:
             with self._wake:
                 while not self.stopping and not self._jobs:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -185,6 +186,11 @@ def _config_livers(cfg: TrainConfig, store: Path, meta: dict) -> list[str]:
             f"{store} holds {len(listed & set(names))} of the config's {cfg.store_livers} livers (store_livers); "
             "use another store_dir, or remove its store.json to build the missing ones"
         )
+    if len(listed) > len(names):  # a larger store's first livers: another split than training on all would give
+        logging.getLogger(__name__).warning(
+            "%s holds %d livers; this run uses its first %d (store_livers), the last %d of them for validation",
+            store, len(listed), len(names), cfg.val_livers,
+        )  # fmt: skip
     return names
 
 

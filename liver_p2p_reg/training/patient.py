@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 import time
 from dataclasses import asdict, dataclass, replace
@@ -229,7 +230,12 @@ def prepare_liver(
     base_model = load_weights(base)
     work = out.with_name(out.name + ".work")
     plan_path = work / "plan.json"
-    plan = _read_plan(plan_path)
+    try:
+        plan = _read_plan(plan_path)
+    except InputError:
+        if not fresh:
+            raise
+        plan = {"damaged": True}  # --force, as its message says: started afresh
     differ = _plan_differences(plan, digest, seed, base, steps, minutes) if plan else []
     if differ and not fresh:
         raise InputError(
@@ -263,13 +269,16 @@ def prepare_liver(
             "minutes": minutes,
             "before": before,
         }
-        plan_path.write_text(json.dumps(plan, indent=2))
+        plan_path.with_name("plan.json.tmp").write_text(json.dumps(plan, indent=2))
+        os.replace(plan_path.with_name("plan.json.tmp"), plan_path)  # whole or not at all: a kill leaves no half
     steps = int(plan["steps"])
     # A budget-fitted run also stops at the deadline (a slower moment of the machine); the card
     # then records the steps it really made.
     left_min = max(0.1, minutes - (time.perf_counter() - start) / 60.0) if plan["from_budget"] else 0.0
     cfg = training_config(store, base, seed, steps, left_min, size)
-    state = train(cfg, work / "run", device=device, resume=(work / "run" / "state.json").is_file(), progress=progress)
+    resume = (work / "run" / "state.json").is_file()
+    # without a state (a kill before the first checkpoint was complete) the run's own leftovers are replaced
+    state = train(cfg, work / "run", device=device, resume=resume, progress=progress, force=not resume)
     model = load_weights(work / "run" / "last.safetensors")
     after = _validate(model, views)
     config = Config()

@@ -88,3 +88,21 @@ def test_configure_refuses_settings_every_frame_would_fail_on(graph) -> None:
     assert node.trigger_configure() == TransitionCallbackReturn.FAILURE  # it configured, then failed every frame
     node.set_parameters([Parameter("error_coverage", value=0.9)])
     assert node.trigger_configure() == SUCCESS
+
+
+def test_destroying_the_node_with_a_request_waiting_raises_nothing(graph) -> None:
+    """An executor shut down first (rclpy's usual order) could not schedule the failed answer: stop() raised, and
+    the flight recording was left without its footer."""
+    node, helper, executor = graph
+    client = helper.create_client(Trigger, "/register_node/reregister")
+    assert node.trigger_configure() == SUCCESS and node.trigger_activate() == SUCCESS
+    gate = threading.Event()
+    node._submit(gate.wait)
+    client.call_async(Trigger.Request())
+    assert spin_until(executor, lambda: len(node._pending) == 1)
+    executor.shutdown()
+    try:
+        node.stop()  # what destroy_node does first
+    finally:
+        gate.set()
+    assert not node._submit(lambda: None)  # stopped: a late request would be answered at once, never left waiting

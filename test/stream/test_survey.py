@@ -96,6 +96,14 @@ def test_frames_tracked_on_the_survey_get_the_survey_calibrations_bound(sweep) -
         assert "not evaluate" in diag.values["error_calibration_note"]
         # the survey's calibration is tighter on these frames (its judged coverage: docs/results/survey_deform.md)
         assert output.result.error_bound_mm < theirs.result.error_bound_mm
+    # a survey run under another method: its frames' survey bound says it was calibrated for the default's survey
+    from liver_p2p_reg.registration.error_calibration import BUNDLED_SURVEY_RIGID_CALIBRATION as SURVEY_FILE
+    from liver_p2p_reg.registration.error_calibration import calibration_note, read_calibration
+
+    survey = read_calibration("", SURVEY_FILE)
+    assert calibration_note(survey, "evaluate", Config(mode="survey")) == ""
+    note = calibration_note(survey, "evaluate", Config(mode="survey", method="fpfh-ransac-icp"))
+    assert "calibrated for learned-p2p-icp, not fpfh-ransac-icp" in note
 
 
 def test_a_tracking_failure_stops_fusion_with_a_diagnostic(sweep) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 import time
 
-from liver_p2p_reg.stream.worker import Worker
+from liver_p2p_reg.stream.worker import Worker, current_worker
 
 
 def wait_for(condition, timeout_s: float = 5.0) -> bool:
@@ -58,3 +58,14 @@ def test_a_due_registration_wakes_the_worker_without_a_job() -> None:
     worker = Worker(lambda: (steps.append(1), due.clear()), lambda: due[0] if due else None, lambda exc: None).start()
     assert wait_for(lambda: steps == [1], 2.0)
     assert worker.stop(1.0)
+
+
+def test_a_stopped_worker_takes_no_job_and_each_thread_knows_its_worker() -> None:
+    seen = []
+    worker = Worker(lambda: None, lambda: None, lambda exc: None).start()
+    assert worker.submit(lambda: seen.append(current_worker()))
+    assert wait_for(lambda: seen == [worker]) and current_worker() is None  # this thread runs no worker
+    assert worker.stop(1.0)
+    assert not worker.submit(lambda: seen.append("late"))  # never runs: whoever queued it must answer it
+    time.sleep(0.05)
+    assert seen == [worker]

@@ -203,5 +203,8 @@ def test_a_rerun_with_other_settings_is_refused_or_started_afresh(prepared, live
     (work / "stale.txt").write_text("from the other preparation")
     with pytest.raises(LiverP2PError, match="other --seed"):
         prepare_liver(*args[:3], other, 5.0, name="liver21", steps=2, progress=False, size=SMALL)
+    (work / "plan.json").write_text('{"mesh_sha256": "cut sh')  # a kill mid-write (it is written whole now)
+    with pytest.raises(LiverP2PError, match="is damaged.*pass --force"):
+        prepare_liver(*args[:3], other, 5.0, name="liver21", steps=2, progress=False, size=SMALL)
     card = prepare_liver(*args[:3], other, 5.0, name="liver21", steps=2, fresh=True, progress=False, size=SMALL)
     assert card["steps"] == 2 and card["seed"] == 0 and not (work / "stale.txt").exists()
