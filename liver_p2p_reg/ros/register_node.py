@@ -37,6 +37,7 @@ from liver_p2p_reg.ros.messages import (
     feed_structures_msg,
 )
 from liver_p2p_reg.ros.node_main import RclpyLogHandler, declare_from, read_from, run_node
+from liver_p2p_reg.ros.node_settings import refuse_unusable
 from liver_p2p_reg.ros.pointcloud2 import stamp_to_ns
 from liver_p2p_reg.ros.rclpy_types import RCLPY_TYPES  # noqa: F401  (also imported from here: tests, scripts)
 from liver_p2p_reg.ros.register_outputs import RegisterOutputs
@@ -56,7 +57,6 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_TRANSFORM,
     rclpy_qos,
 )
-from liver_p2p_reg.stream.checks import refuse_unusable
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.health import StreamHealth
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, OK, WARN, Diagnostic

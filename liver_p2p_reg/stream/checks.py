@@ -1,5 +1,4 @@
-"""The checks an intraop cloud passes before the core registers it (frame, decoding, counts, voxelization, units),
-and the settings a node refuses before any frame."""
+"""The checks an intraop cloud passes before the core registers it: frame, decoding, counts, voxelization, units."""
 
 from __future__ import annotations
 
@@ -68,20 +67,3 @@ def same_model(current: tuple | None, points_mm: np.ndarray, frame_id: str, stam
         and old.shape == points_mm.shape
         and np.array_equal(old, points_mm)
     )
-
-
-def refuse_unusable(config: Config, accepted: Config | None = None) -> None:
-    """InputError for settings every registration would fail on (checked where they change from `accepted`):
-    refused when set or at configure, not reported frame after frame."""
-    from liver_p2p_reg.bags.recorder import recording_path  # the recorder imports the core: here, not above
-    from liver_p2p_reg.registration.error_calibration import read_calibration
-    from liver_p2p_reg.registration.methods import check_method_name
-    from liver_p2p_reg.registration.pipeline import require_device
-
-    check_method_name(config.method)
-    if config.record_path and (accepted is None or config.record_path != accepted.record_path):
-        recording_path(config.record_path, "new")  # a folder that does not exist: refused now, with why
-    calibration = (config.error_calibration_path, config.error_coverage)
-    if accepted is None or calibration != (accepted.error_calibration_path, accepted.error_coverage):
-        read_calibration(config.error_calibration_path).column(config.error_coverage)
-    require_device(config.device)
