@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -12,6 +11,7 @@ from liver_p2p_reg.bench.cases import CaseInfo, first_per_bin
 from liver_p2p_reg.bench.cases_csv import CASES_CSV
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.files import write_text_atomic
 
 SETTINGS_JSON = "settings.json"
 ORACLE = "procrustes"
@@ -173,9 +173,7 @@ def read_json(path: Path) -> dict[str, Any]:
 
 def _write_settings(path: Path, settings: dict[str, Any]) -> None:
     """settings.json in one step: a run cut short never leaves a half-written one that locks the OUT."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(settings, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(settings, indent=2, sort_keys=True) + "\n")
 
 
 def check_settings(out: Path, settings: dict[str, Any]) -> None:

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.files import write_text_atomic
 
 
 def readme_markers(name: str = "BENCHMARK") -> tuple[str, str]:
@@ -38,9 +39,7 @@ def replace_readme_block(readme: Path, block: str, name: str = "BENCHMARK") -> N
     start_marker, _ = readme_markers(name)
     text, start, end = _block_span(readme, name)
     new = text[: start + len(start_marker)] + "\n" + block.strip() + "\n" + text[end:]
-    tmp = readme.with_name(readme.name + ".tmp")
-    tmp.write_text(new)
-    os.replace(tmp, readme)
+    write_text_atomic(readme, new)
 
 
 def relative_link(target: Path, start_dir: Path) -> str:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.files import path_inside, write_text_atomic
 
 # generator and real-anatomy, random and camera crops (`liver-p2p dataset generate --testset NAME --out data`)
 DEFAULT_VAL = ("data/insilico-val-v2", "data/insilico-val-camera-v2", "data/real-val-v2", "data/real-val-camera-v2")
@@ -182,20 +183,14 @@ def _check_outputs(args: argparse.Namespace) -> None:
 def _outside_sets(path: Path, option: str, sets: list[Path]) -> None:
     """An output never lands in a set's folder: it would replace its files or be read as one of its cases."""
     for folder in sets:
-        try:
-            inside = path.resolve().is_relative_to(folder.resolve())
-        except (OSError, RuntimeError):  # RuntimeError: a symlink loop
-            continue
-        if inside:
+        if path_inside(path, folder):
             raise InputError(f"{option} {path} is inside {folder}, a set this command reads; choose another path")
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    """Write a file in one step: a run cut short never leaves half a calibration or page."""
+    """Write a file in one step, its folder made: a run cut short never leaves half a calibration or page."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, text)
 
 
 def _applied(data: dict, args: argparse.Namespace) -> dict:

@@ -7,6 +7,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.files import path_inside
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -33,14 +34,6 @@ def given_paths(*values: str | Path | Iterable[str | Path] | None) -> list[Path]
     return paths
 
 
-def _inside(inner: Path, outer: Path) -> bool:
-    """True when `inner` is `outer` or lies under it (both resolved; a path that cannot be resolved: False)."""
-    try:
-        return inner.resolve().is_relative_to(outer.resolve())
-    except (OSError, RuntimeError):  # RuntimeError: a symlink loop (Python 3.11)
-        return False
-
-
 def refuse_inputs(
     path: Path, option: str, inputs: Iterable[Path], contains: bool = False, bag_folders: bool = False
 ) -> None:
@@ -50,9 +43,9 @@ def refuse_inputs(
     for given in inputs:
         if _same(path, given):
             raise InputError(f"{option} {path} is an input of this command; choose another path")
-        if bag_folders and given.is_dir() and _inside(path, given):
+        if bag_folders and given.is_dir() and path_inside(path, given):
             raise InputError(f"{option} {path} is inside {given}, a bag this command reads; choose another path")
-        if contains and given.exists() and _inside(given, path):
+        if contains and given.exists() and path_inside(given, path):
             raise InputError(f"{option} {path} holds {given}, an input of this command; choose another path")
 
 

@@ -271,17 +271,17 @@ class RegisterWiring(RegisterOutputs):
         self._publish(output)
         return output
 
-    def _inactive(self: Any, response: Trigger.Response) -> Trigger.Response | None:
-        """The answer of a service called outside the active state (None when active)."""
+    def _inactive(self: Any, response: Trigger.Response) -> bool:
+        """True (and `response` filled in) when a service is called outside the active state."""
         if self.active and self.core is not None:
-            return None
+            return False
         response.success, response.message = False, "register_node is not active (lifecycle): activate it first"
-        return response
+        return True
 
     async def _on_reregister(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         # The registration runs on the worker; this coroutine waits without holding a thread (its own callback group:
         # the node's topics, parameters and status are served meanwhile).
-        if self._inactive(response) is not None:
+        if self._inactive(response):
             return response
         output = await self._on_worker("reregister", self._reregister_now)
         failed = isinstance(output, Exception)
@@ -291,7 +291,7 @@ class RegisterWiring(RegisterOutputs):
 
     async def _on_reset_survey(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         # On the worker, after any registration in progress; this coroutine waits without a thread.
-        if self._inactive(response) is not None:
+        if self._inactive(response):
             return response
         core = self.core
         message = await self._on_worker("reset_survey", core.reset_survey)

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.files import path_inside
 from liver_p2p_reg.registration.features.learned.weights import load_weights, save_weights
 
 SIDECARS = (".json", ".md")  # the model card next to the weights
@@ -30,11 +31,7 @@ def check_destination(run: Path, dest: Path, force: bool) -> None:
         raise InputError(f"--export {dest}: use a .safetensors path (the card goes next to it as .json and .md)")
     if dest.is_dir():
         raise InputError(f"--export {dest} is a folder; give a file path")
-    try:
-        inside = dest.resolve().is_relative_to(run.resolve())
-    except (OSError, RuntimeError):  # RuntimeError: a symlink loop (Python 3.11)
-        inside = False
-    if inside:
+    if path_inside(dest, run):
         raise InputError(f"--export {dest} is inside the run folder {run}; choose a path outside it")
     existing = [p for p in [dest, *(dest.with_suffix(s) for s in SIDECARS)] if p.exists() or p.is_symlink()]
     if existing and not force:

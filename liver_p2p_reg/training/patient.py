@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import shutil
 import time
 from dataclasses import asdict, dataclass, replace
@@ -26,6 +25,7 @@ import numpy as np
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.files import write_text_atomic
 from liver_p2p_reg.registration.features.learned.patient import PreparedSource, save_prepared, source_signature
 
 log = logging.getLogger(__name__)
@@ -269,8 +269,7 @@ def prepare_liver(
             "minutes": minutes,
             "before": before,
         }
-        plan_path.with_name("plan.json.tmp").write_text(json.dumps(plan, indent=2))
-        os.replace(plan_path.with_name("plan.json.tmp"), plan_path)  # whole or not at all: a kill leaves no half
+        write_text_atomic(plan_path, json.dumps(plan, indent=2))  # a kill mid-write leaves no half plan
     steps = int(plan["steps"])
     # A budget-fitted run also stops at the deadline (a slower moment of the machine); the card
     # then records the steps it really made.

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.files import write_text_atomic
 from liver_p2p_reg.pools import spawn_context
 from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
 from liver_p2p_reg.registration.features.learned.weights import load_weights, save_weights
@@ -69,13 +70,6 @@ def _lr(cfg: TrainConfig, step: int) -> float:
     return cfg.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """Write a file whole or not at all (a run killed mid-write leaves the old one)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _finite(model: MatcherNet) -> bool:
     """True when every weight is a finite number (a diverged step leaves NaN or inf)."""
     return all(bool(torch.isfinite(p).all()) for p in model.parameters())
@@ -98,7 +92,7 @@ def _save_checkpoint(out: Path, model: MatcherNet, opt: torch.optim.Optimizer, s
             opt_tensors[f"{i}.step"] = torch.as_tensor(st["step"], dtype=torch.float32).reshape(1).cpu()
     save_file(opt_tensors, str(out / "optimizer.safetensors.tmp"))
     (out / "optimizer.safetensors.tmp").replace(out / "optimizer.safetensors")
-    _write_atomic(out / "state.json", json.dumps(state, indent=2))
+    write_text_atomic(out / "state.json", json.dumps(state, indent=2))  # a kill mid-write leaves the old one
 
 
 def _diverged(out: Path, step: int, what: str) -> str:
