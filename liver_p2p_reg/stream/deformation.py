@@ -31,7 +31,6 @@ LOG = logging.getLogger("liver_p2p_reg.node")
 # A CT liver mesh has 10^4-10^5 triangles; one of 300k triangles took 3 GB and 35 s to build on: 10^6 is refused.
 MAX_MESH_TRIANGLES = 1_000_000
 MESHES_KEPT = 4  # meshes kept for models of other stamps (the next model's may come before its points)
-FIT_SURFACE_SAMPLES = 20_000  # points drawn on a mesh to measure how far a model's points lie from its surface
 
 
 @dataclass(frozen=True)
@@ -76,20 +75,13 @@ def checked_mesh(
 def mesh_fit_problem(mesh: PreopMesh, points_mm: np.ndarray) -> str:
     """Why `mesh` is not the surface of the model with these points ("" when they lie on it): a frame and a stamp
     do not tell two models apart (every bundled bag stamps its model alike), so the geometry must."""
+    from liver_p2p_reg.cloud_io import sample_mesh_surface
     from liver_p2p_reg.registration.nearest import NearestIndex
 
-    v, t = mesh.vertices_mm, mesh.triangles
-    area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
-    if not area.sum() > 0:
+    used = np.unique(mesh.triangles)  # a vertex no triangle uses is no part of the surface
+    surface = sample_mesh_surface(mesh.vertices_mm[used], np.searchsorted(used, mesh.triangles), seed=0)
+    if len(surface) == len(used):  # no sample drawn: the triangles have no area
         return "its triangles have no area"
-    rng = np.random.default_rng(0)  # the same samples for the same mesh: the same answer
-    pick = rng.choice(len(t), size=FIT_SURFACE_SAMPLES, p=area / area.sum())
-    u, w = rng.random((2, FIT_SURFACE_SAMPLES, 1))
-    flip = (u + w) > 1
-    u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
-    a = v[t[pick, 0]]
-    # the triangles' corners and points on them: a vertex no triangle uses is no part of the surface
-    surface = np.concatenate([v[np.unique(t)], a + u * (v[t[pick, 1]] - a) + w * (v[t[pick, 2]] - a)])
     points = np.asarray(points_mm, dtype=np.float64)
     distances, _ = NearestIndex(surface).query(points[:: max(len(points) // 2000, 1)])
     p90_mm = float(np.quantile(distances, 0.9))
