@@ -36,6 +36,19 @@ def bag_frames_m(bag: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     return model_and_clouds(bag, metres=True)
 
 
+def stop_executor(executor) -> None:
+    """Shut `executor` down and wait for the callbacks its threads are still running.
+
+    Why: rclpy 7.1.6's Executor.shutdown() tests the flag it has just set, so it never waits; a
+    MultiThreadedExecutor's callback still running in its pool then met destroy_node() ("cannot use
+    Destroyable"), and the unretrieved exception was printed when the interpreter exited.
+    """
+    executor.shutdown()
+    pool = getattr(executor, "_executor", None)  # MultiThreadedExecutor's ThreadPoolExecutor (rclpy-private)
+    if pool is not None:
+        pool.shutdown(wait=True)
+
+
 def clean_stderr(text: str) -> list[str]:
     """Lines of a node's stderr that are not INFO log lines (a traceback, a warning, anything else)."""
     bad = []

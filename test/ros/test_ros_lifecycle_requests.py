@@ -12,6 +12,7 @@ rclpy = require_rclpy()
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.lifecycle import TransitionCallbackReturn  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_support import stop_executor  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from liver_p2p_reg.ros.register_lifecycle_node import ManagedRegisterNode  # noqa: E402
@@ -32,7 +33,7 @@ def graph():
     try:
         yield node, helper, executor
     finally:
-        executor.shutdown()
+        stop_executor(executor)
         node.destroy_node()
         helper.destroy_node()
         rclpy.try_shutdown()
@@ -100,7 +101,7 @@ def test_destroying_the_node_with_a_request_waiting_raises_nothing(graph) -> Non
     node._submit(gate.wait)
     client.call_async(Trigger.Request())
     assert spin_until(executor, lambda: len(node._pending) == 1)
-    executor.shutdown()
+    stop_executor(executor)
     try:
         node.stop()  # what destroy_node does first
     finally:

@@ -13,6 +13,7 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
+from ros_support import stop_executor  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -54,7 +55,7 @@ def pose_graph(overrides: list, helper_name: str):
     try:
         yield node, helper, executor, poses
     finally:
-        executor.shutdown()
+        stop_executor(executor)
         node.stop()
         node.destroy_node()
         helper.destroy_node()

@@ -9,6 +9,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_support import stop_executor  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from liver_p2p_reg.ros.register_node import RegisterNode  # noqa: E402
@@ -39,6 +40,6 @@ def test_reset_survey_service_answers(ros_context):
         assert future.done() and future.result().success
         assert future.result().message.startswith("survey reset: nothing fused yet")
     finally:
-        executor.shutdown()
+        stop_executor(executor)
         node.destroy_node()
         helper.destroy_node()
