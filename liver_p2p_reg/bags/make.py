@@ -26,6 +26,9 @@ from liver_p2p_reg.ros.topics import (
 
 CASE_KEY = "liver_p2p_reg.case"  # metadata.yaml custom_data key holding the case description (JSON)
 START_NS = 1_700_000_000 * 1_000_000_000  # fixed start time: identical bags for identical inputs
+# Intraop points in all frames of one made bag: 5e7 is ~1.2 GB of clouds in memory and ~0.6 GB of bag (10 Hz of
+# 20,000-point frames for 40 minutes); --frames 100000000 built motions for minutes, then would fill the disk.
+MAX_BAG_POINTS = 50_000_000
 Mesh = tuple[np.ndarray, np.ndarray]  # (vertices mm, triangles)
 
 
@@ -93,6 +96,12 @@ def make_case_bag(
             )
     if n_frames < 1:
         raise InputError(f"n_frames must be >= 1, got {n_frames}")
+    total_points = n_frames * min(len(target_mm), max(max_intraop_points, 1))
+    if total_points > MAX_BAG_POINTS:  # every frame is built in memory first, then written
+        raise InputError(
+            f"{n_frames} frames of {total_points // n_frames} points is {total_points:.3g} points in all, above the "
+            f"{MAX_BAG_POINTS:.0e} a bag is made of; give fewer --frames or a smaller --max-intraop-points"
+        )
     if not frame_period_s > 0:
         raise InputError(f"the frame period must be > 0 s, got {frame_period_s}")
     if not (np.isfinite(motion_mm) and np.isfinite(motion_deg)):

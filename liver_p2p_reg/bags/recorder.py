@@ -148,6 +148,18 @@ def run_environment() -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------- file names
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first bytes of every MCAP file
+
+
+def _head(path: Path) -> bytes:
+    """The first bytes of a file (b"" when it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(MCAP_MAGIC))
+    except OSError:
+        return b""
+
+
 def continuation(path: Path, index: int) -> Path:
     """The file `index` of a rotated recording: PATH itself, then PATH_001.mcap, PATH_002.mcap, ..."""
     return path if index == 0 else path.with_name(f"{path.stem}_{index:03d}{path.suffix}")
@@ -169,14 +181,19 @@ def recording_path(record_path: str, existing: str) -> Path:
             raise InputError(f"record_path {record_path}: a flight recording is an .mcap file (or a folder for one)")
         if not path.parent.is_dir():
             raise InputError(f"record_path {record_path}: folder {path.parent} does not exist")
-        taken = [p for p in recording_series(path) if p.exists()]
+        taken = [p for p in recording_series(path) if p.exists() or p.is_symlink()]  # a dangling link is taken too
     except (RuntimeError, OSError) as exc:
         raise InputError(f"record_path {record_path[:200]}: not usable ({exc})") from None
     if taken and existing == "refuse":
         raise InputError(f"{taken[0]} exists; pass --force to overwrite it")
     if taken and existing == "overwrite":
+        # PATH's old continuations go with it (left behind, they would be read as the new recording's), but only
+        # what is one: an MCAP file; a folder or another file under such a name is the user's and stops the run
+        for old in taken[1:] if taken[0] == path else taken:
+            if old.is_symlink() or not old.is_file() or _head(old) != MCAP_MAGIC:
+                raise InputError(f"{old} stands where {path}'s continuation would be, and is no recording; move it")
         for old in taken:
-            old.unlink() if old.is_file() else shutil.rmtree(old)
+            old.unlink() if old.is_file() or old.is_symlink() else shutil.rmtree(old)  # a link, never its target
     elif taken:  # "new": a recording is evidence, never overwritten
         base, n = path.with_name(f"{path.stem}-{stamp}{path.suffix}"), 1
         path = base

@@ -158,7 +158,7 @@ def replay_bag(
         output, cloud, fiducials, frame = last_posed
         title = f"{path.name}, frame {frame} of {frames} (the last registered)"
         _plot_frame(plot_path, core, output, cloud, fiducials, title=title)
-    row = _summarize(path, frames, outputs, str(out_path or ""), info, sink.output_frames)
+    row = _summarize(path, frames, outputs, str(out_path or ""), info, sink.output_frames, core.config.mode)
     row.deform = core.config.deform
     return row
 
@@ -205,7 +205,7 @@ def _plot_frame(
 
 
 def _summarize(
-    path: Path, frames: int, outputs: list[CoreOutput], out: str, info: dict, output_frames: list[int]
+    path: Path, frames: int, outputs: list[CoreOutput], out: str, info: dict, output_frames: list[int], mode: str
 ) -> ReplayRow:
     results = [o.result for o in outputs if o.pose is not None and o.result is not None]
     worst = max((o.level for o in outputs), default=ERROR)
@@ -245,7 +245,7 @@ def _summarize(
         runtime_ms=runtimes,
         tracked=sum(r.method == "track" for r in results),
         status=LEVEL_NAMES[worst] if results or worst != OK else "ERROR",
-        message=messages[0][0] if messages else ("no intraop frames" if frames == 0 else ""),
+        message=messages[0][0] if messages else _nothing_registered(frames, mode),
         message_frame=messages[0][1] if messages else 0,
         output=out,
         info=info,
@@ -253,6 +253,18 @@ def _summarize(
         deform_applied=len(applied),
         deformed_rms_tre_mm=mean(deformed_tres),
     )
+
+
+def _nothing_registered(frames: int, mode: str) -> str:
+    """Why a bag's replay gave no output at all (its status is ERROR and it says so in one line)."""
+    if frames == 0:
+        return "no intraop frames"
+    if mode == "on_demand":  # the node's on_demand waits for ~/reregister, which no replay calls
+        return (
+            f"none of its {frames} frames was registered: mode on_demand registers only when ~/reregister is "
+            "called, which a replay never does; use --mode once or continuous"
+        )
+    return f"none of its {frames} frames was registered"
 
 
 def _deform_frame(output: CoreOutput) -> dict:

@@ -61,10 +61,14 @@ def run(args: argparse.Namespace) -> int:
     bags = bundled_bags_dir()
     if bags is None:
         raise InputError("no bundled bags found (expected a bags/ folder next to the package)")
-    paths = sorted(p for p in bags.glob(args.bags) if (p / "metadata.yaml").is_file() or p.suffix == ".mcap")
+    try:  # pathlib refuses an empty or absolute pattern with ValueError / NotImplementedError
+        matched = list(bags.glob(args.bags))
+    except (ValueError, NotImplementedError):
+        raise InputError(f"--bags {args.bags!r}: give a name pattern such as 'phantom_*' (no path)") from None
+    paths = sorted(p for p in matched if (p / "metadata.yaml").is_file() or p.suffix == ".mcap")
     if not paths:
         raise InputError(f"no bundled bag matches {args.bags!r} in {bags}")
-    out = Path(args.out)
+    out = _demo_out(args.out, bags)
     graph = None
     if not args.replay:
         try:
@@ -82,6 +86,20 @@ def run(args: argparse.Namespace) -> int:
             print(line)
         return 1 if any(r.status not in ("OK", "WARN") for r in rows) else 0
     return _report_graph(graph, rows, out)
+
+
+def _demo_out(value: str, bags: Path) -> Path:
+    """The demo's output folder, checked before any work: a folder (made if missing), outside the bundled bags
+    (it writes OUT/<bag>/ and OUT/replay/, which inside bags/ would land in or beside the bags it reads)."""
+    from liver_p2p_reg.cli.output_paths import output_folder
+    from liver_p2p_reg.files import path_inside
+
+    out = output_folder(value, "--out", inputs=[bags])
+    if out is None:
+        raise InputError("--out: give a folder")
+    if path_inside(out, bags):
+        raise InputError(f"--out {out} is inside {bags}, the bundled bags the demo reads; choose another folder")
+    return out
 
 
 def _run_graph(graph_demo, paths: list[Path], config: Config, out: Path) -> tuple[list, float]:

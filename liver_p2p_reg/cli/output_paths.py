@@ -75,17 +75,24 @@ def output_file(
         raise InputError(f"{option} {path} links to {path.resolve()}, whose folder does not exist")
     if path.is_symlink() and not force:  # a link to nothing yet is still the user's (a writer may replace it)
         raise InputError(f"{option} {path} is a link to {path.resolve()}; pass --force to write over it")
+    if path.exists() and not (path.is_file() or path.is_char_device()):  # /dev/null is fine
+        raise InputError(f"{option} {path} is not a regular file (a pipe or socket would block the write)")
+    if not os.access(path if path.exists() else path.parent, os.W_OK):  # now, not after the registration
+        raise InputError(f"{option} {path}: {'the file' if path.exists() else 'its folder'} is not writable")
     return path
 
 
-def output_folder(value: str | Path | None, option: str, *, inputs: Iterable[Path] = ()) -> Path | None:
-    """A folder the command writes files into (made if missing): not an existing file, not an input."""
+def output_folder(
+    value: str | Path | None, option: str, *, inputs: Iterable[Path] = (), bag_folders: bool = False
+) -> Path | None:
+    """A folder the command writes files into (made if missing): not an existing file, not an input, and
+    (`bag_folders`: the inputs are bags) not inside a bag the command reads."""
     if not value:
         return None
     path = Path(value)
     if path.exists() and not path.is_dir():
         raise InputError(f"{option} {path} is a file; give a folder")
-    refuse_inputs(path, option, inputs)
+    refuse_inputs(path, option, inputs, bag_folders=bag_folders)
     return path
 
 

@@ -92,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
         bag_source(path)  # a malformed metadata.yaml: one line before the progress bar, not after it
     if args.max_frames < 0:
         raise InputError(f"--max-frames must be >= 0 (0: all frames), got {args.max_frames}")
+    if args.slicer is not None and not 0 <= args.slicer_wait < float("inf"):  # NaN and inf waited forever
+        raise InputError(f"--slicer-wait must be a finite number of seconds >= 0, got {args.slicer_wait}")
     _check_outputs(args, paths)
     from liver_p2p_reg.structures_io import load_structures
 
@@ -119,30 +121,71 @@ def run(args: argparse.Namespace) -> int:
     for line in format_flags(rows):
         print(line)
     if args.json:
-        Path(args.json).write_text(json.dumps([row.__dict__ for row in rows], indent=2, default=str))
+        _write_json(Path(args.json), [row.__dict__ for row in rows])
     return 1 if any(row.status == "ERROR" for row in rows) else 0
 
 
+def _write_json(path: Path, data) -> None:
+    """Strict JSON (NaN and infinities as null: jq and browsers refuse the bare tokens), written atomically."""
+    from liver_p2p_reg.files import write_text_atomic
+
+    write_text_atomic(path, json.dumps(_strict(data), indent=2, default=str, allow_nan=False))
+
+
+def _strict(value):
+    """`value` with every non-finite float replaced by None (lists, tuples and dicts walked)."""
+    if isinstance(value, float):
+        return value if value == value and abs(value) != float("inf") else None
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_strict(v) for v in value]
+    return value
+
+
 def _check_outputs(args: argparse.Namespace, bags: list[Path]) -> None:
-    """--out, --plots and --json checked before any work: none of them is, or (a bag to replace) holds, an input."""
-    from liver_p2p_reg.cli.output_paths import given_paths, output_bag, output_file, output_folder, refuse_inputs
+    """--out, --plots, --record and --json checked before any work: none of them is, or (a bag to replace) holds,
+    an input, and no two of them write one path."""
+    from liver_p2p_reg.cli.output_paths import (
+        distinct_outputs,
+        given_paths,
+        output_bag,
+        output_file,
+        output_folder,
+        refuse_inputs,
+    )
+    from liver_p2p_reg.files import path_inside
 
     inputs = given_paths(bags, args.config, args.structures)
+    names = [bag.name.removesuffix(".mcap") for bag in bags]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice and (args.out or args.plots or (args.record and len(bags) > 1)):
+        # OUT/<name>, PLOTS/<name>.png and RECORD/<name>.mcap would hold the second bag's output only
+        raise InputError(f"two bags are named {twice[0]}: their outputs would share one path; rename one")
     out = output_folder(args.out, "--out", inputs=inputs)
+    written: dict[str, list[Path | None]] = {"--out": [], "--plots": [], "--record": []}
     if out is not None:
-        for bag in bags:  # each replayed bag is written to OUT/<bag name>, replacing a bag there with --force
-            output_bag(out / bag.name.removesuffix(".mcap"), args.force, "--out", inputs, bag_folders=True)
-    output_folder(args.plots, "--plots", inputs=inputs)
+        for name in names:  # each replayed bag is written to OUT/<bag name>, replacing a bag there with --force
+            written["--out"].append(output_bag(out / name, args.force, "--out", inputs, bag_folders=True))
+    plots = output_folder(args.plots, "--plots", inputs=inputs, bag_folders=True)
+    if plots is not None:
+        written["--plots"] = [plots / f"{name}.png" for name in names]
     if args.json:
-        refuse_inputs(Path(args.json), "--json", inputs, bag_folders=True)
+        json_path = Path(args.json)
+        refuse_inputs(json_path, "--json", inputs, bag_folders=True)
+        for bag_out in written["--out"]:  # written after the bags: it would replace a file of one
+            if path_inside(json_path, bag_out):
+                raise InputError(f"--json {json_path} is inside {bag_out}, an output bag; choose another path")
     output_file(args.json, args.force, "--json", inputs=inputs)
     if args.record:
-        _check_record(args.record, args.force, several=len(bags) > 1, inputs=bags)
+        written["--record"] = _check_record(args.record, args.force, several=len(bags) > 1, inputs=bags)
+    distinct_outputs({**written, "--json": [Path(args.json) if args.json else None]})
 
 
-def _check_record(record: str, force: bool, several: bool, inputs: list[Path]) -> None:
+def _check_record(record: str, force: bool, several: bool, inputs: list[Path]) -> list[Path]:
     """--record checked before any work: a recording that exists is refused unless --force, and --force never
-    replaces an input (nor a file of an input recording's series); several bags want a folder."""
+    replaces an input (nor a file of an input recording's series); several bags want a folder. Returns the files
+    the recordings will be (their first files; a rotated recording adds continuations next to them)."""
     from liver_p2p_reg.bags.recorder import recording_series
     from liver_p2p_reg.cli.output_paths import output_file, output_folder, refuse_inputs
 
@@ -162,10 +205,11 @@ def _check_record(record: str, force: bool, several: bool, inputs: list[Path]) -
     for target in targets:
         for written in recording_series(target):
             refuse_inputs(written, "--record", read, bag_folders=True)
-            if written.exists() and not force:
+            if (written.exists() or written.is_symlink()) and not force:  # a dangling link is the user's too
                 raise InputError(f"{written} exists; pass --force to overwrite it")
     if several:
         path.mkdir(parents=True, exist_ok=True)
+    return targets
 
 
 def _rerun(args: argparse.Namespace) -> int:
@@ -179,18 +223,18 @@ def _rerun(args: argparse.Namespace) -> int:
              ("--slicer", args.slicer), ("--structures", args.structures), ("--deform", args.deform)) if v]  # fmt: skip
     if given:
         raise InputError(f"{', '.join(given)}: a flight recording is re-run under its recorded parameters only")
-    if args.record:
-        _check_record(args.record, args.force, several=False, inputs=[Path(args.bags[0])])
+    written = _check_record(args.record, args.force, several=False, inputs=[Path(args.bags[0])]) if args.record else []
     from liver_p2p_reg.bags.recorder import recording_series
-    from liver_p2p_reg.cli.output_paths import output_file
+    from liver_p2p_reg.cli.output_paths import distinct_outputs, output_file
 
     output_file(args.json, args.force, "--json", inputs=recording_series(Path(args.bags[0])))
+    distinct_outputs({"--record": written, "--json": [Path(args.json) if args.json else None]})
     report = rerun_recording(args.bags[0], record_path=args.record, overwrite=args.force)
     for note in report.notes:
         print(f"note: {note}")
     print(f"{args.bags[0]}: {report.summary()}")
     if args.json:
-        Path(args.json).write_text(json.dumps({**report.__dict__, "ok": report.ok}, indent=2))
+        _write_json(Path(args.json), {**report.__dict__, "ok": report.ok})
     if report.registrations == 0:  # nothing compared is nothing verified: not a pass
         print(f"liver-p2p: error: {args.bags[0]} holds no complete registration to re-run", file=sys.stderr)
         return 2

@@ -14,6 +14,10 @@ from liver_p2p_reg.errors import InputError
 
 RESULTS_PAGE = Path("docs/results/soak.md")  # under the README's folder, with --readme
 PLOT_DIR = Path("docs/soak")
+OUTPUT_FILES = ("soak.csv", "soak.png", "soak.md")  # what OUT holds after a run (and logs/)
+# Depth cameras stream at up to ~90 frames per second; far above that the player and the latency probe starve
+# (10^6 Hz: 0 clouds received, a report of nothing, exit 0), measuring them instead of the node.
+MAX_RATE_HZ = 100.0
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -31,6 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="bags, or folders of bags, to play in turn (default: every bundled bag)",
     )
     p.add_argument("--out", default="out/soak", help="soak.csv, soak.png, soak.md and node logs (default: out/soak)")
+    p.add_argument("--force", action="store_true", help="replace an earlier soak's soak.csv, soak.png and soak.md")
     p.add_argument(
         "--readme",
         nargs="?",
@@ -77,11 +82,16 @@ def run(args: argparse.Namespace) -> int:
         config = config.replace(method=args.method)
     config.validate()
     minute_s = float(args.minute_s)
+    if not (math.isfinite(args.minutes) and math.isfinite(minute_s) and minute_s > 0):
+        raise InputError(f"--minutes must be a finite number of minutes (got {args.minutes})")
     minutes = int(math.floor(args.minutes * 60.0 / minute_s + 1e-9))
-    if minutes < 1 or not args.rate_hz > 0:
+    if minutes < 1 or not 0 < args.rate_hz <= MAX_RATE_HZ:
         raise InputError(
-            f"--minutes must be at least one minute and --rate-hz > 0 (got {args.minutes}, {args.rate_hz})"
+            f"--minutes must be at least one minute and --rate-hz in (0, {MAX_RATE_HZ:g}] "
+            f"(got {args.minutes}, {args.rate_hz})"
         )
+    if not (math.isfinite(args.sample_s) and args.sample_s > 0):
+        raise InputError(f"--sample-s must be a finite number of seconds > 0 (got {args.sample_s})")
     if args.readme:  # checked now, not after half an hour
         from liver_p2p_reg.bench.readme import readme_markers
 
@@ -92,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
                 f"--readme {readme}: no such file, or it lacks the {' ... '.join(readme_markers('SOAK'))} markers"
             )
     bags = resolve_bags(args.bags)
+    out = _check_out(Path(args.out), bags, args.force)
     try:
         from liver_p2p_reg.livegraph import soak  # the rclpy adapter: importable only where rclpy is
         from liver_p2p_reg.livegraph.demo import node_params
@@ -99,7 +110,6 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"the soak needs the live ROS 2 graph, and rclpy is not importable ({exc})") from None
     from tqdm import tqdm
 
-    out = Path(args.out)
     info = _info(args, config, bags, minute_s)
     quiet = getattr(args, "quiet", False)
     print(
@@ -143,9 +153,28 @@ def run(args: argparse.Namespace) -> int:
     if result.failure:
         print(f"liver-p2p soak: {result.failure}; the {len(result.rows)} minutes done are written")
         return 1
-    if result.exit_status != 0:
-        print(f"note: register_node ended with status {result.exit_status} after SIGINT (see {out}/logs)")
+    if not result.latency_ms:  # nothing measured is no pass: the rows are written, the run failed
+        print(f"liver-p2p soak: no pose arrived in {len(result.rows)} minutes (see {out}/logs)")
+        return 1
+    if result.exit_status != 0:  # a node that does not end cleanly on SIGINT failed the soak
+        print(f"liver-p2p soak: register_node ended with status {result.exit_status} after SIGINT (see {out}/logs)")
+        return 1
     return 0
+
+
+def _check_out(out: Path, bags: list[Path], force: bool) -> Path:
+    """--out checked before the node starts: a folder outside the bags it plays, an earlier soak's files replaced
+    only with --force (a 30-minute run's results are not lost to a rerun)."""
+    from liver_p2p_reg.cli.output_paths import output_folder
+
+    output_folder(out, "--out", inputs=bags, bag_folders=True)
+    taken = [out / name for name in OUTPUT_FILES if (out / name).exists() or (out / name).is_symlink()]
+    if taken and not force:
+        raise InputError(f"{taken[0]} exists (an earlier soak); pass --force to replace it, or choose another --out")
+    for path in taken:
+        if path.is_dir():
+            raise InputError(f"--out {out}: {path} is a folder; choose another --out")
+    return out
 
 
 def _info(args: argparse.Namespace, config: Config, bags: list[Path], minute_s: float) -> dict:

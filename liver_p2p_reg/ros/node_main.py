@@ -69,10 +69,12 @@ def run_node(
         status = 0
     except (KeyboardInterrupt, ExternalShutdownException):
         status = 0
-    except _rclpy.RCLError:
+    except (_rclpy.RCLError, RuntimeError):
         if rclpy.ok():
             raise
-        status = 0  # SIGINT/SIGTERM shut the context down while the executor was building its wait set
+        # SIGINT/SIGTERM shut the context down while the executor was building its wait set (RCLError) or taking
+        # a message (pybind11's RuntimeError "Unable to convert call argument", seen under a 10^6 Hz flood)
+        status = 0
     except LiverP2PError as exc:
         get_logger(name).fatal(str(exc))
     except ParameterException as exc:  # `-p units:=5` for a string parameter: one line, not rclpy's traceback
