@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from liver_p2p_reg.config_io import from_mapping, read_yaml_mapping
+from liver_p2p_reg.config_io import from_mapping, quoted, read_yaml_mapping
 
 # Choices and ranges validated in `Config.validate` (a module of their own: the CLI lists the choices in --help)
 from liver_p2p_reg.config_ranges import (  # noqa: E402
@@ -302,11 +302,11 @@ class Config(
         if not self.temperature > 0:
             raise InputError(f"temperature must be > 0, got {self.temperature}")
         if self.selection not in SELECTION_RULES:
-            raise InputError(f"selection must be one of {SELECTION_RULES}, got {self.selection!r}")
+            raise InputError(f"selection must be one of {SELECTION_RULES}, got {quoted(self.selection)}")
         if self.mode not in NODE_MODES:
-            raise InputError(f"mode must be one of {NODE_MODES}, got {self.mode!r}")
+            raise InputError(f"mode must be one of {NODE_MODES}, got {quoted(self.mode)}")
         if self.device not in DEVICES:
-            raise InputError(f"device must be one of {DEVICES}, got {self.device!r}")
+            raise InputError(f"device must be one of {DEVICES}, got {quoted(self.device)}")
         if not 0 < self.refit_radius_end_norm <= self.refit_radius_start_norm:
             raise InputError(
                 "need 0 < refit_radius_end_norm <= refit_radius_start_norm, got "
@@ -325,8 +325,6 @@ class Config(
             )
         if not 0 < self.survey_step <= 1:
             raise InputError(f"survey_step must be in (0, 1] (a visibility increase), got {self.survey_step}")
-        if not self.survey_voxel_mm > 0:
-            raise InputError(f"survey_voxel_mm must be > 0, got {self.survey_voxel_mm}")
         if not self.max_rate_hz > 0:
             raise InputError(f"max_rate_hz must be > 0, got {self.max_rate_hz}")
         return self

@@ -33,6 +33,9 @@ MINIMUMS: dict[str, float] = {
     "max_input_points": 1000,
     "ambiguity_pose_mm": 0,
     "ambiguity_residual_ratio": 1,
+    # a fused-surface voxel far below the sensors' noise fuses nothing: 1e-300 passed `> 0` and survey mode then
+    # blamed tracking (each voxel a lone point); 0.1 mm is 20x finer than the default 2 mm
+    "survey_voxel_mm": 0.1,
 }
 # Open3D's random.seed() (RANSAC, FGR) takes a C int: a larger seed would pass NumPy and fail mid-registration.
 MAX_SEED = 2**31 - 1

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import pytest
@@ -107,6 +108,15 @@ def test_from_yaml_accepts_plain_and_ros_forms(tmp_path: Path) -> None:
         ({"deform_target_tets": 1_000_000}, r"deform_target_tets must be in \[60, 50000\]"),
         ({"outlier_neighbors": 10**6}, r"outlier_neighbors must be in \[3, 256\]"),
         ({"free_space_weight": float("inf")}, "free_space_weight must be a finite number"),
+        # passed `> 0`; survey mode then fused nothing and blamed tracking
+        ({"survey_voxel_mm": 1e-300}, r"survey_voxel_mm must be >= 0.1, got 1e-300"),
+        ({"survey_voxel_mm": 0}, r"survey_voxel_mm must be >= 0.1"),
+        # a YAML list for a path became the path "['a', 'b']", and a deformed bound silently went missing
+        ({"deform_error_calibration_path": ["a", "b"]}, "must be a single text value, got a list of 2 items"),
+        ({"selection": {"a": 1}}, "selection must be a single text value, got a mapping of 1 keys"),
+        ({"deform": [True]}, "deform must be true or false, got a list of 1 items"),
+        ({"k": [3]}, "k must be an integer, got a list of 1 items"),
+        ({"max_rate_hz": {"x": 1}}, "max_rate_hz must be a number, got a mapping of 1 keys"),
     ],
 )
 def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:
@@ -117,6 +127,17 @@ def test_bad_values_are_one_line_errors(values: dict, message: str) -> None:
 
 def test_int_is_accepted_for_float_fields() -> None:
     assert Config.from_dict({"max_rate_hz": 5}).max_rate_hz == 5.0
+
+
+def test_the_smallest_survey_voxel_is_accepted() -> None:
+    assert Config.from_dict({"survey_voxel_mm": 0.1}).survey_voxel_mm == 0.1
+
+
+def test_a_long_value_is_cut_short_in_the_error() -> None:
+    for values in ({"selection": "x" * 10**6}, {"k": "9" * 10**5}, {"no_such_key_" + "y" * 10**5: 1}):
+        with pytest.raises(InputError) as info:
+            Config.from_dict(values)
+        assert len(str(info.value)) < 200 and "..." in str(info.value), str(info.value)[:300]
 
 
 def test_config_cli_does_not_overwrite_without_force(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -174,6 +195,59 @@ def test_malformed_config_files_are_one_line_errors(
     assert "\n" not in str(info.value)
     assert main(["config", "--config", str(bad)]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def _laughs(levels: int) -> str:
+    """A YAML "billion laughs": ten 'lol', then each level a list of ten aliases of the one below (10**levels)."""
+    parts = ['&a0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    parts += [f"&a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, levels)]
+    return "[" + ", ".join(parts) + "]"
+
+
+@pytest.mark.parametrize("key", ["deform", "selection", "k"])
+def test_aliases_expanding_a_config_are_refused_at_once(tmp_path: Path, capsys: pytest.CaptureFixture, key) -> None:
+    # 524 bytes that stand for 10**9 values: formatting them in the error took 77 s and 6.4 GB, then MemoryError
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(f"{key}: {_laughs(9)}\n")
+    start = time.perf_counter()
+    with pytest.raises(InputError, match=r"aliases \(\*name\) expand to more than 10000 values") as info:
+        Config.from_yaml(bomb)
+    assert time.perf_counter() - start < 2 and len(str(info.value)) < 200
+    assert main(["config", "--config", str(bomb)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and len(err) < 250
+
+
+def test_values_nested_a_thousand_deep_are_refused(tmp_path: Path) -> None:
+    path = tmp_path / "deep.yaml"
+    path.write_text("k: " + "[" * 3000 + "]" * 3000 + "\n")  # was "internal error: RecursionError"
+    with pytest.raises(InputError, match="nests its values too deeply"):
+        Config.from_yaml(path)
+
+
+def test_a_few_aliases_are_values_like_any_other(tmp_path: Path) -> None:
+    path = tmp_path / "aliases.yaml"
+    path.write_text("k: &three 3\nrefine_candidates: *three\n")
+    assert (Config.from_yaml(path).k, Config.from_yaml(path).refine_candidates) == (3, 3)
+    path.write_text(f"selection: {_laughs(2)}\n")  # 100 values: not a bomb, and not a text value either
+    with pytest.raises(InputError, match="selection must be a single text value, got a list of 2 items"):
+        Config.from_yaml(path)
+    path.write_text("selection: [" + ", ".join(["lol"] * 20_000) + "]\n")  # no aliases: as long as its file
+    with pytest.raises(InputError, match="selection must be a single text value, got a list of 20000 items"):
+        Config.from_yaml(path)
+
+
+def test_ros_node_blocks_giving_a_key_two_values_are_refused(tmp_path: Path) -> None:
+    # merged silently, the last block winning: `deform` was false with no word
+    path = tmp_path / "two_nodes.yaml"
+    path.write_text("a:\n  ros__parameters:\n    deform: true\nb:\n  ros__parameters:\n    deform: false\n")
+    with pytest.raises(InputError, match="'deform' is True under 'a' but False under 'b'; give it one value"):
+        Config.from_yaml(path)
+    path.write_text("a:\n  ros__parameters:\n    k: 3\nb:\n  ros__parameters:\n    k: 3.0\n")
+    with pytest.raises(InputError, match="'k' is 3 under 'a' but 3.0 under 'b'"):  # written as two settings
+        Config.from_yaml(path)
+    path.write_text("a:\n  ros__parameters:\n    deform: true\n    k: 3\nb:\n  ros__parameters:\n    deform: true\n")
+    assert (Config.from_yaml(path).deform, Config.from_yaml(path).k) == (True, 3)  # the same value twice: one
 
 
 def test_yaml_merge_keys_may_override_and_empty_ros_blocks_are_defaults(tmp_path: Path) -> None:
