@@ -13,8 +13,7 @@ from liver_p2p_reg.phantom.artifacts import DENSITY_MODES
 from liver_p2p_reg.phantom.crop import CROP_MODES
 from liver_p2p_reg.phantom.dataset import MAX_LIVERS_PER_SEED, REAL_LIVER_SEED, RESERVED_SEEDS
 from liver_p2p_reg.phantom.loader import MIN_VISIBILITY
-from liver_p2p_reg.registration.features.learned.descriptors import NUM_FEATURES
-from liver_p2p_reg.registration.features.learned.model import ModelConfig
+from liver_p2p_reg.registration.features.learned.model import ModelConfig, model_config_from
 
 # Lower bounds of the numbers that have nothing but a lower bound.
 MINIMUMS: dict[str, float] = {
@@ -203,22 +202,12 @@ def _check_lists(cfg: TrainConfig) -> None:
 
 
 def _check_model(model: dict[str, Any]) -> None:
-    """The `model` overrides: known keys, positive integers (a positive finite distance_max_norm), width a
-    multiple of heads, in_dim the feature count, so the net is built, not refused by torch mid-run."""
+    """The `model` overrides: known keys, each within MODEL_LIMITS (the limits a weights file is loaded with, so
+    what trains here loads there), width a multiple of heads: the net is built, not refused by torch mid-run."""
     unknown = sorted(map(str, set(model) - {f.name for f in fields(ModelConfig)}))
     if unknown:
         raise InputError(f"training config: unknown model keys: {', '.join(unknown)}")
-    for name, value in model.items():
-        if name == "distance_max_norm":
-            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value > 0
-            if not ok:
-                raise InputError(f"training config: model.{name} must be a finite number > 0, got {value!r}")
-        elif not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise InputError(f"training config: model.{name} must be an integer >= 1, got {value!r}")
-    arch = ModelConfig(**model)
-    if arch.in_dim != NUM_FEATURES:  # the descriptors give this many features per point
-        raise InputError(f"training config: model.in_dim must be {NUM_FEATURES}, got {arch.in_dim}")
-    if arch.width % arch.heads:
-        raise InputError(
-            f"training config: model.width ({arch.width}) must be a multiple of model.heads ({arch.heads})"
-        )
+    try:
+        model_config_from(model, prefix="model.")
+    except ValueError as exc:
+        raise InputError(f"training config: {exc}") from None

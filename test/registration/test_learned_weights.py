@@ -82,7 +82,54 @@ def test_missing_corrupt_and_incompatible_weights_raise_weights_error(tmp_path: 
         meta, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
     tensors.pop("embed.0.weight")
     save_file(tensors, str(path), metadata=meta)
-    with pytest.raises(WeightsError, match="do not fit"):
+    with pytest.raises(WeightsError, match=r"do not fit .*: tensor embed.0.weight \(32, 26\) is missing$"):
+        load_weights(path)
+
+
+def _bundled_with_model_config(path: Path, **change: object) -> Path:
+    """The bundled tensors under a changed `model_config` (what a hand-edited or foreign file holds)."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(BUNDLED_WEIGHTS), framework="pt") as f:
+        meta, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    model_config = {**json.loads(meta["model_config"]), **change}
+    save_file(tensors, str(path), metadata={**meta, "model_config": json.dumps(model_config)})
+    return path
+
+
+@pytest.mark.parametrize(
+    ("change", "says"),
+    [
+        ({"width": "64"}, r"width must be an integer in \[1, 4096\], got '64'"),  # was a TypeError from torch
+        ({"width": None}, r"width must be an integer in \[1, 4096\], got None"),
+        ({"width": 0}, r"width must be an integer in \[1, 4096\], got 0"),  # was a torch warning, then an error
+        ({"points_per_node": 0}, r"points_per_node must be an integer in \[1, 100000\]"),  # ZeroDivisionError
+        ({"distance_max_norm": float("nan")}, r"distance_max_norm must be a finite number in \(0, 100\], got nan"),
+        ({"layers": 100_000}, r"layers must be an integer in \[1, 64\], got 100000"),  # 7 GB, then out of memory
+        ({"max_nodes": -5}, r"max_nodes must be an integer in \[4, 16384\], got -5"),  # silently ran with 4
+        ({"heads": 3}, r"width \(64\) must be a multiple of heads \(3\)"),
+        ({"in_dim": 7}, "in_dim must be 26"),
+        ({"depth": 2}, "unknown keys: 'depth'"),
+    ],
+)
+def test_odd_model_config_metadata_is_refused_before_the_net_is_built(tmp_path: Path, change: dict, says: str) -> None:
+    path = _bundled_with_model_config(tmp_path / "odd.safetensors", **change)
+    with pytest.raises(WeightsError, match=f"bad model_config metadata \\({says}") as info:
+        load_weights(path)
+    assert "\n" not in str(info.value)
+
+
+def test_a_model_config_that_does_not_fit_the_tensors_names_the_first_one_in_one_line(tmp_path: Path) -> None:
+    path = _bundled_with_model_config(tmp_path / "heads2.safetensors", heads=2)
+    with pytest.raises(
+        WeightsError, match=r"tensor distance_bias is \(3, 33, 4\) in the file, \(3, 33, 2\) in the"
+    ) as info:
+        load_weights(path)
+    assert "\n" not in str(info.value)
+    # the largest net the limits allow is compared without being built (64 layers of 4096 wide: ~100 GB)
+    path = _bundled_with_model_config(tmp_path / "huge.safetensors", layers=64, width=4096)
+    with pytest.raises(WeightsError, match=r"tensor distance_bias is .* \(and \d+ more differences\)"):
         load_weights(path)
 
 

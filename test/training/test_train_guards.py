@@ -96,7 +96,7 @@ def test_a_stream_that_can_draw_no_pair_stops_with_one_line(store: Path, tmp_pat
         ({"store_tets": 10**10}, "store_tets must be in"),
         ({"store_livers": 10**6}, "store_livers must be in"),
         ({"model": {"width": "abc"}}, "model.width must be an integer"),
-        ({"model": {"width": -4}}, "model.width must be an integer >= 1"),
+        ({"model": {"width": -4}}, r"model.width must be an integer in \[1, 4096\], got -4"),
         ({"model": {"width": 10, "heads": 3}}, r"model.width \(10\) must be a multiple of model.heads \(3\)"),
         ({"model": {"distance_max_norm": float("nan")}}, "model.distance_max_norm must be a finite number"),
         ({"model": {"in_dim": 5}}, "model.in_dim must be"),

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import math
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from liver_p2p_reg.config_io import quoted
 from liver_p2p_reg.registration.features.learned.descriptors import NUM_FEATURES
 
 
@@ -29,6 +32,47 @@ class ModelConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+# [low, high] of each architecture field a weights file's metadata or a training config may give: generous (the
+# bundled net is 64 wide, 3 layers, 256 nodes) but bounded, so a typo builds no net of gigabytes (layers 100000
+# did) and a zero or negative count is refused, not divided by or silently raised to 4 nodes.
+MODEL_LIMITS: dict[str, tuple[float, float]] = {
+    "in_dim": (NUM_FEATURES, NUM_FEATURES),  # the descriptors give this many features per point
+    "width": (1, 4096),
+    "heads": (1, 64),
+    "layers": (1, 64),
+    "out_dim": (1, 4096),
+    "distance_bins": (1, 4096),
+    "distance_max_norm": (0, 100),  # (low, high]: a distance, finite and positive
+    "points_per_node": (1, 100_000),
+    "max_nodes": (4, 16_384),  # _nodes takes at least 4; attention costs nodes^2
+}
+
+
+def model_config_from(values: Any, prefix: str = "") -> ModelConfig:
+    """A ModelConfig from a mapping of its fields (the others default), each of its type and within MODEL_LIMITS.
+
+    ValueError with one line otherwise; `prefix` goes before the field names in it ("model.")."""
+    if not isinstance(values, dict):
+        raise ValueError(f"must be a mapping of the architecture's fields, got {quoted(values)}")
+    known = {f.name for f in fields(ModelConfig)}
+    unknown = sorted(map(str, set(values) - known))
+    if unknown:
+        raise ValueError(f"unknown keys: {', '.join(quoted(name) for name in unknown[:5])}")
+    for name, value in values.items():
+        low, high = MODEL_LIMITS[name]
+        if name == "distance_max_norm":
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if not (number and math.isfinite(value) and low < value <= high):
+                raise ValueError(f"{prefix}{name} must be a finite number in ({low:g}, {high:g}], got {quoted(value)}")
+        elif not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+            wanted = f"{low} (the descriptors' features per point)" if low == high else f"an integer in [{low}, {high}]"
+            raise ValueError(f"{prefix}{name} must be {wanted}, got {quoted(value)}")
+    cfg = ModelConfig(**values)
+    if cfg.width % cfg.heads:  # each head takes width / heads channels
+        raise ValueError(f"{prefix}width ({cfg.width}) must be a multiple of {prefix}heads ({cfg.heads})")
+    return cfg
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:

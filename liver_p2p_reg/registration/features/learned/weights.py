@@ -7,8 +7,9 @@ from pathlib import Path
 
 import torch
 
+from liver_p2p_reg.config_io import quoted
 from liver_p2p_reg.errors import WeightsError
-from liver_p2p_reg.registration.features.learned.model import MatcherNet, ModelConfig
+from liver_p2p_reg.registration.features.learned.model import MatcherNet, model_config_from
 
 BUNDLED_WEIGHTS = Path(__file__).resolve().parents[3] / "weights" / "matcher_v4.safetensors"
 FORMAT = "liver_p2p_reg.matcher/1"
@@ -56,16 +57,41 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         more = f" and {len(bad) - 1} more" if len(bad) > 1 else ""
         raise WeightsError(f"matcher weights {path} hold NaN or infinite values ({bad[0]}{more}); not usable")
     try:
-        cfg = ModelConfig(**json.loads(meta["model_config"]))
-    except (KeyError, TypeError, ValueError) as exc:
+        cfg = model_config_from(json.loads(meta["model_config"]))
+    except KeyError:
+        raise WeightsError(f"matcher weights {path} have no model_config metadata") from None
+    except ValueError as exc:  # json.JSONDecodeError is one
         raise WeightsError(f"matcher weights {path}: bad model_config metadata ({exc})") from None
-    model = MatcherNet(cfg)
+    # The shapes are compared on a net without storage ("meta"): a config that does not match the tensors is
+    # refused before a real one, which its fields alone could make gigabytes large, is built.
+    with torch.device("meta"):
+        expected = MatcherNet(cfg).state_dict()
+    mismatch = state_dict_mismatch(expected, tensors)
+    if mismatch:
+        raise WeightsError(f"matcher weights {path} do not fit the network of their model_config: {mismatch}")
     try:
+        model = MatcherNet(cfg)
         model.load_state_dict(tensors, strict=True)
-    except RuntimeError as exc:
+    except RuntimeError as exc:  # not expected after the comparison above; one line all the same
         first = str(exc).splitlines()[0] if str(exc) else "shape mismatch"
-        raise WeightsError(f"matcher weights {path} do not fit the network: {first}") from None
+        raise WeightsError(f"matcher weights {path} do not fit the network: {quoted(first)}") from None
     return model.to(device).eval()
+
+
+def state_dict_mismatch(expected: dict[str, torch.Tensor], given: dict[str, torch.Tensor]) -> str:
+    """The first difference between a net's tensors and a file's (a key one lacks, or two shapes), "" if none."""
+    differ = [k for k in expected if k not in given or tuple(given[k].shape) != tuple(expected[k].shape)]
+    extra = [k for k in given if k not in expected]
+    more = len(differ) + len(extra) - 1
+    tail = f" (and {more} more differences)" if more > 0 else ""
+    if differ:
+        key, shape = differ[0], tuple(expected[differ[0]].shape)
+        if key not in given:
+            return f"tensor {key} {shape} is missing{tail}"
+        return f"tensor {key} is {tuple(given[key].shape)} in the file, {shape} in the network{tail}"
+    if extra:
+        return f"tensor {quoted(extra[0])} is not one of the network's{tail}"
+    return ""
 
 
 def weights_metadata(path: str | Path) -> dict[str, str]:
