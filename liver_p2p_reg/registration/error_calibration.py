@@ -148,6 +148,8 @@ def attach_error_model(
     if calibration.positions != RIGID:
         raise InputError(f"{config.error_calibration_path}: a calibration of deformed positions, not of the pose's")
     calibration.column(config.error_coverage)  # an uncalibrated coverage is refused before any work
+    if getattr(config, "deform", False) and config.deform_error_calibration_path:  # the user's own, refused alike
+        read_deformed_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION, config)
     evidence = pose_evidence(
         T,
         source_mm,
@@ -223,6 +225,22 @@ def deform_settings(config: Any) -> dict[str, Any]:
     return {name: getattr(config, name) for name in names}
 
 
+def read_deformed_calibration(path: str, bundled: Path, config: Any) -> BoundCalibration:
+    """The calibration of deformed positions at `path` (empty: `bundled`) holding `config.error_coverage`;
+    InputError (one line) for a missing or malformed file, a calibration of the pose's positions, or another
+    coverage. A set `deform_error_calibration_path` is checked with the rigid one, before the stage runs."""
+    try:
+        calibration = read_calibration(path, bundled)
+        if calibration.positions != DEFORMED:
+            raise InputError(f"{path or bundled} is not a calibration of deformed positions")
+        calibration.column(config.error_coverage)
+    except InputError as exc:
+        if path:  # said which setting: the same words would fit error_calibration_path's file
+            raise InputError(f"deform_error_calibration_path: {exc}") from None
+        raise
+    return calibration
+
+
 def attach_deformed_error_model(result: Any, config: Any, view: str = FRAME) -> None:
     """Give an applied deformation the bound of its deformed positions (`result.deformed_error_model`,
     `deformed_error_bound_mm`): the same pose evidence, the DEFORMED calibration's scale and quantiles.
@@ -235,13 +253,9 @@ def attach_deformed_error_model(result: Any, config: Any, view: str = FRAME) -> 
     if result.error_model is None or result.deformation is None or not result.deformation.applied:
         return
     bundled = BUNDLED_SURVEY_CALIBRATION if view == SURVEY else BUNDLED_DEFORMED_CALIBRATION
-    path = config.deform_error_calibration_path or str(bundled)
     try:  # a bad or missing file costs the deformed positions their bound (said), never the deformation itself
-        calibration = read_calibration(config.deform_error_calibration_path, bundled)
-        if calibration.positions != DEFORMED:
-            raise InputError(f"{path} is not a calibration of deformed positions")
-        calibration.column(config.error_coverage)
-    except InputError as exc:
+        calibration = read_deformed_calibration(config.deform_error_calibration_path, bundled, config)
+    except InputError as exc:  # a user's own file was refused before the rigid pose's bound (attach_error_model)
         result.deformed_error_calibration_note = f"the deformed positions have no bound: {exc}"
         return
     model = ErrorModel(result.error_model.evidence, calibration, config.error_coverage)

@@ -15,6 +15,7 @@ from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom.casefile import source_triangles, write_case
 from liver_p2p_reg.phantom.dataset import make_case
 from liver_p2p_reg.phantom.simulate import simulate_liver
+from liver_p2p_reg.registration import error_calibration
 from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, DEFORMED, read_calibration
 from liver_p2p_reg.registration.registrar import Registrar
 from liver_p2p_reg.structures_io import Structure, place_structures
@@ -85,11 +86,18 @@ def test_an_applied_stage_bounds_its_deformed_positions(calibrated: dict) -> Non
     assert placed.to_json_dict()["deformed_error_bound_mm"][0] == pytest.approx(placed.deformed_error_bound_mm[0])
 
 
-def test_a_rigid_calibration_is_refused_and_other_settings_are_noted(calibrated: dict, tmp_path: Path) -> None:
-    # a rigid file: the deformation stands, its positions have no bound and say why
-    result, case = _registered(calibrated, str(BUNDLED_CALIBRATION))
+def test_a_rigid_calibration_is_refused_and_other_settings_are_noted(
+    calibrated: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a rigid file as the user's deformed one: refused in one line before the stage, as the reverse is below
+    with pytest.raises(InputError, match="deform_error_calibration_path: .* is not a calibration of deformed"):
+        _registered(calibrated, str(BUNDLED_CALIBRATION))
+    # a bundled file that cannot be read: the deformation stands, its positions have no bound and say why
+    with monkeypatch.context() as patch:
+        patch.setattr(error_calibration, "BUNDLED_DEFORMED_CALIBRATION", tmp_path / "absent.json")
+        result, case = _registered(calibrated, "''")
     assert result.deformation.applied and result.deformed_error_model is None
-    assert "is not a calibration of deformed positions" in result.deformed_error_calibration_note
+    assert "the deformed positions have no bound: error-bound calibration" in result.deformed_error_calibration_note
     (placed,) = place_structures(result, [Structure("tumour", case["src_marker"][:5])])
     assert np.all(np.isnan(placed.current_error_bound_mm))  # no bound rather than the rigid pose's
     # and the reverse: the deformed file as the pose's calibration is refused in one line

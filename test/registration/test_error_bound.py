@@ -101,6 +101,35 @@ def test_a_bad_calibration_file_is_a_one_line_error(tmp_path, registered, conten
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize(
+    "content, says",
+    [
+        (None, "not found"),
+        ("folder", "Is a directory"),
+        (json.dumps({"a": 1}), "not usable: format is not"),
+        ("rigid", "is not a calibration of deformed positions"),
+    ],
+)
+def test_a_set_but_unusable_deformed_calibration_is_refused_before_the_stage(tmp_path, registered, content, says):
+    # was accepted: exit 0, status OK, and the deformed positions silently had no bound
+    from liver_p2p_reg.ros.node_settings import refuse_unusable
+
+    _, source, target, _, _ = registered
+    path = tmp_path / "deformed.json"
+    if content == "folder":
+        path.mkdir()
+    elif content == "rigid":
+        path = BUNDLED_CALIBRATION
+    elif content is not None:
+        path.write_text(content)
+    config = Config(method="fpfh-ransac-icp", deform=True, deform_error_calibration_path=str(path))
+    for refuse in (lambda: Registrar(config).register(source, target), lambda: refuse_unusable(config)):
+        with pytest.raises(InputError, match=f"^deform_error_calibration_path: .*{says}") as info:
+            refuse()
+        assert "\n" not in str(info.value)
+    refuse_unusable(config.replace(deform=False))  # not used without the stage: not read
+
+
 def test_a_coverage_the_calibration_does_not_hold_is_refused(registered):
     _, source, target, _, _ = registered
     with pytest.raises(InputError, match="error_coverage 0.5 is not calibrated"):
