@@ -107,11 +107,39 @@ def test_another_liver_gets_the_general_weights_and_a_warning(prepared) -> None:
     np.testing.assert_array_equal(result.T_target_source, general.T_target_source)
 
 
+def test_the_warning_names_the_prepared_surface_and_this_one(prepared, liver) -> None:
+    # it named the prepared mesh beside the current source's count ("liver21: 6000 points, prepared for 3000"), and
+    # called the same liver sampled more densely "another liver"
+    out, _ = prepared
+    v, t = liver.vertices_mm, liver.triangles
+    denser = np.vstack([v, v[t].mean(axis=1)])  # the same surface: its vertices and its triangles' centres
+    view = v[np.argsort(v[:, 1])[-len(v) // 3 :]]
+    result = Registrar(Config(method="learned-p2p", weights_path=str(out))).register(denser, view)
+    expected = (
+        rf"prepared weights {re.escape(str(out))} were prepared for another preop surface "
+        rf"\(liver21: {len(v)} points, this one {len(denser)}\): another liver, or the same one meshed or sampled "
+        "otherwise; general weights used"
+    )
+    assert len(result.warnings) == 1 and re.fullmatch(expected, result.warnings[0]), result.warnings
+
+
 def test_the_same_liver_moved_still_matches_its_signature(liver) -> None:
     rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     moved = liver.vertices_mm @ rot.T + [30.0, -5.0, 12.0]
     assert signature_mismatch(source_signature(liver.vertices_mm), source_signature(moved)) == ""
     assert signature_mismatch(source_signature(liver.vertices_mm), source_signature(make_liver(22).vertices_mm))
+    # the prepared surface's value first, then this one's
+    half = liver.vertices_mm[::2]
+    n = len(liver.vertices_mm)
+    assert signature_mismatch(source_signature(liver.vertices_mm), source_signature(half)) == (
+        f"{n} points, this one {len(half)}"
+    )
+    grown = liver.vertices_mm * 1.5
+    said = re.fullmatch(
+        r"spread0_mm (\d+\.\d) mm, this one (\d+\.\d) mm",
+        signature_mismatch(source_signature(liver.vertices_mm), source_signature(grown)),
+    )
+    assert said and float(said[2]) == pytest.approx(1.5 * float(said[1]), abs=0.2)
 
 
 def test_node_core_reports_the_mismatch_as_warn(prepared) -> None:

@@ -104,8 +104,9 @@ def learned_provider(
     mismatch = signature_mismatch(provider.prepared.signature, actual)
     if not mismatch:
         return provider
-    name = provider.prepared.card.get("mesh_name", config.weights_path)
+    name = provider.prepared.card.get("mesh_name", "its liver")  # the mesh the file was prepared from
     warnings.append(
-        f"prepared weights {config.weights_path} were made for another liver ({name}: {mismatch}); general weights used"
+        f"prepared weights {config.weights_path} were prepared for another preop surface ({name}: {mismatch}): "
+        "another liver, or the same one meshed or sampled otherwise; general weights used"
     )
     return _cached_provider(config, cache, "")
