@@ -17,6 +17,10 @@ from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.ros.topics import INPUT_TOPICS, LOADER_INPUT_TOPICS, RELIABLE, Qos, qos_of
 
 CLOCK_QOS = 10  # /clock as ros2 bag play offers it: reliable, volatile
+# what `bag play` publishes unless --all-topics: register_node's inputs. A flight recording or a `replay --out` bag
+# also holds the node's outputs (/registration/*, /diagnostics, /flight_recorder/*): played beside a live node they
+# would mix recorded poses with its own.
+PLAYED_TOPICS = INPUT_TOPICS + LOADER_INPUT_TOPICS
 
 
 def played_qos(topic: str) -> Qos:
@@ -46,7 +50,7 @@ def read_raw(path: str | Path, topics: Iterable[str] | None = None) -> list[tupl
     """(topic, msgtype, log time ns, CDR bytes) of a rosbag2 directory or .mcap file, in log-time order."""
     from rosbags.highlevel import AnyReader
 
-    from liver_p2p_reg.bags.io import typestore
+    from liver_p2p_reg.bags.io import is_bag_error, typestore, unreadable
 
     path = Path(path)
     if not path.exists():
@@ -57,9 +61,9 @@ def read_raw(path: str | Path, topics: Iterable[str] | None = None) -> list[tupl
             conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
             return [(c.topic, c.msgtype, int(t), bytes(raw)) for c, t, raw in reader.messages(connections=conns)]
     except Exception as exc:  # rosbags raises its own error classes per storage backend
-        if type(exc).__module__.startswith("rosbags") or isinstance(exc, (OSError, ValueError, KeyError)):
-            raise InputError(f"cannot read bag {path}: {str(exc).splitlines()[0] if str(exc) else exc}") from None
-        raise
+        if not is_bag_error(exc):
+            raise
+        raise unreadable(path, exc) from None
 
 
 def _header_stamp_ns(msgtype: str, raw: bytes) -> int:
@@ -134,18 +138,39 @@ class BagPlayer:
                 return played
 
 
-def main_play(path: str, rate: float, loop: bool, delay_s: float, clock: bool = False) -> int:
+def split_topics(topics: Iterable[str], all_topics: bool = False) -> tuple[list[str], list[str]]:
+    """(played, skipped) of a bag's topics: register_node's inputs only (PLAYED_TOPICS), or all of them."""
+    topics = sorted(topics)
+    if all_topics:
+        return topics, []
+    return [t for t in topics if t in PLAYED_TOPICS], [t for t in topics if t not in PLAYED_TOPICS]
+
+
+def main_play(path: str, rate: float, loop: bool, delay_s: float, clock: bool = False, all_topics: bool = False) -> int:
     """`liver-p2p bag play BAG`: its own rclpy context and node; Ctrl-C stops it (exit 0)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
+    from liver_p2p_reg.bags.io import bag_topics
+
+    chosen, skipped = split_topics(bag_topics(path), all_topics)
+    if not chosen:
+        raise InputError(
+            f"bag {path} holds none of register_node's input topics (it holds {', '.join(skipped)}); "
+            "--all-topics plays them"
+        )
     rclpy.init()
     node = rclpy.create_node("liver_p2p_bag_player")
     try:
-        player = BagPlayer(node, path, clock=clock)
+        player = BagPlayer(node, path, chosen, clock=clock)
         topics = ", ".join(sorted(player.publishers))
         extra = " and /clock" if clock else ""
-        print(f"playing {path}: {len(player.messages)} messages on {topics}{extra} at rate {rate}", flush=True)
+        left = f" (not playing {', '.join(skipped)}: no input of register_node; --all-topics plays them)"
+        print(
+            f"playing {path}: {len(player.messages)} messages on {topics}{extra} at rate {rate}"
+            + (left if skipped else ""),
+            flush=True,
+        )
         player.wait_for_subscribers(delay_s)
         played = player.play(rate, loop=loop, should_stop=lambda: not rclpy.ok())
         print(f"published {len(played)} messages", flush=True)

@@ -43,6 +43,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     play.add_argument(
         "--wait-s", type=float, default=2.0, help="wait this long for subscribers before publishing (default 2)"
     )
+    play.add_argument(
+        "--all-topics",
+        action="store_true",
+        help="play every topic; by default only register_node's inputs (/preop/*, /intraop/*), not a recording's "
+        "/registration/*, /diagnostics or /flight_recorder/*",
+    )
     play.set_defaults(func=run_play)
 
     info = sub.add_parser("info", help="list the topics, message counts and size of a bag")
@@ -135,7 +141,7 @@ def run_play(args: argparse.Namespace) -> int:
     from liver_p2p_reg.bags.io import bag_source
 
     bag_source(Path(args.bag))  # not found, a pipe, no bag, a malformed metadata.yaml: one line
-    return main_play(args.bag, args.rate, args.loop, args.wait_s, clock=args.clock)
+    return main_play(args.bag, args.rate, args.loop, args.wait_s, clock=args.clock, all_topics=args.all_topics)
 
 
 def run_info(args: argparse.Namespace) -> int:
