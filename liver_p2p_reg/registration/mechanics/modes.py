@@ -80,24 +80,28 @@ class ElasticModel:
 
     def embed(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tetrahedron ids and weights of points; points outside the mesh are tied to their nearest node."""
-        from scipy.spatial import cKDTree
+        return embed_points(self.mesh, points_mm)
 
-        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-        mesh = self.mesh
-        cells = np.floor((pts - mesh.origin_mm) / mesh.spacing_mm).astype(np.int64)
-        shape = np.array(mesh.node_index.shape) - 1
-        inside = np.all((cells >= 0) & (cells < shape), axis=1)
-        c = np.clip(cells, 0, shape - 1)
-        for corner in np.ndindex(2, 2, 2):
-            inside &= mesh.node_index[c[:, 0] + corner[0], c[:, 1] + corner[1], c[:, 2] + corner[2]] >= 0
-        ids = np.zeros((len(pts), 4), dtype=np.int64)
-        weights = np.zeros((len(pts), 4))
-        if inside.any():
-            ids[inside], weights[inside] = mesh.embed(pts[inside])
-        if (~inside).any():
-            ids[~inside, 0] = cKDTree(mesh.nodes_mm).query(pts[~inside])[1]
-            weights[~inside, 0] = 1.0
-        return ids, weights
+
+def embed_points(mesh: TetMesh, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tetrahedron ids and weights of points in `mesh`; points outside it are tied to their nearest node."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    cells = np.floor((pts - mesh.origin_mm) / mesh.spacing_mm).astype(np.int64)
+    shape = np.array(mesh.node_index.shape) - 1
+    inside = np.all((cells >= 0) & (cells < shape), axis=1)
+    c = np.clip(cells, 0, shape - 1)
+    for corner in np.ndindex(2, 2, 2):
+        inside &= mesh.node_index[c[:, 0] + corner[0], c[:, 1] + corner[1], c[:, 2] + corner[2]] >= 0
+    ids = np.zeros((len(pts), 4), dtype=np.int64)
+    weights = np.zeros((len(pts), 4))
+    if inside.any():
+        ids[inside], weights[inside] = mesh.embed(pts[inside])
+    if (~inside).any():
+        ids[~inside, 0] = cKDTree(mesh.nodes_mm).query(pts[~inside])[1]
+        weights[~inside, 0] = 1.0
+    return ids, weights
 
 
 def _lumped_mass(mesh: TetMesh) -> np.ndarray:
@@ -164,7 +168,10 @@ def build_elastic_model(
     flip = np.sign(np.einsum("mnd->m", modes[:, : min(50, modes.shape[1]), :]) + 1e-300)
     modes *= flip[:, None, None]
     normals = np.asarray(source_normals, dtype=np.float64)
-    ids, weights = mesh.embed(source_mm)
+    try:
+        ids, weights = mesh.embed(source_mm)
+    except InputError:  # points on a speck build_tetmesh dropped: tied to their nearest node, as `embed` does later
+        ids, weights = embed_points(mesh, source_mm)
     energy_mj = 0.5 * values[0] * volume * YOUNGS_MODULUS_KPA * 1e-3  # E (N/mm^2) x mm^3 = mJ
     return ElasticModel(
         mesh=mesh,

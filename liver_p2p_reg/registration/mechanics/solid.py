@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.mechanics.surface import edge_face_counts
 
 MIN_FILL_SHARE = 0.2  # the filled solid must hold at least this share of the shell's bounding box volume x 0.1
 
@@ -38,6 +39,7 @@ class VoxelSolid:
 
 
 MAX_SURFACE_SAMPLES = 4_000_000  # lattice points on a mesh's triangles (a CT liver mesh needs ~1M)
+MAX_LATTICE_STEPS = 16  # the first pass's steps along a triangle's longest edge
 
 
 def surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_mm: float) -> np.ndarray:
@@ -46,7 +48,7 @@ def surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_m
         return vertices_mm
     a, b, c = (vertices_mm[triangles[:, i]] for i in range(3))
     longest = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1)])
-    n = int(min(max(np.ceil(longest / spacing_mm), 1), 16))
+    n = int(min(max(np.ceil(longest / spacing_mm), 1), MAX_LATTICE_STEPS))
     # at most MAX_SURFACE_SAMPLES in all: one sliver set n for all of 300k triangles (46M points, 3 GB); a mesh
     # sampled coarser than the voxels leaves holes, and the solid then says it encloses no volume
     while n > 1 and len(triangles) * (n + 1) * (n + 2) // 2 > MAX_SURFACE_SAMPLES:
@@ -58,6 +60,28 @@ def surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_m
     return np.concatenate([vertices_mm, pts.reshape(-1, 3)])
 
 
+def dense_surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_mm: float) -> np.ndarray | None:
+    """Like `surface_samples_mm`, but each triangle with as many steps as its own longest edge needs (no cap):
+    None when that needs no more points than the first pass had (nothing to retry), or more than
+    MAX_SURFACE_SAMPLES (a sliver-ridden mesh is not sampled without bound)."""
+    a, b, c = (vertices_mm[triangles[:, i]] for i in range(3))
+    longest = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1)], 0)
+    steps = np.maximum(np.ceil(longest / spacing_mm), 1).astype(np.int64)
+    if steps.max() <= MAX_LATTICE_STEPS or np.sum((steps + 1) * (steps + 2) // 2) > MAX_SURFACE_SAMPLES:
+        return None
+    out = [vertices_mm]
+    for n in np.unique(steps):  # one barycentric lattice per step count
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        keep = i + j <= n
+        u, v = i[keep] / n, j[keep] / n
+        sel = steps == n
+        aa, ab, ac = a[sel], (b - a)[sel], (c - a)[sel]
+        out.append(
+            (aa[:, None, :] + u[None, :, None] * ab[:, None, :] + v[None, :, None] * ac[:, None, :]).reshape(-1, 3)
+        )
+    return np.concatenate(out)
+
+
 def closed_solid(vertices_mm: np.ndarray, triangles: np.ndarray | None) -> VoxelSolid:
     """The solid of a preop model: voxels of 1/96 of its extent for a mesh; for points, the finest voxel
     (2-6x the median point spacing) whose shell encloses a volume."""
@@ -67,8 +91,12 @@ def closed_solid(vertices_mm: np.ndarray, triangles: np.ndarray | None) -> Voxel
     fine_mm = max(float(np.max(np.ptp(vertices_mm, axis=0))) / 96.0, 1.0)
     if triangles is not None and len(triangles):
         return solid_from_surface(vertices_mm, triangles, fine_mm)
-    step = vertices_mm[:: max(len(vertices_mm) // 2000, 1)]
-    spacing_mm = float(np.median(cKDTree(vertices_mm).query(step, k=2)[0][:, 1]))
+    distinct = vertices_mm
+    _, first = np.unique(vertices_mm, axis=0, return_index=True)
+    if len(first) < len(vertices_mm):  # exact twins are 0 mm apart: the median spacing would be 0 with many
+        distinct = vertices_mm[np.sort(first)]
+    step = distinct[:: max(len(distinct) // 2000, 1)]
+    spacing_mm = float(np.median(cKDTree(distinct).query(step, k=2)[0][:, 1]))
     error: InputError | None = None
     for factor in (2.0, 3.0, 4.0, 6.0):
         try:
@@ -81,13 +109,41 @@ def closed_solid(vertices_mm: np.ndarray, triangles: np.ndarray | None) -> Voxel
 
 def solid_from_surface(vertices_mm: np.ndarray, triangles: np.ndarray | None, voxel_mm: float) -> VoxelSolid:
     """Voxelize a closed surface (triangles, or points dense enough for `voxel_mm`) into a filled solid."""
-    from scipy.ndimage import binary_closing, binary_fill_holes, distance_transform_edt, generate_binary_structure
+    from scipy.ndimage import distance_transform_edt
 
     vertices_mm = np.asarray(vertices_mm, dtype=np.float64)
     tris = np.zeros((0, 3), dtype=np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64)
     if len(tris) and (tris.min() < 0 or tris.max() >= len(vertices_mm)):
         raise InputError("the preop mesh's triangles index vertices it does not have")
-    samples = surface_samples_mm(vertices_mm, tris, 0.5 * voxel_mm)
+    filled = _filled(surface_samples_mm(vertices_mm, tris, 0.5 * voxel_mm), voxel_mm)
+    dense = None
+    if filled is None and len(tris):
+        # The first pass caps each triangle's lattice (MAX_LATTICE_STEPS), so the long triangles of a coarse closed
+        # mesh (decimated, a convex hull, a box) leave gaps in the shell. Retried only when the first pass found no
+        # volume: every mesh it closes keeps its solid, and the deformation, bit for bit.
+        dense = dense_surface_samples_mm(vertices_mm, tris, 0.5 * voxel_mm)
+        if dense is not None:
+            filled = _filled(dense, voxel_mm)
+    if filled is None:
+        raise InputError(_no_volume_reason(vertices_mm, tris, voxel_mm))
+    solid, origin = filled
+    inside = distance_transform_edt(solid) * voxel_mm
+    outside = distance_transform_edt(~solid) * voxel_mm
+    sdf = np.where(solid, -inside + 0.5 * voxel_mm, outside - 0.5 * voxel_mm)
+    return VoxelSolid(
+        vertices_mm=vertices_mm,
+        triangles=tris,
+        origin_mm=origin,
+        voxel_mm=float(voxel_mm),
+        sdf_mm=sdf,
+        volume_mm3=float(solid.sum() * voxel_mm**3),
+    )
+
+
+def _filled(samples: np.ndarray, voxel_mm: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """(the filled voxel solid, the grid's origin) of surface samples; None when their shell encloses no volume."""
+    from scipy.ndimage import binary_closing, binary_fill_holes, generate_binary_structure
+
     pad = 3
     origin = samples.min(axis=0) - pad * voxel_mm
     shape = np.ceil((samples.max(axis=0) + pad * voxel_mm - origin) / voxel_mm).astype(np.int64) + 1
@@ -101,17 +157,23 @@ def solid_from_surface(vertices_mm: np.ndarray, triangles: np.ndarray | None, vo
     solid = binary_fill_holes(shell)
     cavity = solid & ~shell
     if cavity.sum() < MIN_FILL_SHARE * 0.1 * np.prod(shape - 2 * pad):
-        raise InputError(
-            "the preop model does not enclose a volume (an open or too sparse surface): no solid to deform"
+        return None
+    return solid, origin
+
+
+def _no_volume_reason(vertices_mm: np.ndarray, tris: np.ndarray, voxel_mm: float) -> str:
+    """Why a surface gave no solid, as far as it can be told: points may be open or too sparse; a mesh is open
+    (edges with one triangle, vertices welded by position) or closed around too little volume for the voxels."""
+    if not len(tris):
+        return "the preop points do not enclose a volume (an open or too sparse surface): no solid to deform"
+    _, welded = np.unique(vertices_mm, axis=0, return_inverse=True)
+    open_edges = int(np.sum(edge_face_counts(welded.reshape(-1)[tris]) == 1))
+    if open_edges:
+        return (
+            f"the preop mesh does not enclose a volume: it is open ({open_edges} edges border only one triangle), "
+            "no solid to deform"
         )
-    inside = distance_transform_edt(solid) * voxel_mm
-    outside = distance_transform_edt(~solid) * voxel_mm
-    sdf = np.where(solid, -inside + 0.5 * voxel_mm, outside - 0.5 * voxel_mm)
-    return VoxelSolid(
-        vertices_mm=vertices_mm,
-        triangles=tris,
-        origin_mm=origin,
-        voxel_mm=float(voxel_mm),
-        sdf_mm=sdf,
-        volume_mm3=float(solid.sum() * voxel_mm**3),
+    return (
+        f"the preop mesh is closed but encloses no volume its {voxel_mm:.1f} mm voxels resolve (flat, degenerate or "
+        "sliver triangles): no solid to deform"
     )

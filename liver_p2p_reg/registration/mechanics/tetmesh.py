@@ -11,6 +11,7 @@ FEM displacement (linear on each tetrahedron) is interpolated exactly.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from itertools import permutations
 
@@ -18,6 +19,8 @@ import numpy as np
 
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.mechanics.surface import SurfaceMesh, mesh_volume_mm3
+
+LOG = logging.getLogger("liver_p2p_reg")
 
 # Kuhn subdivision: the tetrahedron for permutation (a, b, c) walks 0 -> e_a -> e_a+e_b -> 1.
 _PERMS = np.array(list(permutations(range(3))), dtype=np.int64)  # (6, 3)
@@ -86,6 +89,39 @@ class TetMesh:
         return np.einsum("pk,pkd->pd", weights, node_values[ids])
 
 
+# A part of the cubes holding at least this share is a body of its own (refused beside another); smaller ones are
+# specks of the segmentation or a sharp tip's cube hanging on an edge or a corner (dropped).
+MIN_PART_SHARE = 0.01
+
+
+def _one_body(active: np.ndarray) -> np.ndarray:
+    """The cubes of the solid's one body. Why: each part not joined to it through a cube face (a free part, or one
+    hanging on an edge or a corner, a hinge) brings its own zero-energy motions, which the modes would take for the
+    softest deformations. Small parts are dropped with a warning; a second part of MIN_PART_SHARE or more is an
+    InputError naming the count."""
+    from scipy.ndimage import label
+
+    parts, n = label(active)  # face-adjacent cubes: the default structure is the 6-neighbourhood
+    if n <= 1:
+        return active
+    sizes = np.bincount(parts.ravel())[1:]
+    shares = sizes / sizes.sum()
+    bodies = int(np.sum(shares >= MIN_PART_SHARE))
+    if bodies > 1:
+        raise InputError(
+            f"the preop solid has {bodies} separate parts (the largest holds {100 * shares.max():.0f}% of its "
+            "volume): the elastic model needs one connected organ"
+        )
+    largest = int(np.argmax(sizes))
+    LOG.warning(
+        "preop solid: %d small piece(s) joined to the rest by no cube face (%.2f%% of its volume: a speck or a sharp "
+        "tip) left out of the elastic model; the surface points there follow their nearest mesh node",
+        n - 1,
+        100 * (1 - shares[largest]),
+    )
+    return parts == largest + 1
+
+
 def build_tetmesh(liver: SurfaceMesh, target_tets: int = 10_000, margin_mm: float = 2.0) -> TetMesh:
     """Cover the liver with cubes of the edge giving about `target_tets` tetrahedra."""
     if target_tets < 60:
@@ -106,6 +142,7 @@ def build_tetmesh(liver: SurfaceMesh, target_tets: int = 10_000, margin_mm: floa
     embedded = verts if coarse is None else np.concatenate([verts, coarse])
     cube_of_vertex = np.clip(np.floor((embedded - origin) / h).astype(np.int64), 0, n_cells - 1)
     active[cube_of_vertex[:, 0], cube_of_vertex[:, 1], cube_of_vertex[:, 2]] = True
+    active = _one_body(active)
     cubes = np.argwhere(active)  # (C, 3), sorted lexicographically -> deterministic ids
     node_shape = tuple(n_cells + 1)
     used = np.zeros(node_shape, dtype=bool)
