@@ -18,13 +18,14 @@ LOG = logging.getLogger("liver_p2p_reg")
 
 # What `load_points` reads (the README's "Inputs are ..." sentence lists exactly these; a test checks).
 POINT_FORMATS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".stl", ".obj", ".off", ".npy", ".npz")
-MESH_FORMATS = (".stl", ".obj", ".off", ".ply")
+MESH_FORMATS = (".stl", ".obj", ".off", ".ply", ".npz")  # .npz: `vertices` with `triangles` (or `faces`)
 TEXT_FORMATS = (".xyz", ".xyzn", ".pts")  # x y z [more columns] per line; .pts may start with a point count
 # The NPZ arrays read when the caller names none (the first present); without them an NPZ must hold
 # one (N, 3) array of coordinates. A dataset case holds two (src_pcd, tgt_pcd): picking one by a
 # list of names read the complete surface where the partial view was meant, so it is refused instead.
 NPZ_POINT_KEYS = ("points", "xyz", "vertices")
 NPZ_POINTS_KEY = NPZ_POINT_KEYS[0]
+NPZ_TRIANGLE_KEYS = ("triangles", "faces")  # beside `vertices` (and no key named): a mesh, read like a PLY's faces
 MESH_SAMPLES_PER_MM2 = 0.5  # surface sampling density for meshes (about 1.4 mm spacing)
 MAX_MESH_SAMPLES = 200_000
 
@@ -40,7 +41,10 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0, samp
     path = check_point_file(path)
     suffix = path.suffix.lower()
     try:
-        if suffix in (".npy", ".npz"):
+        if suffix == ".npz" and key is None and (mesh := _npz_mesh(path)) is not None:
+            vertices, triangles = finite_mesh(*mesh, path)
+            points = sample_mesh_surface(vertices, triangles, seed=seed) if sample_meshes else vertices
+        elif suffix in (".npy", ".npz"):
             points = _load_numpy(path, key)
         elif suffix in TEXT_FORMATS:
             points = _load_text(path)
@@ -50,7 +54,7 @@ def load_points(path: str | Path, *, key: str | None = None, seed: int = 0, samp
                     magic = f.read(3)
                 if magic != b"ply":  # checked here: Open3D's reader would print its own complaint to stderr
                     raise InputError(f"cannot read {path}: not a PLY file (it does not start with 'ply')")
-            vertices, triangles = load_mesh(path)
+            vertices, triangles = load_mesh(path)  # non-finite vertices dropped there, with their triangles
             sample = sample_meshes and len(triangles) > 0
             points = sample_mesh_surface(vertices, triangles, seed=seed) if sample else vertices
     except InputError:
@@ -88,13 +92,21 @@ def require_regular_file(path: str | Path) -> Path:
     return path
 
 
-def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+def load_mesh(path: str | Path, *, warn: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Load vertices (V, 3) and triangles (F, 3); a point-cloud file gives F = 0.
 
     PLY and PCD are read in numpy (the same values Open3D gives, without its import), OFF too (checked, in full
-    precision); STL, OBJ and PLY/PCD layouts those readers leave out are read by Open3D.
+    precision), an NPZ's `vertices` and `triangles` (checked the same way); STL, OBJ and PLY/PCD layouts those readers
+    leave out are read by Open3D. Vertices with NaN/inf coordinates are dropped with the triangles that use them
+    (`warn`: with one warning saying how many; False where the caller has read the file once already).
     """
     path = require_regular_file(path)
+    vertices, triangles = _read_mesh(path)
+    return finite_mesh(vertices, triangles, path, warn=warn)
+
+
+def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The file's vertices and triangles as its reader gives them (load_mesh)."""
     suffix = path.suffix.lower()
     if suffix == ".ply" and (mesh := read_ply(path)) is not None and len(mesh[0]) > 0:
         return mesh
@@ -102,6 +114,10 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         return cloud, np.zeros((0, 3), np.int64)
     if suffix == ".off":  # read here, checked: Open3D's reader crashes the process on some malformed files
         return read_off(path)
+    if suffix in (".npy", ".npz"):
+        mesh = _npz_mesh(path) if suffix == ".npz" else None
+        cloud = None if mesh is not None else np.asarray(_load_numpy(path, None), dtype=np.float64)
+        return mesh if mesh is not None else (cloud, np.zeros((0, 3), np.int64))
     o3d = o3d_module()  # heavy import, only for the formats above
     if suffix in MESH_FORMATS:
         mesh = o3d.io.read_triangle_mesh(str(path))
@@ -113,27 +129,104 @@ def load_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         cloud = o3d.io.read_point_cloud(str(path))
         if len(cloud.points) > 0:
             return np.asarray(cloud.points, dtype=np.float64), np.zeros((0, 3), np.int64)
-    if suffix == ".obj" and len(vertices := _obj_vertices(path)):  # vertices alone: Open3D gives no points for them
-        return vertices, np.zeros((0, 3), np.int64)
+    if suffix == ".obj":  # Open3D gives nothing for vertices alone, and nothing (without a reason) for a bad face
+        vertices, n_faces, problem = _scan_obj(path)
+        if problem or n_faces:  # a mesh Open3D could not read is no cloud of its vertices
+            raise InputError(f"cannot read {path}: {problem or f'Open3D could not read its {n_faces} faces'}")
+        if len(vertices):
+            return vertices, np.zeros((0, 3), np.int64)
     raise InputError(f"cannot read {path}: no points found (empty or unreadable {suffix} file)")
 
 
-def _obj_vertices(path: Path) -> np.ndarray:
-    """The `v x y z` lines of an OBJ file without faces, (V, 3) float64 (empty when it has faces (a mesh Open3D could
-    not read is no cloud), none, or a bad one)."""
-    rows = []
-    for line in path.read_bytes().decode("latin-1").splitlines():
+def finite_mesh(
+    vertices: np.ndarray, triangles: np.ndarray, name: str | Path, *, warn: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without its NaN/inf vertices and the triangles using them (re-indexed); a cloud as it is.
+
+    Dropped, not refused, as `clean_points` drops a cloud's bad rows: one bad vertex from an exporter leaves the rest
+    of the organ's surface good for sampling and registration, and the non-rigid stage's solid check still decides
+    whether the surface with that hole encloses a volume. Refusing later, after the rigid registration (the indices
+    no longer matching the cleaned points), lost the rigid pose; doing it here decides before any work.
+    """
+    if not len(triangles):  # a cloud: its NaN rows are the caller's to drop or refuse (clean_points, structures)
+        return vertices, triangles
+    finite = np.isfinite(vertices).all(axis=1)
+    if finite.all():
+        return vertices, triangles
+    if not finite.any():
+        raise InputError(f"{name}: all {len(vertices)} vertices are NaN or infinite")
+    kept = finite[triangles].all(axis=1)
+    new_index = np.cumsum(finite) - 1
+    if warn:
+        LOG.warning(
+            "%s: dropped %d of %d vertices with NaN/inf coordinates and the %d of %d triangles using them",
+            name,
+            int((~finite).sum()),
+            len(vertices),
+            int((~kept).sum()),
+            len(triangles),
+        )
+    return vertices[finite], new_index[triangles[kept]]
+
+
+def _npz_mesh(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """An NPZ's `vertices` (V, 3) and triangles (`triangles` or `faces`, (F, 3) integers indexing them) when it has
+    both and no `points`/`xyz` (which `load_points` would read first); None when it is no such mesh."""
+    _require_numpy_magic(path)
+    with np.load(path, allow_pickle=False) as data:
+        if "vertices" not in data or any(k in data for k in NPZ_POINT_KEYS[:2]):
+            return None
+        key = next((k for k in NPZ_TRIANGLE_KEYS if k in data), None)
+        if key is None:
+            return None
+        vertices = _numeric(data["vertices"], f"{path} (vertices)").astype(np.float64)
+        triangles = _numeric(data[key], f"{path} ({key})")
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise InputError(f"{path}: vertices must be an (N, 3) array, got shape {vertices.shape}")
+    if triangles.ndim != 2 or triangles.shape[1] != 3 or triangles.dtype.kind not in "iu":
+        raise InputError(
+            f"{path}: {key} must be an (F, 3) integer array, got shape {triangles.shape} {triangles.dtype}"
+        )
+    bad = np.flatnonzero(((triangles < 0) | (triangles >= len(vertices))).any(axis=1))
+    if len(bad):
+        row = triangles[bad[0]]
+        index = int(row[(row < 0) | (row >= len(vertices))][0])
+        raise InputError(f"cannot read {path}: face {int(bad[0])} refers to vertex {index} of {len(vertices)}")
+    return vertices, triangles.astype(np.int64)
+
+
+def _scan_obj(path: Path) -> tuple[np.ndarray, int, str]:
+    """An OBJ's `v x y z` rows (V, 3), its face count and what is wrong with it ("" when nothing is found): a vertex
+    short of coordinates or not numbers, a face index that is not an integer, 0, or beyond the vertices (1-based;
+    negative ones count back from the last vertex read)."""
+    lines = path.read_bytes().decode("latin-1").splitlines()
+    n_vertices = sum(1 for line in lines if line.split()[:1] == ["v"])
+    rows: list[list[float]] = []
+    face = 0
+    for number, line in enumerate(lines, start=1):
         words = line.split()
-        if words[:1] == ["f"]:
-            return np.zeros((0, 3))
         if words[:1] == ["v"]:
             try:
                 rows.append([float(w) for w in words[1:4]])
             except ValueError:
-                return np.zeros((0, 3))
+                return np.zeros((0, 3)), face, f"vertex {len(rows) + 1} (line {number}) is not numbers"
             if len(rows[-1]) < 3:  # a vertex short of a coordinate: no cloud to guess from
-                return np.zeros((0, 3))
-    return np.array(rows, dtype=np.float64).reshape(-1, 3)
+                return np.zeros((0, 3)), face, f"vertex {len(rows)} (line {number}) has fewer than 3 coordinates"
+        elif words[:1] == ["f"]:
+            face += 1
+            for word in words[1:]:
+                try:
+                    index = int(word.split("/")[0])
+                except ValueError:
+                    return np.zeros((0, 3)), face, f"face {face} (line {number}) is not integers: {word!r}"
+                resolved = index - 1 if index > 0 else len(rows) + index
+                if index == 0 or not 0 <= resolved < (n_vertices if index > 0 else len(rows)):
+                    return (
+                        np.zeros((0, 3)),
+                        face,
+                        f"face {face} (line {number}) refers to vertex {index} of {n_vertices}",
+                    )
+    return np.array(rows, dtype=np.float64).reshape(-1, 3), face, ""
 
 
 def sample_mesh_surface(vertices: np.ndarray, triangles: np.ndarray, *, seed: int = 0) -> np.ndarray:
@@ -238,13 +331,7 @@ def _load_text(path: Path) -> np.ndarray:
 
 def _load_numpy(path: Path, key: str | None) -> np.ndarray:
     """The array of an NPY file, or the named / first of `NPZ_POINT_KEYS` / only point array of an NPZ; numbers only."""
-    with path.open("rb") as f:
-        magic = f.read(6)
-    # numpy calls any file without its magic "pickled data" and offers allow_pickle: for a damaged file, wrong advice
-    wanted = b"\x93NUMPY" if path.suffix.lower() == ".npy" else b"PK\x03\x04"
-    if magic[:4] != wanted[:4]:
-        kind = "NumPy .npy" if path.suffix.lower() == ".npy" else "NumPy .npz (zip)"
-        raise InputError(f"cannot read {path}: not a {kind} file (it does not start as one)")
+    _require_numpy_magic(path)
     if path.suffix.lower() == ".npy":
         return _numeric(np.load(path, allow_pickle=False), str(path))
     with np.load(path, allow_pickle=False) as data:
@@ -257,6 +344,17 @@ def _load_numpy(path: Path, key: str | None) -> np.ndarray:
                 return _numeric(data[name], f"{path} ({name})")
         name, array = _only_point_array(path, data)
         return _numeric(array, f"{path} ({name})")
+
+
+def _require_numpy_magic(path: Path) -> None:
+    """InputError unless the file starts as an NPY (or, for .npz, a zip) file does."""
+    with path.open("rb") as f:
+        magic = f.read(6)
+    # numpy calls any file without its magic "pickled data" and offers allow_pickle: for a damaged file, wrong advice
+    wanted = b"\x93NUMPY" if path.suffix.lower() == ".npy" else b"PK\x03\x04"
+    if magic[:4] != wanted[:4]:
+        kind = "NumPy .npy" if path.suffix.lower() == ".npy" else "NumPy .npz (zip)"
+        raise InputError(f"cannot read {path}: not a {kind} file (it does not start as one)")
 
 
 def _only_point_array(path: Path, data: Any) -> tuple[str, np.ndarray]:

@@ -20,6 +20,9 @@ from liver_p2p_reg.metrics import transform_points
 MIN_COORDINATE_MM = 1.0  # every |coordinate| below this: the file holds metres
 MIN_EXTENT_MM = 1.0  # several points spanning less than this: metres (no structure is that small)
 UNITS_HINT = "structure points are read as millimetres in the preop (ct) frame: convert a file in metres"
+# Every point is carried through the registration and written to the JSON (~200 bytes each), so a dense vessel
+# cloud costs seconds and gigabytes (1M points: 18 s, 2 GB, a 205 MB JSON): refused, with what to do, above this.
+MAX_STRUCTURE_POINTS = 200_000
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: arrays do not compare as one truth value
@@ -116,6 +119,11 @@ def load_structure(
         raise InputError(f"{where}: {path}: {bad} of {len(points)} points are NaN or infinite")
     _, first = np.unique(points, axis=0, return_index=True)
     points = points[np.sort(first)]  # an STL repeats each vertex per triangle: once each, in file order
+    if len(points) > MAX_STRUCTURE_POINTS:
+        raise InputError(
+            f"{where}: {path}: {len(points)} points, more than the {MAX_STRUCTURE_POINTS} a structure may have: "
+            "decimate it (a structure's points are reported one by one)"
+        )
     problem = ""
     if np.max(np.abs(points)) < MIN_COORDINATE_MM:
         problem = f"every coordinate is below {MIN_COORDINATE_MM:g} mm in magnitude: metres?"

@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import logging
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from liver_p2p_reg.cloud_io import clean_points, extent_mm, implausible_extent, load_points, save_points
+from liver_p2p_reg.cloud_io import (
+    clean_points,
+    extent_mm,
+    implausible_extent,
+    load_mesh,
+    load_points,
+    save_points,
+)
 from liver_p2p_reg.errors import InputError
 
 
@@ -42,7 +51,7 @@ def test_npz_keys(tmp_path: Path, rng: np.random.Generator) -> None:
     np.testing.assert_array_equal(load_points(path), pts[:50])
     np.savez(path, surface=pts[:70], labels=np.arange(70))  # the one (N, 3) array, whatever its name
     np.testing.assert_array_equal(load_points(path), pts[:70])
-    np.savez(path, vertices=pts, triangles=np.zeros((9, 3), np.int32))  # a mesh: its triangles are no points
+    np.savez(path, vertices=pts, triangles=np.zeros((9, 3), np.int32))  # a mesh of no area: its vertices only
     np.testing.assert_array_equal(load_points(path), pts)
     np.savez(path, xyz=pts[:60], normals=pts[:60] / 10)  # a cloud with its normals: the named coordinates
     np.testing.assert_array_equal(load_points(path), pts[:60])
@@ -443,7 +452,7 @@ def test_obj_vertices_alone_are_a_cloud(tmp_path: Path, rng: np.random.Generator
     np.testing.assert_array_equal(load_points(path), pts)
     short = tmp_path / "short.obj"
     short.write_text("v 1 2 3\nv 4 5\n")
-    with pytest.raises(InputError, match="no points found"):
+    with pytest.raises(InputError, match=r"vertex 2 \(line 2\) has fewer than 3 coordinates"):
         load_points(short)
 
 
@@ -471,8 +480,92 @@ def test_pcd_with_the_word_data_in_a_comment_is_still_checked(tmp_path: Path, rn
         load_points(cut)
 
 
-def test_an_obj_mesh_open3d_cannot_read_is_no_cloud(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("face", "message"),
+    [
+        ("f 1 2 9", "face 2 (line 6) refers to vertex 9 of 4"),  # a vertex that is not there
+        ("f 0 1 2", "face 2 (line 6) refers to vertex 0 of 4"),  # OBJ counts from 1
+        ("f 1 2 99999999999", "face 2 (line 6) refers to vertex 99999999999 of 4"),
+        ("f -1 -2 -5", "face 2 (line 6) refers to vertex -5 of 4"),  # back from the last vertex read
+        ("f 1 x 3", "face 2 (line 6) is not integers: 'x'"),
+    ],
+)
+def test_an_obj_face_open3d_cannot_read_is_named(tmp_path: Path, face: str, message: str) -> None:
     path = tmp_path / "broken.obj"
-    path.write_text("v 0 0 0\nv 100 0 0\nv 0 100 0\nv 0 0 100\nf 1 2 9\n")  # a face of a vertex that is not there
-    with pytest.raises(InputError, match="no points found"):
+    path.write_text(f"v 0 0 0\nv 100 0 0\nv 0 100 0\nv 0 0 100\nf 1 2 3\n{face}\n")
+    with pytest.raises(InputError, match=re.escape(f"cannot read {path}: {message}")) as info:
         load_points(path)
+    assert "\n" not in str(info.value)
+
+
+def test_an_npz_mesh_is_read_like_a_ply(tmp_path: Path) -> None:
+    vertices, triangles = _cube_mm()
+    ply, npz = tmp_path / "cube.ply", tmp_path / "cube.npz"
+    _write_ascii_ply(ply, vertices, triangles)
+    np.savez(npz, vertices=vertices, triangles=triangles.astype(np.int32))
+    for got, want in zip(load_mesh(npz), (vertices, triangles), strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert load_mesh(npz)[1].dtype == np.int64
+    np.testing.assert_array_equal(load_points(npz), load_points(ply))  # sampled over its surface, as the PLY
+    assert len(load_points(npz)) > 1000
+    np.testing.assert_array_equal(load_points(npz, sample_meshes=False), vertices)
+    np.savez(npz, vertices=vertices, faces=triangles)  # trimesh's name for them
+    np.testing.assert_array_equal(load_mesh(npz)[1], triangles)
+    np.testing.assert_array_equal(load_points(npz, key="vertices"), vertices)  # a named array is that array
+    for bad, message in (
+        (np.vstack([triangles, [[0, 1, 8]]]), "face 12 refers to vertex 8 of 8"),
+        (np.vstack([triangles, [[0, -1, 2]]]), "face 12 refers to vertex -1 of 8"),
+        (triangles.astype(float), r"triangles must be an \(F, 3\) integer array"),
+        (triangles[:, :2], r"triangles must be an \(F, 3\) integer array"),
+    ):
+        np.savez(npz, vertices=vertices, triangles=bad)
+        with pytest.raises(InputError, match=message):
+            load_points(npz)
+        with pytest.raises(InputError, match=message):
+            load_mesh(npz)
+
+
+def test_a_non_finite_mesh_vertex_is_dropped_with_its_triangles(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    vertices, triangles = _cube_mm()
+    vertices = np.vstack([vertices[:3], [[np.nan, 0.0, 0.0]], vertices[3:]])  # the NaN vertex is number 3
+    triangles = np.where(triangles >= 3, triangles + 1, triangles)
+    triangles = np.vstack([triangles, [[3, 0, 1]]])  # one more triangle uses it
+    path = tmp_path / "nan.ply"
+    _write_ascii_ply(path, vertices, triangles)
+    with caplog.at_level(logging.WARNING, logger="liver_p2p_reg"):
+        got_vertices, got_triangles = load_mesh(path)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: dropped 1 of 9 vertices with NaN/inf coordinates and the 1 of 13 triangles using them"
+    ]
+    clean_vertices, clean_triangles = _cube_mm()
+    np.testing.assert_array_equal(got_vertices, clean_vertices)  # the rest, re-indexed: the cube again
+    np.testing.assert_array_equal(got_triangles, clean_triangles)
+    points = load_points(path)  # sampled over the rest of the surface, not degraded to its vertices
+    assert np.isfinite(points).all() and len(points) > 1000
+    np.testing.assert_array_equal(load_mesh(path, warn=False)[1], clean_triangles)
+    everything = tmp_path / "all_nan.ply"
+    _write_ascii_ply(everything, np.full((3, 3), np.nan), np.array([[0, 1, 2]]))
+    with pytest.raises(InputError, match="all 3 vertices are NaN or infinite"):
+        load_points(everything)
+    cloud = tmp_path / "cloud.ply"  # a cloud keeps its NaN rows: clean_points (or a structure's check) says so
+    _write_ascii_ply(cloud, vertices, np.zeros((0, 3), int))
+    assert np.isnan(load_points(cloud)).any()
+
+
+def _cube_mm() -> tuple[np.ndarray, np.ndarray]:
+    """A closed 100 mm cube: 8 vertices, 12 outward triangles."""
+    v = np.array([[x, y, z] for x in (0, 100) for y in (0, 100) for z in (0, 100)], float)
+    faces = [(1, 2, 4), (1, 4, 3), (5, 7, 8), (5, 8, 6), (1, 5, 6), (1, 6, 2),
+             (3, 4, 8), (3, 8, 7), (1, 3, 7), (1, 7, 5), (2, 6, 8), (2, 8, 4)]  # fmt: skip
+    return v, np.array(faces, np.int64) - 1
+
+
+def _write_ascii_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    header = (
+        f"ply\nformat ascii 1.0\nelement vertex {len(vertices)}\nproperty double x\nproperty double y\n"
+        f"property double z\nelement face {len(triangles)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    body = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist())
+    path.write_text(header + body + "".join(f"3 {a} {b} {c}\n" for a, b, c in triangles.tolist()))

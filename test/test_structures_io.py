@@ -169,3 +169,19 @@ def test_an_stl_mesh_gives_each_vertex_once(tmp_path: Path) -> None:
     o3d.io.write_triangle_mesh(str(tmp_path / "t.stl"), mesh)  # STL stores 3 vertices per triangle
     (structure,) = load_structures([str(tmp_path / "t.stl")])
     np.testing.assert_allclose(structure.points_mm, vertices, atol=1e-4)
+
+
+def test_a_structure_of_more_points_than_the_cap_is_refused_in_one_line(tmp_path: Path) -> None:
+    from liver_p2p_reg.structures_io import MAX_STRUCTURE_POINTS
+
+    grid = np.stack(np.meshgrid(*[np.arange(60.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)  # 216,000 points
+    assert len(grid) > MAX_STRUCTURE_POINTS
+    np.save(tmp_path / "vessels.npy", grid)
+    np.save(tmp_path / "at_cap.npy", grid[:MAX_STRUCTURE_POINTS])
+    with pytest.raises(InputError) as info:
+        load_structures([str(tmp_path / "vessels.npy")])
+    assert str(info.value) == (
+        f"structure 'vessels': {tmp_path / 'vessels.npy'}: 216000 points, more than the 200000 a structure may "
+        "have: decimate it (a structure's points are reported one by one)"
+    )
+    assert len(load_structures([str(tmp_path / "at_cap.npy")])[0].points_mm) == MAX_STRUCTURE_POINTS

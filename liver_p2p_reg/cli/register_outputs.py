@@ -13,7 +13,7 @@ def source_mesh(path: Path) -> tuple[Any, Any] | None:
     from liver_p2p_reg.cloud_io import load_mesh
 
     try:
-        vertices, triangles = load_mesh(path)
+        vertices, triangles = load_mesh(path, warn=False)  # load_points has read SOURCE and warned already
     except InputError:
         return None
     return (vertices, triangles) if len(triangles) else None
