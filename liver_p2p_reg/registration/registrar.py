@@ -7,13 +7,14 @@ and the TRE against ground truth.
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
 import numpy as np
 
 from liver_p2p_reg.alloc import reuse_freed_memory
-from liver_p2p_reg.cloud_io import as_float_array, clean_points, require_plausible_extent
+from liver_p2p_reg.cloud_io import as_float_array, clean_points, finite_mesh, require_plausible_extent
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm, tre_mm
@@ -21,6 +22,8 @@ from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.methods import check_method_name, method_names, run_method
 from liver_p2p_reg.registration.threads import pin_threads
 from liver_p2p_reg.result import RegistrationResult
+
+LOG = logging.getLogger("liver_p2p_reg")
 
 
 def available_methods() -> list[str]:
@@ -77,6 +80,8 @@ class Registrar:
                 points, name, self.config.expected_extent_min_mm, self.config.expected_extent_max_mm, UNITS_HINT
             )
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
+        # the non-rigid stage's surface is checked before any work: a bad one must not cost the rigid pose later
+        preop = _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm) if self.config.deform else None
         name = method or self.config.method
         check_method_name(name)  # before the other checks: an unknown name is the first thing to say
         ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm), _check_origin(sensor_origin_mm))
@@ -100,8 +105,8 @@ class Registrar:
         if fid_s is not None and fid_t is not None:
             result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
             result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
-        if cfg.deform:
-            self.deform(result, source, target, source_triangles, fid_s, fid_t, mesh_vertices_mm=mesh_vertices_mm)
+        if preop is not None:
+            self._deform(result, source, target, preop, fid_s, fid_t, "frame", start=time.perf_counter())
         result.runtime_ms["total"] = (time.perf_counter() - start) * 1e3
         return result
 
@@ -118,30 +123,45 @@ class Registrar:
         view: str = "frame",
     ) -> RegistrationResult:
         """The non-rigid stage from `result`'s rigid pose: sets `result.deformation` (applied or why not) and,
-        with fiducials, `deformed_rms_tre_mm`. The rigid pose in `result` is left as it is. The node calls
+        with fiducials and the stage applied, `deformed_rms_tre_mm`. The rigid pose in `result` is left as it is. The node calls
         this after publishing the rigid pose; `register` calls it when `deform` is on. `view`: what `target_mm` is,
         "frame" (one view) or "survey" (survey mode's fused surface): it picks the deformed bound's calibration.
 
         The closed preop surface is `source_triangles` over the source points, or over `mesh_vertices_mm`
         when those are given (a CT mesh beside a sampled cloud); without triangles it is rebuilt from the points.
+        Vertices with NaN/inf coordinates are dropped with the triangles that use them (a warning says how many).
         """
-        from liver_p2p_reg.registration.deform import deform_result
-        from liver_p2p_reg.registration.error_calibration import attach_deformed_error_model
-
         start = time.perf_counter()
         source = clean_points(source_mm, "source", min_points=self.config.min_points)
         target = clean_points(target_mm, "target", min_points=1)
-        surface, n_given = source, len(np.asarray(source_mm).reshape(-1, 3))
-        if mesh_vertices_mm is not None:
-            surface = clean_points(mesh_vertices_mm, "preop mesh", min_points=4)
-            n_given = len(np.asarray(mesh_vertices_mm).reshape(-1, 3))
-        tris = _check_triangles(source_triangles, len(surface), n_given)
+        preop = _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm)
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)  # bad ones refused before any work
-        fit = None if mesh_vertices_mm is None else source  # beside a mesh: fitted through the registered cloud
+        return self._deform(result, source, target, preop, fid_s, fid_t, view, start=start)
+
+    def _deform(
+        self,
+        result: RegistrationResult,
+        source: np.ndarray,
+        target: np.ndarray,
+        preop: tuple[np.ndarray | None, np.ndarray | None],
+        fid_s: np.ndarray | None,
+        fid_t: np.ndarray | None,
+        view: str,
+        *,
+        start: float,
+    ) -> RegistrationResult:
+        """`deform` on checked inputs: `preop` is `_preop_surface`'s (mesh vertices or None, triangles or None)."""
+        from liver_p2p_reg.registration.deform import deform_result
+        from liver_p2p_reg.registration.error_calibration import attach_deformed_error_model
+
+        mesh_vertices, tris = preop
+        surface = source if mesh_vertices is None else mesh_vertices
+        fit = None if mesh_vertices is None else source  # beside a mesh: fitted through the registered cloud
         result.deformation = deform_result(result, surface, target, self.config, self.cache, tris, fit)
         attach_deformed_error_model(result, self.config, view)  # the bound of the deformed positions, when applied
         result.runtime_ms["deform"] = (time.perf_counter() - start) * 1e3
-        if fid_s is not None and fid_t is not None:
+        # a stage not applied moved nothing: the rigid rms_tre_mm is the error (replay counts only applied frames)
+        if fid_s is not None and fid_t is not None and result.deformation.applied:
             moved = result.deformation.deformed_position_mm(fid_s)
             result.deformed_rms_tre_mm = float(np.sqrt(np.mean(np.sum((moved - fid_t) ** 2, axis=1))))
         return result
@@ -183,9 +203,13 @@ class Registrar:
         """Build (and cache) the preop model's elastic model; "" when ready, else why the stage cannot run."""
         from liver_p2p_reg.registration.deform import elastic_model
 
-        surface = clean_points(source_mm if mesh_vertices_mm is None else mesh_vertices_mm, "preop model", min_points=4)
-        tris = _check_triangles(source_triangles, len(surface), len(surface))
-        fit = None if mesh_vertices_mm is None else clean_points(source_mm, "source", min_points=self.config.min_points)
+        if mesh_vertices_mm is None:
+            source = clean_points(source_mm, "preop model", min_points=4)
+        else:
+            source = clean_points(source_mm, "source", min_points=self.config.min_points)
+        mesh_vertices, tris = _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm)
+        surface = source if mesh_vertices is None else mesh_vertices
+        fit = None if mesh_vertices is None else source
         try:
             elastic_model(self.cache, surface, tris, self.config, fit)
         except LiverP2PError as exc:
@@ -201,8 +225,41 @@ def register(
     return Registrar(**kwargs).register(source_mm, target_mm, method=method, **fiducials)
 
 
-def _check_triangles(triangles: np.ndarray | None, n_clean: int, n_given: int) -> np.ndarray | None:
-    """Preop triangles as (F, 3) int64 indices into the source, or None; refused when they cannot be."""
+def _preop_surface(
+    source_mm: np.ndarray,
+    source: np.ndarray,
+    triangles: np.ndarray | None,
+    mesh_vertices_mm: np.ndarray | None,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The non-rigid stage's closed surface: (the cleaned mesh vertices, or None for the source `source` cleaned from
+    `source_mm`; its triangles, or None). Triangles are refused in one line when they are no (F, 3) integer array
+    of the given points; vertices with NaN/inf coordinates are dropped with the triangles that use them."""
+    if mesh_vertices_mm is None:
+        given = as_float_array(source_mm, "source")  # an (N, 3) array: clean_points made `source` of it
+        tris = _check_triangles(triangles, len(given))
+        if tris is not None and len(source) < len(given):  # clean_points dropped rows (and warned): re-index
+            tris = _without_nonfinite(given, tris, "source")
+        return None, tris
+    vertices = as_float_array(mesh_vertices_mm, "preop mesh")
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise InputError(f"preop mesh: expected an (N, 3) array of points, got shape {vertices.shape}")
+    tris = _check_triangles(triangles, len(vertices))
+    if tris is not None:
+        vertices, tris = finite_mesh(vertices, tris, "preop mesh")  # one warning for its vertices and triangles
+    return clean_points(vertices, "preop mesh", min_points=4), tris if tris is None or len(tris) else None
+
+
+def _without_nonfinite(points: np.ndarray, tris: np.ndarray, name: str) -> np.ndarray | None:
+    """`tris` without those using a non-finite point, re-indexed to the points left (None when none is left)."""
+    finite = np.isfinite(points).all(axis=1)
+    kept = finite[tris].all(axis=1)
+    LOG.warning("%s: dropped the %d of %d triangles using its NaN/inf points", name, int((~kept).sum()), len(tris))
+    reindexed = (np.cumsum(finite) - 1)[tris[kept]]
+    return reindexed if len(reindexed) else None
+
+
+def _check_triangles(triangles: np.ndarray | None, n_points: int) -> np.ndarray | None:
+    """Preop triangles as (F, 3) int64 indices into the `n_points` given points, or None; refused when they cannot be."""
     if triangles is None:
         return None
     tris = np.asarray(triangles)
@@ -210,10 +267,8 @@ def _check_triangles(triangles: np.ndarray | None, n_clean: int, n_given: int) -
         return None
     if tris.ndim != 2 or tris.shape[1] != 3 or tris.dtype.kind not in "iu":
         raise InputError(f"source triangles must be an (F, 3) integer array, got shape {tris.shape} {tris.dtype}")
-    if n_clean != n_given:  # cleaning dropped points: the indices no longer match
-        raise InputError("source triangles given, but the source has non-finite points: the indices no longer match")
-    if tris.min() < 0 or tris.max() >= n_clean:
-        raise InputError(f"source triangles index {int(tris.max())}, but the source has {n_clean} points")
+    if tris.min() < 0 or tris.max() >= n_points:
+        raise InputError(f"source triangles index {int(tris.max())}, but the source has {n_points} points")
     return tris.astype(np.int64)
 
 

@@ -46,7 +46,10 @@ def test_register_deform_writes_the_block_and_the_deformed_surface(case: dict) -
     block = payload["deformation"]
     assert set(block) >= {"applied", "reason", "rms_displacement_mm", "max_displacement_mm", "strain_energy_mj"}
     assert block["iterations"] >= 1 and block["n_modes"] == 12 and block["model_build_ms"] > 0
-    assert isinstance(payload["deformed_rms_tre_mm"], float)
+    if block["applied"]:  # the fiducials' error where the deformation puts them; a stage not applied moved nothing
+        assert isinstance(payload["deformed_rms_tre_mm"], float)
+    else:
+        assert "deformed_rms_tre_mm" not in payload
     moved = load_points(d / "moved.ply")
     rigid = load_points(d / "preop.ply") @ np.asarray(payload["transform"])[:3, :3].T  # the registered samples
     rigid += np.asarray(payload["transform"])[:3, 3]
@@ -94,3 +97,16 @@ def test_register_deform_sends_the_deformed_model_to_slicer(case: dict, tmp_path
         assert 0.01 < shift.max() < 25.0  # the deformed model, not the rigidly moved one
     finally:
         slicer.close()
+
+
+def test_an_npz_mesh_gives_the_stage_its_triangles(case: dict, tmp_path: Path) -> None:
+    from liver_p2p_reg.cli.register_outputs import source_mesh
+
+    c = case["case"]
+    path = tmp_path / "preop.npz"
+    np.savez(path, vertices=c["src_pcd"], triangles=c["src_triangles"])  # they used to be ignored
+    vertices, triangles = source_mesh(path)
+    np.testing.assert_array_equal(vertices, c["src_pcd"])
+    np.testing.assert_array_equal(triangles, c["src_triangles"])
+    np.savez(path, vertices=c["src_pcd"])  # no triangles: a cloud, the surface rebuilt from its points
+    assert source_mesh(path) is None

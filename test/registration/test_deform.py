@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 from synthetic_cases import blob_mm, partial_case
@@ -9,6 +11,7 @@ from synthetic_cases import blob_mm, partial_case
 from liver_p2p_reg import Config, Registrar
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.phantom.simulate import simulate_liver
+from liver_p2p_reg.registration import registrar as registrar_module
 from liver_p2p_reg.registration.deform import deform_result
 from liver_p2p_reg.registration.deform_fit import fit_deformation
 from liver_p2p_reg.registration.mechanics.modes import _lumped_mass, _rigid_modes, build_elastic_model
@@ -120,7 +123,8 @@ def test_registrar_runs_the_stage_and_the_same_input_gives_bitwise_the_same_outp
     block = runs[0].to_json_dict()["deformation"]
     assert block["applied"] == a.applied and block["n_modes"] == 12 and "residual_after_mm" in block
     # an undeformed rigid crop: the stage may refine but must not move the interior by more than noise
-    assert runs[0].deformed_rms_tre_mm < runs[0].rms_tre_mm + 1.0
+    assert (runs[0].deformed_rms_tre_mm is None) == (not a.applied)  # reported only where it moved something
+    assert (runs[0].deformed_rms_tre_mm if a.applied else runs[0].rms_tre_mm) < runs[0].rms_tre_mm + 1.0
 
 
 def test_bad_triangles_are_one_line_errors():
@@ -173,3 +177,51 @@ def test_a_deformed_bound_is_not_claimed_for_other_gates(fem_liver):
     assert "calibrated with other" not in notes[0], notes[0]
     # without the check the stage is applied to poses the calibration never saw: its coverage is not claimed
     assert "calibrated with other deform_holdout_check, deform_min_holdout_gain" in notes[1], notes[1]
+
+
+def test_bad_triangles_are_refused_before_the_rigid_registration(monkeypatch: pytest.MonkeyPatch) -> None:
+    source, target, _, _, _ = partial_case(np.random.default_rng(6))
+    monkeypatch.setattr(registrar_module, "run_method", lambda *a: pytest.fail("registered before the check"))
+    registrar = Registrar(Config(method="fpfh-ransac-icp", deform=True))
+    with pytest.raises(InputError, match="source has 15000 points"):
+        registrar.register(source, target, source_triangles=np.array([[0, 1, 15000]]))
+    with pytest.raises(InputError, match=r"preop mesh: expected an \(N, 3\) array"):
+        registrar.register(source, target, source_triangles=np.array([[0, 1, 2]]), mesh_vertices_mm=source[:, :2])
+
+
+def test_a_non_finite_mesh_vertex_is_dropped_with_its_triangles(fem_liver, caplog: pytest.LogCaptureFixture) -> None:
+    sim = fem_liver
+    config = Config(deform=True, deform_modes=12, deform_target_tets=1500, deform_min_gain=0.0)
+    view = sim.deformations[0].surface_mm
+    holed = sim.vertices_mm.copy()
+    holed[7] = np.nan
+    registrar = Registrar(config)
+    with caplog.at_level(logging.WARNING, logger="liver_p2p_reg"):
+        # it used to raise "the indices no longer match" here, after the rigid pose was found
+        out = registrar.deform(rigid_result(), sim.vertices_mm, view, sim.triangles, mesh_vertices_mm=holed)
+    using = int(np.any(sim.triangles == 7, axis=1).sum())
+    assert [r.getMessage() for r in caplog.records] == [
+        f"preop mesh: dropped 1 of {len(holed)} vertices with NaN/inf coordinates and the {using} of "
+        f"{len(sim.triangles)} triangles using them"
+    ]
+    # the same as the mesh without that vertex and its triangles, re-indexed by hand
+    keep = ~np.any(sim.triangles == 7, axis=1)
+    by_hand = Registrar(config).deform(
+        rigid_result(),
+        sim.vertices_mm,
+        view,
+        np.where(sim.triangles[keep] > 7, sim.triangles[keep] - 1, sim.triangles[keep]),
+        mesh_vertices_mm=np.delete(sim.vertices_mm, 7, axis=0),
+    )
+    assert out.deformation.reason == by_hand.deformation.reason
+    assert np.array_equal(out.deformation.T_target_source, by_hand.deformation.T_target_source)
+    assert np.array_equal(out.deformation.coefficients_mm, by_hand.deformation.coefficients_mm)
+
+
+def test_the_deformed_tre_is_reported_only_where_the_stage_was_applied(fem_liver) -> None:
+    sim = fem_liver
+    registrar = Registrar(Config(deform=True, deform_modes=12, deform_target_tets=1500))
+    view, fid_t = sim.deformations[0].surface_mm, sim.deformations[0].fiducials_mm
+    failed = registrar.deform(rigid_result(ok=False), sim.vertices_mm, view, sim.triangles, sim.fiducials_mm, fid_t)
+    assert not failed.deformation.applied
+    assert failed.deformed_rms_tre_mm is None and "deformed_rms_tre_mm" not in failed.to_json_dict()
