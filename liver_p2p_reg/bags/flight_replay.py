@@ -10,23 +10,20 @@ recorded digest); a recorded /preop/mesh is given to the core as register_node g
 
 from __future__ import annotations
 
-import json
-import struct
-from collections.abc import Iterator
-from dataclasses import dataclass
-from io import BytesIO
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bags.io import is_bag_error, typestore, unreadable
+from liver_p2p_reg.bags.flight_read import ReadState, is_recording, read_recording
+from liver_p2p_reg.bags.flight_records import Damaged, RecordedMessage, checked_values
+from liver_p2p_reg.bags.io import bag_error_reason
 from liver_p2p_reg.bags.recorder import (
     TOPIC_CONFIG,
     TOPIC_EVENT,
     TOPIC_META,
     TOPIC_REGISTRATION,
-    continuation,
     message_points_mm,
     points_sha256,
     recorder_factory,
@@ -52,114 +49,8 @@ from liver_p2p_reg.stream.record_hooks import restore_tracker
 # what a pose's bits depend on besides its inputs: a difference is said before the comparison
 ENVIRONMENT_KEYS = ("package_version", "code_version", "numpy", "torch", "open3d", "usable_cores", "omp_num_threads")
 
-
-@dataclass
-class RecordedMessage:
-    """One message of a recording, deserialized, with the file it came from."""
-
-    topic: str
-    msgtype: str
-    log_ns: int
-    msg: Any
-    file: Path
-
-    @property
-    def values(self) -> dict[str, Any]:
-        """The JSON of a std_msgs/String record."""
-        return json.loads(self.msg.data)
-
-
-@dataclass
-class ReadState:
-    """What reading found besides the messages: the files read and whether the last one was cut short."""
-
-    files: list[Path]
-    truncated: bool = False  # the last file ends without its footer, maybe inside a record (writer killed)
-
-
-def read_file(path: Path, state: ReadState) -> Iterator[RecordedMessage]:
-    """The messages of one MCAP file, record by record; a truncated tail ends it (state.truncated)."""
-    from mcap.data_stream import ReadDataStream
-    from mcap.opcode import Opcode
-    from mcap.records import Channel, Message, Schema
-
-    schemas: dict[int, str] = {}
-    channels: dict[int, tuple[str, str]] = {}
-    store = typestore()
-    with open(path, "rb") as fh:
-        if fh.read(8) != b"\x89MCAP0\r\n":
-            raise InputError(f"{path} is not an MCAP file")
-        while True:
-            head = fh.read(9)
-            if len(head) < 9:  # the end, without the footer a closed file has
-                state.truncated = True
-                return
-            opcode, length = struct.unpack("<BQ", head)
-            body = fh.read(length)
-            if len(body) < length:
-                state.truncated = True
-                return
-            stream = ReadDataStream(BytesIO(body))
-            try:
-                if opcode == Opcode.SCHEMA:
-                    schema = Schema.read(stream)
-                    schemas[schema.id] = schema.name
-                elif opcode == Opcode.CHANNEL:
-                    channel = Channel.read(stream)
-                    channels[channel.id] = (channel.topic, schemas.get(channel.schema_id, ""))
-                elif opcode == Opcode.MESSAGE:
-                    message = Message.read(stream, length)
-                    topic, msgtype = channels[message.channel_id]
-                    item = RecordedMessage(
-                        topic, msgtype, message.log_time, store.deserialize_cdr(message.data, msgtype), path
-                    )
-                elif opcode in (Opcode.DATA_END, Opcode.FOOTER):  # the summary follows: nothing to replay
-                    return
-            except Exception as exc:  # damaged bytes inside a record: one line naming the file, not a traceback
-                if not is_bag_error(exc):
-                    raise
-                raise unreadable(path, exc) from None
-            if opcode == Opcode.MESSAGE:
-                yield item
-
-
-def first_meta(path: Path) -> dict[str, Any] | None:
-    """The /flight_recorder/meta of a file (its first message), None for any other MCAP or file."""
-    try:
-        for item in read_file(Path(path), ReadState([])):
-            return item.values if item.topic == TOPIC_META else None
-    except (InputError, OSError, KeyError, ValueError, struct.error):
-        return None
-    return None
-
-
-def is_recording(path: str | Path) -> bool:
-    """Whether `path` is a flight recording (a bare .mcap starting with /flight_recorder/meta)."""
-    path = Path(path)
-    return path.is_file() and path.suffix == ".mcap" and first_meta(path) is not None
-
-
-def read_recording(path: str | Path, state: ReadState | None = None) -> Iterator[RecordedMessage]:
-    """Every message of a recording from `path` on, through its rotated files (same session, next index)."""
-    path = Path(path)
-    meta = first_meta(path)
-    if meta is None:
-        raise InputError(f"{path} is not a flight recording (no {TOPIC_META})")
-    state = state if state is not None else ReadState([])
-    base = path
-    if meta["file_index"]:  # a later file of a series: its base name is the first file's
-        base = path.with_name(path.stem.rsplit("_", 1)[0] + path.suffix)
-    index = meta["file_index"]
-    while True:
-        state.files.append(path)
-        state.truncated = False
-        yield from read_file(path, state)
-        index += 1
-        following = continuation(base, index)
-        nxt = first_meta(following) if following.is_file() else None
-        if state.truncated or nxt is None or nxt.get("session") != meta["session"] or nxt.get("file_index") != index:
-            return
-        path = following
+# the reading lives in flight_read; these names are read from here too (replay_cmd, the tests)
+__all__ = ["ReadState", "is_recording", "read_recording", "rerun_recording"]
 
 
 # ---------------------------------------------------------------- the re-run
@@ -191,28 +82,29 @@ class _Rerunner:
         if text not in self.report.notes:
             self.report.notes.append(text)
 
-    def message(self, topic: str, msg: Any, values: dict[str, Any] | None) -> None:
+    def message(self, item: RecordedMessage, values: dict[str, Any] | None) -> None:
+        topic = item.topic
         if topic == TOPIC_CONFIG:
             self.config(values)
             return
         core = self._core()
         if topic == TOPIC_PREOP:
-            self.source = message_points_mm(msg)
-            core.set_preop(self.source, msg.header.frame_id, stamp_to_ns(msg.header.stamp))
+            self.source = _decoded(item, message_points_mm)
+            core.set_preop(self.source, item.msg.header.frame_id, stamp_to_ns(item.msg.header.stamp))
         elif topic == TOPIC_PREOP_MESH:  # as register_node: kept for its model, the elastic model prepared
-            vertices, triangles = mesh_marker_mm(msg)
-            core.set_preop_mesh(vertices, triangles, msg.header.frame_id, stamp_to_ns(msg.header.stamp))
+            vertices, triangles = _decoded(item, mesh_marker_mm)
+            core.set_preop_mesh(vertices, triangles, item.msg.header.frame_id, stamp_to_ns(item.msg.header.stamp))
             core.prepare_deformation()
         elif topic == TOPIC_PREOP_FIDUCIALS:
-            points = message_points_mm(msg)
+            points = _decoded(item, message_points_mm)
             self.preop_fiducials = points if len(points) else None
-            core.set_preop_fiducials(self.preop_fiducials, stamp_to_ns(msg.header.stamp))
+            core.set_preop_fiducials(self.preop_fiducials, stamp_to_ns(item.msg.header.stamp))
         elif topic == TOPIC_INTRAOP:
-            self.cloud = message_points_mm(msg)
+            self.cloud = _decoded(item, message_points_mm)
         elif topic == TOPIC_INTRAOP_FIDUCIALS:
-            self.intraop_fiducials = message_points_mm(msg)
+            self.intraop_fiducials = _decoded(item, message_points_mm)
         elif topic == TOPIC_DEFORMED_PREOP:
-            self.deformed = message_points_mm(msg)
+            self.deformed = _decoded(item, message_points_mm)
         elif topic == TOPIC_EVENT and values["event"] == "tracker":
             restore_tracker(core, values)
         elif topic == TOPIC_EVENT and values["event"] == "reset_survey":
@@ -314,6 +206,16 @@ class _Rerunner:
         return output.pose.T_sensor_ct_mm, output.deformed_preop_mm
 
 
+def _decoded(item: RecordedMessage, decode: Callable[[Any], Any]) -> Any:
+    """A recorded message's points or mesh; a message whose fields do not decode is one line naming its record."""
+    try:
+        return decode(item.msg)
+    except InputError as exc:
+        raise Damaged(item.file, f"{item.where}: {exc}") from None
+    except (ValueError, TypeError, IndexError) as exc:  # fields that contradict each other (sizes, offsets)
+        raise Damaged(item.file, f"{item.where}: {bag_error_reason(exc)}") from None
+
+
 def rerun_recording(path: str | Path, *, record_path: str | None = None, overwrite: bool = False) -> Rerun:
     """Re-run every completed registration of a flight recording (from `path` through its rotated files).
 
@@ -326,7 +228,7 @@ def rerun_recording(path: str | Path, *, record_path: str | None = None, overwri
     skipping = False  # inside the head of a rotated file, whose state the re-run already has
     try:
         for item in read_recording(path, state):
-            values = item.values if item.msgtype == "std_msgs/msg/String" else None
+            values = checked_values(item)
             if item.file != current:
                 current, skipping = item.file, len(state.files) > 1
             if item.topic == TOPIC_META:
@@ -336,7 +238,7 @@ def rerun_recording(path: str | Path, *, record_path: str | None = None, overwri
             elif item.topic == TOPIC_EVENT and values["event"] == "snapshot_end":
                 skipping = False
             elif not skipping:
-                rerun.message(item.topic, item.msg, values)
+                rerun.message(item, values)
     finally:
         if rerun.core is not None:
             rerun.core.close_recording()

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from liver_p2p_reg.bags.mcap_check import check_bare_mcap, looks_like_recording
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.ros.pointcloud2 import MessageTypes
 from liver_p2p_reg.ros.topics import INPUT_TOPICS, LOADER_INPUT_TOPICS, qos_of
@@ -113,9 +114,7 @@ def check_replaceable_bag(path: Path) -> None:
     if path.is_symlink() or path.is_file():
         if path.suffix != ".mcap":
             raise InputError(refuse)
-        from liver_p2p_reg.bags.flight_replay import is_recording
-
-        if is_recording(path):  # evidence of a session: never replaced by a bag
+        if looks_like_recording(path):  # evidence of a session: never replaced by a bag
             raise InputError(f"{path} is a flight recording; not replacing it with a bag: choose another path")
         return
     if not path.is_dir():
@@ -196,20 +195,38 @@ def bag_source(path: Path) -> Path:
         return mcaps[0]
     if not path.is_file() or path.suffix != ".mcap":  # a pipe would block; another file is no bag
         raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
+    check_bare_mcap(path)
     return path
 
 
-def is_bag_error(exc: Exception) -> bool:
+def is_bag_error(exc: BaseException) -> bool:
     """Whether an exception raised by the bag readers says the bag's bytes are unreadable (not a bug of ours)."""
     if isinstance(exc, (ValueError, KeyError, IndexError, OSError, EOFError)):
         return True
-    return type(exc).__module__.split(".")[0] in _BAG_ERROR_PACKAGES
+    if type(exc).__module__.split(".")[0] in _BAG_ERROR_PACKAGES:
+        return True
+    # a built-in error raised inside a reader over damaged bytes: ord(b"") on a file that holds only the magic
+    # (TypeError), an absurd record length (MemoryError, OverflowError)
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and tb.tb_frame.f_globals.get("__name__", "").split(".")[0] in _BAG_ERROR_PACKAGES
 
 
-def unreadable(path: str | Path, exc: Exception) -> InputError:
-    """The one-line InputError for a bag rosbags cannot read: its path and the first line of the reason."""
-    reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return InputError(f"cannot read bag {path}: {reason}")
+def unreadable(path: str | Path, exc: BaseException) -> InputError:
+    """The one-line InputError for a bag rosbags cannot read: its path and what is wrong, in words."""
+    return InputError(f"cannot read bag {path}: {bag_error_reason(exc)}")
+
+
+def bag_error_reason(exc: BaseException) -> str:
+    """What a bag reader's exception (is_bag_error) says is wrong with the bytes, in one line of words."""
+    if isinstance(exc, KeyError):  # its text alone would be the key ("4", "''")
+        reason = f"a record refers to {exc.args[0]!r}, which the file does not define (damaged or incomplete)"
+    elif isinstance(exc, (MemoryError, OverflowError)):
+        reason = f"a record's length runs past the end of the file (damaged; {type(exc).__name__})"
+    else:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return reason
 
 
 def model_and_clouds(path: str | Path, *, metres: bool = False) -> tuple[np.ndarray | None, list[np.ndarray]]:

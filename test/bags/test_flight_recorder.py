@@ -354,7 +354,9 @@ def test_a_recording_with_damaged_bytes_is_one_line_not_a_traceback(bag_recordin
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(bytes(data))
     code, _, err = cli("replay", damaged)
-    assert code == 2 and err.strip().startswith("liver-p2p: error: cannot read bag") and "damaged.mcap" in err, err
+    assert (
+        code == 2 and err.strip().startswith("liver-p2p: error: cannot read flight recording") and "damaged.mcap" in err
+    ), err
     assert "Traceback" not in err
 
 

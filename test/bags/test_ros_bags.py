@@ -226,7 +226,7 @@ def _broken_bag(tmp_path, case_bag, kind):
     ("kind", "message"),
     [
         ("garbage", "cannot read bag .*x.mcap: File magic is invalid"),
-        ("truncated", "cannot read bag .*cut.mcap: File end magic is invalid"),
+        ("truncated", "cannot read bag .*cut.mcap: it ends without its footer"),
         ("ply", "not a rosbag2 directory or .mcap file: .*cloud.ply"),
         ("pipe", "not a rosbag2 directory or .mcap file: .*pipe.mcap"),
         ("empty-folder", r"empty-folder is not a rosbag2 directory \(no metadata.yaml\)"),
