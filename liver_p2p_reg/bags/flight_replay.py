@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from liver_p2p_reg.bags.command_recording import command_deformation
 from liver_p2p_reg.bags.flight_read import ReadState, is_recording, read_recording
 from liver_p2p_reg.bags.flight_records import Damaged, RecordedMessage, checked_values
 from liver_p2p_reg.bags.io import bag_error_reason
@@ -44,6 +45,7 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_PREOP_MESH,
 )
 from liver_p2p_reg.stream.core import NodeCore
+from liver_p2p_reg.stream.deformation import PreopMesh
 from liver_p2p_reg.stream.record_hooks import restore_tracker
 
 # what a pose's bits depend on besides its inputs: a difference is said before the comparison
@@ -62,6 +64,7 @@ class _Rerunner:
         self.factory = recorder_factory("overwrite" if overwrite else "refuse") if record_path else None
         self.core: NodeCore | None = None
         self.source: np.ndarray | None = None  # the preop model as recorded (`register` uses it unfiltered)
+        self.mesh: PreopMesh | None = None  # the last recorded /preop/mesh (`register --deform` deforms on it)
         self.cloud: np.ndarray | None = None
         self.preop_fiducials: np.ndarray | None = None  # the last /preop/fiducials: a pair's preop side
         self.intraop_fiducials: np.ndarray | None = None  # the registration's own
@@ -93,7 +96,9 @@ class _Rerunner:
             core.set_preop(self.source, item.msg.header.frame_id, stamp_to_ns(item.msg.header.stamp))
         elif topic == TOPIC_PREOP_MESH:  # as register_node: kept for its model, the elastic model prepared
             vertices, triangles = _decoded(item, mesh_marker_mm)
-            core.set_preop_mesh(vertices, triangles, item.msg.header.frame_id, stamp_to_ns(item.msg.header.stamp))
+            frame_id, stamp_ns = item.msg.header.frame_id, stamp_to_ns(item.msg.header.stamp)
+            self.mesh = PreopMesh(vertices, triangles, frame_id, stamp_ns)
+            core.set_preop_mesh(vertices, triangles, frame_id, stamp_ns)
             core.prepare_deformation()
         elif topic == TOPIC_PREOP_FIDUCIALS:
             points = _decoded(item, message_points_mm)
@@ -168,6 +173,36 @@ class _Rerunner:
             )
             self.report.differences.append(f"{where}: deformed preop surface differs ({detail})")
 
+    def _run_command(
+        self, values: dict[str, Any], points: np.ndarray | None, fid_s: Any, fid_t: Any
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """`liver-p2p register`'s Registrar call again, on the recorded mesh with `deform`: its pose (mm) or None,
+        and the deformed surface as the command's recording computed it (None when the stage was not applied)."""
+        core, extras = self._core(), values["extras"]
+        try:
+            result = core.registrar.register(
+                self.source,
+                points,
+                method=core.config.method,
+                source_fiducials_mm=fid_s,
+                target_fiducials_mm=fid_t,
+                initial_T_mm=None if extras.get("initial_T_mm") is None else np.asarray(extras["initial_T_mm"]),
+                sensor_origin_mm=extras.get("sensor_origin_mm"),
+            )
+        except LiverP2PError:
+            return None, None
+        ok = result.ok and np.isfinite(result.T_target_source).all()
+        T = result.T_target_source if ok else None
+        if not core.config.deform or T is None:
+            return T, None
+        if not values.get("deformation"):  # written before `register` recordings kept the stage
+            self.note("recorded without the non-rigid stage's values: its deformed surface is not checked")
+            return T, None
+        # the core's registrar is rigid only (the node runs the stage itself): the stage as the command ran it
+        mesh = {} if self.mesh is None else self.mesh.stage_kwargs
+        core.registrar.deform(result, self.source, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, **mesh)
+        return T, command_deformation(result, self.mesh, self.source, {})[1]
+
     def _run(
         self, values: dict[str, Any], points: np.ndarray | None, fiducials: tuple | None
     ) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -175,21 +210,7 @@ class _Rerunner:
         core = self._core()
         fid_s, fid_t = fiducials or (None, None)
         if values["reason"] == "register":  # `liver-p2p register`: the Registrar call the command made
-            extras = values["extras"]
-            try:
-                result = core.registrar.register(
-                    self.source,
-                    points,
-                    method=core.config.method,
-                    source_fiducials_mm=fid_s,
-                    target_fiducials_mm=fid_t,
-                    initial_T_mm=None if extras.get("initial_T_mm") is None else np.asarray(extras["initial_T_mm"]),
-                    sensor_origin_mm=extras.get("sensor_origin_mm"),
-                )
-            except LiverP2PError:
-                return None, None
-            ok = result.ok and np.isfinite(result.T_target_source).all()
-            return (result.T_target_source if ok else None), None  # the command publishes no deformed surface
+            return self._run_command(values, points, fid_s, fid_t)
         core.fiducials.set_preop(fid_s, None)  # the pair the recorded registration used, whatever came when
         if fid_t is not None:
             core.fiducials.set_intraop(fid_t, values["stamp_ns"])

@@ -209,6 +209,7 @@ class McapRecorder(Recorder):
 
     def __init__(self, record_path: str, config: Config, *, existing: str = "new") -> None:
         self.base = recording_path(record_path, existing)
+        self.command_mesh: PreopMesh | None = None  # `liver-p2p register --deform`'s SOURCE mesh, as read back
         self.session = uuid.uuid4().hex
         self.max_bytes = int(config.record_max_mb * 1e6)
         self.index, self.registrations, self._last_ns = -1, 0, 0
@@ -352,56 +353,3 @@ def recorder_factory(existing: str = "new") -> Callable[[str, Config], Recorder]
     if existing not in EXISTING:
         raise ValueError(f"existing must be one of {EXISTING}")
     return lambda record_path, config: McapRecorder(record_path, config, existing=existing)
-
-
-# ---------------------------------------------------------------- `liver-p2p register --record`
-def open_command_recording(path: str | Path, config: Config, source_mm: np.ndarray, *, overwrite: bool) -> McapRecorder:
-    """A recording of `liver-p2p register`: the config and SOURCE as its head; registrations follow."""
-    recorder = McapRecorder(str(path), config, existing="overwrite" if overwrite else "refuse")
-    _command_head(recorder, config, source_mm)
-    return recorder
-
-
-def _command_head(recorder: McapRecorder, config: Config, source_mm: np.ndarray) -> None:
-    recorder.config(config, snapshot=True)
-    recorder.preop(source_mm, "ct", 0, snapshot=True)
-    recorder.event("snapshot_end")
-
-
-def record_command_registration(
-    recorder: McapRecorder,
-    index: int,
-    target: str,
-    target_mm: np.ndarray,
-    fiducials: tuple[np.ndarray | None, np.ndarray | None],
-    extras: dict[str, Any],
-    result: Any,
-    config: Config,
-    source_mm: np.ndarray,
-) -> None:
-    """One registration of `liver-p2p register` (reason `register`; `result` a RegistrationResult or the
-    LiverP2PError it raised); rotates beyond record_max_mb like the node's recordings."""
-    from liver_p2p_reg.stream.outputs import (
-        DIAG_NAME,
-        ERROR,
-        CoreOutput,
-        Diagnostic,
-        PoseOutput,
-        registered_diagnostic,
-        result_values,
-    )
-
-    if isinstance(result, Exception):
-        output = CoreOutput([Diagnostic(ERROR, DIAG_NAME, f"registration failed: {result}")], reason="register")
-    else:
-        diag = registered_diagnostic(result, result_values(result), [], config)
-        pose = PoseOutput(index, target, "ct", np.asarray(result.T_target_source, dtype=np.float64))
-        output = CoreOutput([diag], pose, result=result, reason="register")
-    fid_s, fid_t = fiducials
-    pair = None if fid_s is None or fid_t is None else (np.asarray(fid_s), np.asarray(fid_t))
-    points = np.asarray(target_mm, dtype=np.float64).reshape(-1, 3)
-    record = RegistrationRecord("register", target, index, points, len(points), "", pair, output, extras)
-    recorder.registration(record)
-    if recorder.rotate_due():
-        recorder.rotate()
-        _command_head(recorder, config, source_mm)

@@ -284,9 +284,9 @@ def _register_all(args, config, source_path, source, views: list, fiducials, ini
     registrar = Registrar(config)
     recorder = None
     if args.record_path is not None:
-        from liver_p2p_reg.bags.recorder import open_command_recording
+        from liver_p2p_reg.bags.command_recording import open_command_recording
 
-        recorder = open_command_recording(args.record_path, config, source, overwrite=args.force)
+        recorder = open_command_recording(args.record_path, config, source, overwrite=args.force, mesh=args.source_mesh)
     try:
         return _register_each(args, config, registrar, source_path, source, views, fiducials, initial_T, paths, slicer, recorder)  # fmt: skip
     finally:
@@ -353,7 +353,7 @@ def _record(recorder, i, target_path, target, fiducials, initial_T, args, result
     """One registration into the --record recording (its inputs exactly as registered; bags/recorder.py)."""
     if recorder is None:
         return
-    from liver_p2p_reg.bags.recorder import record_command_registration
+    from liver_p2p_reg.bags.command_recording import record_command_registration
 
     extras = {"sensor_origin_mm": args.sensor_origin_mm, "initial_T_mm": None}
     if initial_T is not None:

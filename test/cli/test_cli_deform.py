@@ -110,3 +110,14 @@ def test_an_npz_mesh_gives_the_stage_its_triangles(case: dict, tmp_path: Path) -
     np.testing.assert_array_equal(triangles, c["src_triangles"])
     np.savez(path, vertices=c["src_pcd"])  # no triangles: a cloud, the surface rebuilt from its points
     assert source_mesh(path) is None
+
+
+def test_a_register_deform_recording_rechecks_the_deformed_surface(case: dict, tmp_path: Path, capsys) -> None:
+    d = case["dir"]
+    record = tmp_path / "deform.mcap"
+    args = [str(d / "preop.ply"), str(d / "view.ply"), "--deform", "--config", str(d / "small.yaml")]
+    assert main(["register", *args, "--output", str(tmp_path / "out.json"), "--record", str(record), "-q"]) == 0
+    assert json.loads((tmp_path / "out.json").read_text())["deformation"]["applied"]
+    capsys.readouterr()
+    assert main(["replay", str(record)]) == 0  # on the recorded mesh, as the command ran the stage
+    assert "1 of 1 deformed preop surfaces bitwise identical" in capsys.readouterr().out

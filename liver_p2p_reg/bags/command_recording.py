@@ -1,0 +1,111 @@
+"""`liver-p2p register --record`: the command's recording (its config, SOURCE and mesh as the head, then one record
+per registration, with the non-rigid stage's values and deformed surface), in the node's flight-recording format."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from liver_p2p_reg.bags.io import rosbags_marker_types
+from liver_p2p_reg.bags.recorder import McapRecorder, exact_metres
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.ros.messages import mesh_marker_mm, triangle_list_marker
+from liver_p2p_reg.stream.record_hooks import RegistrationRecord
+
+if TYPE_CHECKING:
+    from liver_p2p_reg.stream.deformation import PreopMesh
+
+
+def open_command_recording(
+    path: str | Path,
+    config: Config,
+    source_mm: np.ndarray,
+    *,
+    overwrite: bool,
+    mesh: tuple[np.ndarray, np.ndarray] | None = None,
+) -> McapRecorder:
+    """A recording of `liver-p2p register`: the config, SOURCE and (with `deform`) SOURCE's mesh as its head;
+    registrations follow. The mesh is kept as /preop/mesh, as the node's recordings keep theirs."""
+    recorder = McapRecorder(str(path), config, existing="overwrite" if overwrite else "refuse")
+    recorder.command_mesh = command_mesh(mesh) if mesh is not None and config.deform else None
+    _command_head(recorder, config, source_mm)
+    return recorder
+
+
+def command_mesh(mesh: tuple[np.ndarray, np.ndarray]) -> PreopMesh:
+    """SOURCE's mesh as a re-run reads it back from /preop/mesh (corners welded, vertices sorted). The stage's
+    result does not depend on the vertices' order (checked bitwise on a permuted liver mesh), so the deformed
+    surface on these vertices is what the re-run must reproduce bit for bit."""
+    from liver_p2p_reg.stream.deformation import PreopMesh
+
+    vertices, triangles = (np.asarray(a) for a in mesh)
+    marker = triangle_list_marker(exact_metres(vertices), triangles, rosbags_marker_types(), "ct", 0)
+    return PreopMesh(*mesh_marker_mm(marker), "ct", 0)
+
+
+def _command_head(recorder: McapRecorder, config: Config, source_mm: np.ndarray) -> None:
+    recorder.config(config, snapshot=True)
+    recorder.preop(source_mm, "ct", 0, snapshot=True)
+    if recorder.command_mesh is not None:
+        recorder.preop_mesh(recorder.command_mesh, snapshot=True)
+    recorder.event("snapshot_end")
+
+
+def record_command_registration(
+    recorder: McapRecorder,
+    index: int,
+    target: str,
+    target_mm: np.ndarray,
+    fiducials: tuple[np.ndarray | None, np.ndarray | None],
+    extras: dict[str, Any],
+    result: Any,
+    config: Config,
+    source_mm: np.ndarray,
+) -> None:
+    """One registration of `liver-p2p register` (reason `register`; `result` a RegistrationResult or the
+    LiverP2PError it raised); rotates beyond record_max_mb like the node's recordings."""
+    from liver_p2p_reg.stream.outputs import (
+        DIAG_NAME,
+        ERROR,
+        CoreOutput,
+        Diagnostic,
+        PoseOutput,
+        registered_diagnostic,
+        result_values,
+    )
+
+    if isinstance(result, Exception):
+        output = CoreOutput([Diagnostic(ERROR, DIAG_NAME, f"registration failed: {result}")], reason="register")
+    else:
+        values, deformed = result_values(result), None
+        if result.deformation is not None:  # deform on: its values, and the deformed surface the re-run must match
+            values, deformed = command_deformation(result, recorder.command_mesh, source_mm, values)
+        diag = registered_diagnostic(result, values, [], config)
+        pose = PoseOutput(index, target, "ct", np.asarray(result.T_target_source, dtype=np.float64))
+        output = CoreOutput([diag], pose, result=result, reason="register", deformed_preop_mm=deformed)
+    fid_s, fid_t = fiducials
+    pair = None if fid_s is None or fid_t is None else (np.asarray(fid_s), np.asarray(fid_t))
+    points = np.asarray(target_mm, dtype=np.float64).reshape(-1, 3)
+    record = RegistrationRecord("register", target, index, points, len(points), "", pair, output, extras)
+    recorder.registration(record)
+    if recorder.rotate_due():
+        recorder.rotate()
+        _command_head(recorder, config, source_mm)
+
+
+def command_deformation(
+    result: Any, mesh: PreopMesh | None, source_mm: np.ndarray, values: dict[str, str]
+) -> tuple[dict[str, str], np.ndarray | None]:
+    """A `register` result's non-rigid stage as the node would record it: the diagnostic's `deform_*` values and,
+    when applied, the deformed surface (the mesh's vertices as /preop/mesh reads back, else SOURCE's points)."""
+    from liver_p2p_reg.stream.deformation import stage_values
+
+    deformation = result.deformation
+    ms = float(result.runtime_ms.get("deform", 0.0))
+    values = {**values, **stage_values(deformation, mesh, ms, result.deformed_rms_tre_mm)}
+    if not deformation.applied:
+        return values, None
+    surface = source_mm if mesh is None else mesh.vertices_mm
+    return values, deformation.deformed_position_mm(np.asarray(surface, dtype=np.float64))
