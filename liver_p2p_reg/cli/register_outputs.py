@@ -55,6 +55,8 @@ def summary_line(target: Path, payload: dict, output: Path | None, written: list
         d = payload["deformation"]
         bound = payload.get("deformed_error_bound_mm")
         within = f", interior within {bound:.1f} mm" if d["applied"] and bound is not None else ""
+        if within and payload.get("deformed_error_calibration_note"):  # the JSON's caveat, said here too
+            within += " (calibrated for other settings: coverage unknown)"
         parts.append(
             f"deformed {d['rms_displacement_mm']:.1f} mm RMS{within}"
             if d["applied"]
@@ -69,8 +71,9 @@ def summary_line(target: Path, payload: dict, output: Path | None, written: list
     if payload.get("structures"):
         n, bounds = len(payload["structures"]), [s["max_error_bound_mm"] for s in payload["structures"]]
         known = [b for b in bounds if b is not None]  # none without an error model
+        caveat = " (calibrated for other settings: coverage unknown)" if payload.get("error_calibration_note") else ""
         parts.append(
-            f"{n} structure{'s' if n > 1 else ''}" + (f", error bound <= {max(known):.1f} mm" if known else "")
+            f"{n} structure{'s' if n > 1 else ''}" + (f", error bound <= {max(known):.1f} mm{caveat}" if known else "")
         )
     parts.append(f"{payload['runtime_ms']['total']:.0f} ms")
     where = [f"JSON -> {output}" if output is not None else "JSON on stdout", *(str(p) for p in written)]

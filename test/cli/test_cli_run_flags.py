@@ -129,3 +129,17 @@ def test_register_outputs_refuse_a_pipe_and_keep_what_stands_beside_a_recording(
     (tmp_path / "rec_001.mcap").write_bytes(record.read_bytes())  # a stale continuation: replaced with rec.mcap
     assert _run([*register, "--record", record, "--force"], capsys)[0] == 0
     assert record.is_file() and not (tmp_path / "rec_001.mcap").exists()
+
+
+def test_register_refuses_an_unusable_calibration_before_any_work(tmp_path, capsys) -> None:
+    from liver_p2p_reg.cloud_io import save_points
+
+    source, view, _, _, _ = partial_case(np.random.default_rng(5))
+    save_points(tmp_path / "source.ply", source)
+    save_points(tmp_path / "view.xyz", view)
+    register = ["register", tmp_path / "source.ply", tmp_path / "view.xyz", *METHOD, "-o", tmp_path / "r.json"]
+    for key, flag in (("error_calibration_path", []), ("deform_error_calibration_path", ["--deform"])):
+        (tmp_path / "c.yaml").write_text(f"{key}: {tmp_path / 'nowhere.json'}\n")
+        rc, err = _run([*register, *flag, "--config", tmp_path / "c.yaml"], capsys)
+        _one_line(rc, err, "nowhere.json not found")
+        assert not (tmp_path / "r.json").exists()
