@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -115,8 +116,13 @@ def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if suffix == ".off":  # read here, checked: Open3D's reader crashes the process on some malformed files
         return read_off(path)
     if suffix in (".npy", ".npz"):
-        mesh = _npz_mesh(path) if suffix == ".npz" else None
-        cloud = None if mesh is not None else np.asarray(_load_numpy(path, None), dtype=np.float64)
+        try:  # a cut or damaged archive: one line, as load_points says it (prepare and the loader read meshes here)
+            mesh = _npz_mesh(path) if suffix == ".npz" else None
+            cloud = None if mesh is not None else np.asarray(_load_numpy(path, None), dtype=np.float64)
+        except InputError:
+            raise
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+            raise InputError(f"cannot read {path}: {type(exc).__name__}: {exc}") from None
         return mesh if mesh is not None else (cloud, np.zeros((0, 3), np.int64))
     o3d = o3d_module()  # heavy import, only for the formats above
     if suffix in MESH_FORMATS:

@@ -1,5 +1,4 @@
-"""`liver-p2p register --record`: the command's recording (its config, SOURCE and mesh as the head, then one record
-per registration, with the non-rigid stage's values and deformed surface), in the node's flight-recording format."""
+"""`liver-p2p register --record`: the command's flight recording (config, SOURCE, mesh, then its registrations)."""
 
 from __future__ import annotations
 

@@ -105,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         if isinstance(exc, OSError) and exc.filename is not None:  # the file system refused a named file
-            print(f"liver-p2p: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)  # (read-only, full)
+            name = str(exc.filename).removesuffix(".tmp")  # an atomic write's temporary file: the output's name
+            print(f"liver-p2p: error: {name}: {exc.strerror or exc}", file=sys.stderr)  # (read-only, disk full)
             return 2
         print(f"liver-p2p: internal error: {type(exc).__name__}: {exc} (rerun with --debug)", file=sys.stderr)
         return 1

@@ -75,11 +75,18 @@ def output_file(
         raise InputError(f"{option} {path} links to {path.resolve()}, whose folder does not exist")
     if path.is_symlink() and not force:  # a link to nothing yet is still the user's (a writer may replace it)
         raise InputError(f"{option} {path} is a link to {path.resolve()}; pass --force to write over it")
-    if path.exists() and not (path.is_file() or path.is_char_device()):  # /dev/null is fine
-        raise InputError(f"{option} {path} is not a regular file (a pipe or socket would block the write)")
+    if path.exists() and not (path.is_file() or path.is_char_device() or _pipe_with_reader(path)):
+        raise InputError(f"{option} {path} is not a regular file (a named pipe or socket would block the write)")
     if not os.access(path if path.exists() else path.parent, os.W_OK):  # now, not after the registration
         raise InputError(f"{option} {path}: {'the file' if path.exists() else 'its folder'} is not writable")
     return path
+
+
+def _pipe_with_reader(path: Path) -> bool:
+    """True for a pipe this process was handed (`-o >(jq .)`, `/dev/stdout` into a pipe): its reader is there.
+    A named pipe made with mkfifo is not: with no reader the write blocks forever, and probing one (opening and
+    closing it) would end a reader that waits for the first writer's end."""
+    return path.is_fifo() and str(path).startswith(("/dev/fd/", "/proc/self/fd/", "/dev/stdout", "/dev/stderr"))
 
 
 def output_folder(

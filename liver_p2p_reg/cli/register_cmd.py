@@ -14,7 +14,7 @@ from pathlib import Path
 
 from liver_p2p_reg.cli.output_paths import distinct_outputs, given_paths, output_file
 from liver_p2p_reg.cli.register_inputs import load_fiducials, load_initial_transform, sensor_origin, warn_unused_weights
-from liver_p2p_reg.config import SELECTION_RULES, Config
+from liver_p2p_reg.config import SELECTION_RULES
 from liver_p2p_reg.errors import InputError, LiverP2PError
 
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
@@ -198,7 +198,6 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--source-fiducials/--target-fiducials go with a single TARGET")
     check_method_name(config.method)
     warn_unused_weights(config.method, config.weights_path)
-    _check_calibrations(config)
     prior = METHODS.get(config.method, Method("")).prior  # track (ICP from it) and evaluate (as is)
     if prior and args.initial_transform is None:
         raise InputError(f"--method {config.method} starts from a prior pose: give it with --initial-transform FILE")
@@ -220,6 +219,9 @@ def run(args: argparse.Namespace) -> int:
         if problem := far_from_model(structure, source):
             raise InputError(problem)
     args.source_mesh = source_mesh(source_path) if config.deform else None  # the stage's closed surface
+    from liver_p2p_reg.registration.error_calibration import check_calibrations
+
+    check_calibrations(config)  # before the registrations (each pose checks again, after its rigid method)
     views = [load_points(t, seed=config.seed) for t in targets]  # every file is read before any work
     fiducials = (None, None)
     if args.source_fiducials is not None:  # the Registrar refuses NaN/inf pairs
@@ -271,21 +273,6 @@ def _prefetch_icp_normals(source, config):
     except InputError:
         return None  # the registration reports it
     return BackgroundNormals(full, config.normal_radius_norm)
-
-
-def _check_calibrations(config: Config) -> None:
-    """A set error-bound calibration that cannot be used is refused before any work (the registrar refuses it too,
-    but only after the rigid pose: minutes of a deformed run lost to a typo)."""
-    from liver_p2p_reg.registration.error_calibration import (
-        BUNDLED_DEFORMED_CALIBRATION,
-        read_calibration,
-        read_deformed_calibration,
-    )
-
-    if config.error_calibration_path:
-        read_calibration(config.error_calibration_path).column(config.error_coverage)
-    if config.deform and config.deform_error_calibration_path:
-        read_deformed_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION, config)
 
 
 def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths, slicer=None) -> int:

@@ -129,7 +129,11 @@ def _write_json(path: Path, data) -> None:
     """Strict JSON (NaN and infinities as null: jq and browsers refuse the bare tokens), written atomically."""
     from liver_p2p_reg.files import write_text_atomic
 
-    write_text_atomic(path, json.dumps(_strict(data), indent=2, default=str, allow_nan=False))
+    text = json.dumps(_strict(data), indent=2, default=str, allow_nan=False)
+    if path.exists() and not path.is_file():  # /dev/null, a pipe with a reader: written to, never replaced
+        path.write_text(text)
+    else:
+        write_text_atomic(path, text)
 
 
 def _strict(value):

@@ -82,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
         config = config.replace(method=args.method)
     config.validate()
     minute_s = float(args.minute_s)
-    if not (math.isfinite(args.minutes) and math.isfinite(minute_s) and minute_s > 0):
+    if not (math.isfinite(minute_s) and minute_s > 0):
+        raise InputError(f"--minute-s must be a finite number of seconds > 0 (got {args.minute_s})")
+    if not math.isfinite(args.minutes):
         raise InputError(f"--minutes must be a finite number of minutes (got {args.minutes})")
     minutes = int(math.floor(args.minutes * 60.0 / minute_s + 1e-9))
     if minutes < 1 or not 0 < args.rate_hz <= MAX_RATE_HZ:
@@ -169,11 +171,11 @@ def _check_out(out: Path, bags: list[Path], force: bool) -> Path:
 
     output_folder(out, "--out", inputs=bags, bag_folders=True)
     taken = [out / name for name in OUTPUT_FILES if (out / name).exists() or (out / name).is_symlink()]
-    if taken and not force:
-        raise InputError(f"{taken[0]} exists (an earlier soak); pass --force to replace it, or choose another --out")
-    for path in taken:
+    for path in taken:  # never replaced, --force or not
         if path.is_dir():
             raise InputError(f"--out {out}: {path} is a folder; choose another --out")
+    if taken and not force:
+        raise InputError(f"{taken[0]} exists (an earlier soak); pass --force to replace it, or choose another --out")
     return out
 
 

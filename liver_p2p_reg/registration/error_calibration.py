@@ -144,12 +144,7 @@ def attach_error_model(
     T = np.asarray(result.T_target_source, float)
     if not result.ok or T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return
-    calibration = read_calibration(config.error_calibration_path)
-    if calibration.positions != RIGID:
-        raise InputError(f"{config.error_calibration_path}: a calibration of deformed positions, not of the pose's")
-    calibration.column(config.error_coverage)  # an uncalibrated coverage is refused before any work
-    if getattr(config, "deform", False) and config.deform_error_calibration_path:  # the user's own, refused alike
-        read_deformed_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION, config)
+    calibration = check_calibrations(config)
     evidence = pose_evidence(
         T,
         source_mm,
@@ -165,6 +160,19 @@ def attach_error_model(
     result.error_bound_mm = model.pose_bound_mm()
     result.error_coverage = config.error_coverage
     result.error_calibration_note = calibration_note(calibration, result.method, config)
+
+
+def check_calibrations(config: Any) -> BoundCalibration:
+    """The pose's calibration (`error_calibration_path`, empty: the bundled one) holding `error_coverage`, and with
+    `deform` a set `deform_error_calibration_path` alike; InputError (one line) for either that cannot be used.
+    One check for the command (before any work), the node (at configure and parameter set) and each pose."""
+    calibration = read_calibration(config.error_calibration_path)
+    if calibration.positions != RIGID:
+        raise InputError(f"{config.error_calibration_path}: a calibration of deformed positions, not of the pose's")
+    calibration.column(config.error_coverage)  # an uncalibrated coverage is refused before any work
+    if getattr(config, "deform", False) and config.deform_error_calibration_path:  # the user's own, refused alike
+        read_deformed_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION, config)
+    return calibration
 
 
 def use_survey_calibration(result: Any, config: Any) -> None:

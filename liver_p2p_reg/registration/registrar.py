@@ -80,10 +80,10 @@ class Registrar:
                 points, name, self.config.expected_extent_min_mm, self.config.expected_extent_max_mm, UNITS_HINT
             )
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
+        name = method or self.config.method
+        check_method_name(name)  # before the stage's surface: an unknown name is said first
         # the non-rigid stage's surface is checked before any work: a bad one must not cost the rigid pose later
         preop = _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm) if self.config.deform else None
-        name = method or self.config.method
-        check_method_name(name)  # before the other checks: an unknown name is the first thing to say
         ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm), _check_origin(sensor_origin_mm))
         pin_threads(self.config.num_threads)  # the same arithmetic whatever ran before, on any thread
         result = run_method(name, source, target, self.config, ctx)

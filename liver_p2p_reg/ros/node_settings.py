@@ -4,11 +4,7 @@ from __future__ import annotations
 
 from liver_p2p_reg.bags.recorder import recording_path
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.registration.error_calibration import (
-    BUNDLED_DEFORMED_CALIBRATION,
-    read_calibration,
-    read_deformed_calibration,
-)
+from liver_p2p_reg.registration.error_calibration import check_calibrations
 from liver_p2p_reg.registration.methods import check_method_name
 from liver_p2p_reg.registration.pipeline import require_device
 
@@ -19,18 +15,11 @@ def refuse_unusable(config: Config, accepted: Config | None = None) -> None:
     check_method_name(config.method)
     if config.record_path and (accepted is None or config.record_path != accepted.record_path):
         recording_path(config.record_path, "new")  # a folder that does not exist: refused now, with why
-    calibration = (config.error_calibration_path, config.error_coverage)
-    if accepted is None or calibration != (accepted.error_calibration_path, accepted.error_coverage):
-        read_calibration(config.error_calibration_path).column(config.error_coverage)
 
-    def deformed(c: Config) -> tuple:
-        return c.deform, c.deform_error_calibration_path, c.error_coverage
+    def calibrations(c: Config) -> tuple:
+        return c.error_calibration_path, c.error_coverage, c.deform, c.deform_error_calibration_path
 
-    # a set file only: the bundled one's absence costs the deformed positions their bound, said in each result
-    if (
-        config.deform
-        and config.deform_error_calibration_path
-        and (accepted is None or deformed(config) != deformed(accepted))
-    ):
-        read_deformed_calibration(config.deform_error_calibration_path, BUNDLED_DEFORMED_CALIBRATION, config)
+    # (a set deformed file only: the bundled one's absence costs the deformed positions their bound, said)
+    if accepted is None or calibrations(config) != calibrations(accepted):
+        check_calibrations(config)
     require_device(config.device)

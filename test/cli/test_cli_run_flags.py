@@ -143,3 +143,14 @@ def test_register_refuses_an_unusable_calibration_before_any_work(tmp_path, caps
         rc, err = _run([*register, *flag, "--config", tmp_path / "c.yaml"], capsys)
         _one_line(rc, err, "nowhere.json not found")
         assert not (tmp_path / "r.json").exists()
+
+
+def test_a_cut_npz_mesh_is_one_line_for_prepare_and_the_loader(tmp_path) -> None:
+    from liver_p2p_reg.cloud_io import load_mesh
+    from liver_p2p_reg.errors import InputError
+
+    source, _, _, _, _ = partial_case(np.random.default_rng(5))
+    np.savez(tmp_path / "mesh.npz", vertices=source, triangles=np.array([[0, 1, 2]]))
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "mesh.npz").read_bytes()[:3000])
+    with pytest.raises(InputError, match="cannot read .*cut.npz"):
+        load_mesh(tmp_path / "cut.npz")

@@ -82,21 +82,26 @@ def dense_surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spa
     return np.concatenate(out)
 
 
+def _median_spacing(points_mm: np.ndarray) -> float:
+    """The median distance from (up to 2000 evenly taken) points to their nearest other point, mm."""
+    from scipy.spatial import cKDTree
+
+    step = points_mm[:: max(len(points_mm) // 2000, 1)]
+    return float(np.median(cKDTree(points_mm).query(step, k=2)[0][:, 1]))
+
+
 def closed_solid(vertices_mm: np.ndarray, triangles: np.ndarray | None) -> VoxelSolid:
     """The solid of a preop model: voxels of 1/96 of its extent for a mesh; for points, the finest voxel
     (2-6x the median point spacing) whose shell encloses a volume."""
-    from scipy.spatial import cKDTree
 
     vertices_mm = np.asarray(vertices_mm, dtype=np.float64)
     fine_mm = max(float(np.max(np.ptp(vertices_mm, axis=0))) / 96.0, 1.0)
     if triangles is not None and len(triangles):
         return solid_from_surface(vertices_mm, triangles, fine_mm)
-    distinct = vertices_mm
-    _, first = np.unique(vertices_mm, axis=0, return_index=True)
-    if len(first) < len(vertices_mm):  # exact twins are 0 mm apart: the median spacing would be 0 with many
-        distinct = vertices_mm[np.sort(first)]
-    step = distinct[:: max(len(distinct) // 2000, 1)]
-    spacing_mm = float(np.median(cKDTree(distinct).query(step, k=2)[0][:, 1]))
+    spacing_mm = _median_spacing(vertices_mm)
+    if spacing_mm == 0.0:  # exact twins are 0 mm apart: with many the median is 0, so measure the distinct points
+        _, first = np.unique(vertices_mm, axis=0, return_index=True)
+        spacing_mm = _median_spacing(vertices_mm[np.sort(first)])
     error: InputError | None = None
     for factor in (2.0, 3.0, 4.0, 6.0):
         try:

@@ -62,6 +62,8 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         raise WeightsError(f"matcher weights {path} have no model_config metadata") from None
     except ValueError as exc:  # json.JSONDecodeError is one
         raise WeightsError(f"matcher weights {path}: bad model_config metadata ({exc})") from None
+    except RecursionError:  # JSON nested thousands deep
+        raise WeightsError(f"matcher weights {path}: bad model_config metadata (nested too deeply)") from None
     # The shapes are compared on a net without storage ("meta"): a config that does not match the tensors is
     # refused before a real one, which its fields alone could make gigabytes large, is built.
     with torch.device("meta"):
