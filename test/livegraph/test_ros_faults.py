@@ -69,7 +69,12 @@ def test_a_looped_bag_with_its_clock_jumping_back(graph):
     finally:
         player.send_signal(signal.SIGINT)
         player.wait(20)
-    done = registrations(graph)
+    # the bag's first cloud may be handled before its model (two topics' callbacks come in either order: seen once
+    # under a loaded clean-clone run): the node says so and waits; every attempt after the first model is scored
+    attempts = graph.attempts(0)
+    first = next(i for i, s in enumerate(attempts) if "stamp_ns" in values_of(s))
+    assert all("before any preop model" in s.message for s in attempts[:first]), [s.message for s in attempts]
+    done = registrations(graph)[first:]
     stamps = [int(v["stamp_ns"]) for v in done]
     assert len(set(stamps)) <= 5 < len(stamps)  # the same stamps again: the clock went back at each loop
     assert all(v["level"] in (OK, WARN) for v in done), [v.get("level") for v in done]
