@@ -98,6 +98,8 @@ def _check_out(args: argparse.Namespace, *inputs: str | None) -> None:
     """OUT checked before any work (output_paths.output_bag)."""
     from liver_p2p_reg.cli.output_paths import given_paths, output_bag
 
+    if Path(args.out).suffix.lower() == ".mcap":  # a rosbag2 bag is a folder; a folder named x.mcap misleads
+        raise InputError(f"OUT {args.out}: a bag is a folder (metadata.yaml + .mcap); name it without .mcap")
     output_bag(Path(args.out), args.force, "OUT", given_paths(*inputs))
 
 

@@ -154,3 +154,9 @@ def test_a_cut_npz_mesh_is_one_line_for_prepare_and_the_loader(tmp_path) -> None
     (tmp_path / "cut.npz").write_bytes((tmp_path / "mesh.npz").read_bytes()[:3000])
     with pytest.raises(InputError, match="cannot read .*cut.npz"):
         load_mesh(tmp_path / "cut.npz")
+
+
+def test_bag_make_refuses_an_out_named_like_a_file(bag, tmp_path, capsys) -> None:
+    rc, err = _run(["bag", "import", bag.parent / "case.npz", tmp_path / "out.mcap"], capsys)
+    _one_line(rc, err, "a bag is a folder")
+    assert not (tmp_path / "out.mcap").exists()
