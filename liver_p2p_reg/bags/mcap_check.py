@@ -13,6 +13,15 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = 0x02  # MCAP opcode of the Footer record (29 bytes with its head), just before the closing magic
 
 
+def starts_as_mcap(path: Path) -> bool:
+    """Whether a file begins with the MCAP magic (False when it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False
+
+
 def mcap_closed(fh: BinaryIO, size: int) -> bool:
     """Whether an MCAP file ends with its Footer and magic (closed by its writer, not cut short)."""
     if size < 8 + 29 + 8:

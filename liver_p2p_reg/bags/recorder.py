@@ -32,6 +32,7 @@ from liver_p2p_reg.bags.io import (
     rosbags_output_types,
     typestore,
 )
+from liver_p2p_reg.bags.mcap_check import starts_as_mcap
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.weights_id import weights_sha256
@@ -148,18 +149,6 @@ def run_environment() -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------- file names
-MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first bytes of every MCAP file
-
-
-def _head(path: Path) -> bytes:
-    """The first bytes of a file (b"" when it cannot be read)."""
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(len(MCAP_MAGIC))
-    except OSError:
-        return b""
-
-
 def continuation(path: Path, index: int) -> Path:
     """The file `index` of a rotated recording: PATH itself, then PATH_001.mcap, PATH_002.mcap, ..."""
     return path if index == 0 else path.with_name(f"{path.stem}_{index:03d}{path.suffix}")
@@ -190,7 +179,7 @@ def recording_path(record_path: str, existing: str) -> Path:
         # PATH's old continuations go with it (left behind, they would be read as the new recording's), but only
         # what is one: an MCAP file; a folder or another file under such a name is the user's and stops the run
         for old in taken[1:] if taken[0] == path else taken:
-            if old.is_symlink() or not old.is_file() or _head(old) != MCAP_MAGIC:
+            if old.is_symlink() or not old.is_file() or not starts_as_mcap(old):
                 raise InputError(f"{old} stands where {path}'s continuation would be, and is no recording; move it")
         for old in taken:
             old.unlink() if old.is_file() or old.is_symlink() else shutil.rmtree(old)  # a link, never its target

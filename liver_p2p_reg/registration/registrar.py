@@ -250,11 +250,12 @@ def _preop_surface(
 
 
 def _without_nonfinite(points: np.ndarray, tris: np.ndarray, name: str) -> np.ndarray | None:
-    """`tris` without those using a non-finite point, re-indexed to the points left (None when none is left)."""
-    finite = np.isfinite(points).all(axis=1)
-    kept = finite[tris].all(axis=1)
-    LOG.warning("%s: dropped the %d of %d triangles using its NaN/inf points", name, int((~kept).sum()), len(tris))
-    reindexed = (np.cumsum(finite) - 1)[tris[kept]]
+    """`tris` without those using a non-finite point, re-indexed to the points left (None when none is left);
+    cloud_io.finite_mesh's re-indexing, with a line of its own (clean_points has named the points already)."""
+    reindexed = finite_mesh(points, tris, name, warn=False)[1]
+    LOG.warning(
+        "%s: dropped the %d of %d triangles using its NaN/inf points", name, len(tris) - len(reindexed), len(tris)
+    )
     return reindexed if len(reindexed) else None
 
 
