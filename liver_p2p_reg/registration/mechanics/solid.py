@@ -53,11 +53,16 @@ def surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_m
     # sampled coarser than the voxels leaves holes, and the solid then says it encloses no volume
     while n > 1 and len(triangles) * (n + 1) * (n + 2) // 2 > MAX_SURFACE_SAMPLES:
         n -= 1
+    return np.concatenate([vertices_mm, _lattice(a, b, c, n)])
+
+
+def _lattice(a: np.ndarray, b: np.ndarray, c: np.ndarray, n: int) -> np.ndarray:
+    """The points of an `n`-step barycentric lattice on each triangle (a, b, c), (T * P, 3)."""
     i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
     keep = i + j <= n
-    u, v = i[keep] / n, j[keep] / n  # barycentric lattice on each triangle
+    u, v = i[keep] / n, j[keep] / n
     pts = a[:, None, :] + u[None, :, None] * (b - a)[:, None, :] + v[None, :, None] * (c - a)[:, None, :]
-    return np.concatenate([vertices_mm, pts.reshape(-1, 3)])
+    return pts.reshape(-1, 3)
 
 
 def dense_surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spacing_mm: float) -> np.ndarray | None:
@@ -69,17 +74,8 @@ def dense_surface_samples_mm(vertices_mm: np.ndarray, triangles: np.ndarray, spa
     steps = np.maximum(np.ceil(longest / spacing_mm), 1).astype(np.int64)
     if steps.max() <= MAX_LATTICE_STEPS or np.sum((steps + 1) * (steps + 2) // 2) > MAX_SURFACE_SAMPLES:
         return None
-    out = [vertices_mm]
-    for n in np.unique(steps):  # one barycentric lattice per step count
-        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-        keep = i + j <= n
-        u, v = i[keep] / n, j[keep] / n
-        sel = steps == n
-        aa, ab, ac = a[sel], (b - a)[sel], (c - a)[sel]
-        out.append(
-            (aa[:, None, :] + u[None, :, None] * ab[:, None, :] + v[None, :, None] * ac[:, None, :]).reshape(-1, 3)
-        )
-    return np.concatenate(out)
+    sets = [steps == n for n in np.unique(steps)]  # one barycentric lattice per step count
+    return np.concatenate([vertices_mm, *(_lattice(a[s], b[s], c[s], int(steps[s][0])) for s in sets)])
 
 
 def _median_spacing(points_mm: np.ndarray) -> float:
