@@ -184,33 +184,41 @@ def _coerce(name: str, value: Any, kind: type) -> Any:
     Every field is a scalar: a list or mapping is refused by its kind, before it is formatted (an aliased one
     can stand for millions of values), and a quoted value is cut short (`quoted`)."""
     if isinstance(value, (list, tuple, dict)):
-        wanted = {bool: "true or false", int: "an integer", float: "a number", str: "a single text value"}
-        raise InputError(f"{name} must be {wanted.get(kind, 'a single value')}, got {quoted(value)}")
+        raise _wrong(name, kind, value)
     if kind is bool:
         if isinstance(value, bool):
             return value
         if isinstance(value, str) and value.lower() in ("true", "false"):
             return value.lower() == "true"
-        raise InputError(f"{name} must be true or false, got {quoted(value)}")
+        raise _wrong(name, kind, value)
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, (int, str)):
-            raise InputError(f"{name} must be an integer, got {quoted(value)}")
+            raise _wrong(name, kind, value)
         try:
             return int(value)
         except ValueError:
-            raise InputError(f"{name} must be an integer, got {quoted(value)}") from None
+            raise _wrong(name, kind, value) from None
     if kind is float:
         if isinstance(value, bool):
-            raise InputError(f"{name} must be a number, got {quoted(value)}")
+            raise _wrong(name, kind, value)
         try:
             return float(value)
         except (TypeError, ValueError):
-            raise InputError(f"{name} must be a number, got {quoted(value)}") from None
+            raise _wrong(name, kind, value) from None
     if kind is str:
         if value is None:
             return ""
         return str(value)
     return value
+
+
+# what a scalar field of each type wants, as the messages say it
+WANTED = {bool: "true or false", int: "an integer", float: "a number", str: "a single text value"}
+
+
+def _wrong(name: str, kind: Any, value: Any) -> InputError:
+    """The one-line error for a value that is not what field `name` (of type `kind`) wants."""
+    return InputError(f"{name} must be {WANTED.get(kind, 'a single value')}, got {quoted(value)}")
 
 
 def from_mapping(cls: type, values: dict[str, Any], what: str) -> Any:

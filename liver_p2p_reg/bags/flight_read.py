@@ -13,11 +13,9 @@ from typing import Any
 from liver_p2p_reg.bags.flight_records import Damaged, RecordedMessage, checked_values
 from liver_p2p_reg.bags.io import bag_error_reason, is_bag_error, typestore
 from liver_p2p_reg.bags.mcap_check import MCAP_MAGIC, mcap_closed, mcap_record_heads
-from liver_p2p_reg.bags.recorder import FORMAT, TOPIC_META, continuation, recording_series
+from liver_p2p_reg.bags.recorder import FORMAT, LIBRARY, TOPIC_META, TOPIC_PREFIX, continuation, recording_series
 from liver_p2p_reg.errors import InputError
 
-RECORDER_LIBRARY = "liver_p2p_reg flight recorder"  # the Header's `library`, as McapRecorder._open writes it
-FLIGHT_TOPICS = "/flight_recorder/"
 # far above any record the recorder writes (a 640 x 480 cloud is 11 MB): a longer one is a damaged length, not a cut
 MAX_RECORD_BYTES = 1 << 32
 
@@ -127,7 +125,7 @@ def first_meta(path: Path) -> dict[str, Any] | None:
     try:
         first = next(read_file(path, state), None)
         if first is None:
-            ours = state.library in (None, RECORDER_LIBRARY) and all(t.startswith(FLIGHT_TOPICS) for t in state.topics)
+            ours = state.library in (None, LIBRARY) and all(t.startswith(TOPIC_PREFIX) for t in state.topics)
             if state.truncated and ours:  # cut before its first message: a recording, of no registration
                 return {}
             problem = "it holds no message"
@@ -156,7 +154,7 @@ def _flight_marks(path: Path, state: ReadState) -> bool:
     from mcap.opcode import Opcode
     from mcap.records import Channel, Header
 
-    if state.library == RECORDER_LIBRARY or any(t.startswith(FLIGHT_TOPICS) for t in state.topics):
+    if state.library == LIBRARY or any(t.startswith(TOPIC_PREFIX) for t in state.topics):
         return True
     with open(path, "rb") as fh:
         size = os.fstat(fh.fileno()).st_size
@@ -178,7 +176,7 @@ def _flight_marks(path: Path, state: ReadState) -> bool:
                     if not is_bag_error(exc):
                         raise
                     continue
-                if mark == RECORDER_LIBRARY or mark.startswith(FLIGHT_TOPICS):
+                if mark == LIBRARY or mark.startswith(TOPIC_PREFIX):
                     return True
     return False
 

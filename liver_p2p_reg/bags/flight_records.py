@@ -10,14 +10,7 @@ from typing import Any
 from liver_p2p_reg.bags.io import MARKER, POINTCLOUD2
 from liver_p2p_reg.bags.recorder import STRING, TOPIC_CONFIG, TOPIC_EVENT, TOPIC_META, TOPIC_REGISTRATION
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.ros.topics import (
-    TOPIC_DEFORMED_PREOP,
-    TOPIC_INTRAOP,
-    TOPIC_INTRAOP_FIDUCIALS,
-    TOPIC_PREOP,
-    TOPIC_PREOP_FIDUCIALS,
-    TOPIC_PREOP_MESH,
-)
+from liver_p2p_reg.ros.topics import INPUT_TOPICS, TOPIC_DEFORMED_PREOP, TOPIC_PREOP_MESH
 
 # the JSON records' keys this version reads, and their JSON types (bool is refused where an int is wanted)
 _NONE = type(None)
@@ -41,7 +34,7 @@ _RECORD_KEYS: dict[str, dict[str, tuple[type, ...]]] = {
 _TRACKER_KEYS = {"reference_residual_mm": (int, float), "frame_id": (str,), "frames": (int,)}
 # the message type each topic the re-run decodes must have
 _MESSAGE_TYPES = {
-    **dict.fromkeys((TOPIC_PREOP, TOPIC_PREOP_FIDUCIALS, TOPIC_INTRAOP, TOPIC_INTRAOP_FIDUCIALS), POINTCLOUD2),
+    **dict.fromkeys(INPUT_TOPICS, POINTCLOUD2),
     TOPIC_DEFORMED_PREOP: POINTCLOUD2,
     TOPIC_PREOP_MESH: MARKER,
     **dict.fromkeys(_RECORD_KEYS, STRING),

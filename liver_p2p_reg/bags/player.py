@@ -25,7 +25,7 @@ PLAYED_TOPICS = INPUT_TOPICS + LOADER_INPUT_TOPICS
 
 def played_qos(topic: str) -> Qos:
     """The QoS a topic is played with: an input topic's as msg_docs/ documents it, any other reliable, depth 10."""
-    return qos_of(topic) if topic in INPUT_TOPICS + LOADER_INPUT_TOPICS else RELIABLE
+    return qos_of(topic) if topic in PLAYED_TOPICS else RELIABLE
 
 
 @dataclass

@@ -56,6 +56,8 @@ if TYPE_CHECKING:
 
 FORMAT = "liver_p2p_reg.flight_recorder/1"
 STRING = "std_msgs/msg/String"
+LIBRARY = "liver_p2p_reg flight recorder"  # the MCAP Header's `library` of every recording (how one is told)
+TOPIC_PREFIX = "/flight_recorder/"
 TOPIC_META = "/flight_recorder/meta"  # first message of every file: versions, weights, session, file index
 TOPIC_CONFIG = "/flight_recorder/config"  # the full parameter set, at the head of a file and after every change
 TOPIC_EVENT = "/flight_recorder/event"  # reset_survey; in a file's head: tracker (the prior), snapshot_end
@@ -212,7 +214,7 @@ class McapRecorder(Recorder):
         self.index, self.path = index, str(continuation(self.base, index))
         self._file = open(self.path, "xb")  # noqa: SIM115 (closed in close / rotate)
         self._writer = Writer(self._file, use_chunking=False, compression=CompressionType.NONE)
-        self._writer.start(profile="ros2", library="liver_p2p_reg flight recorder")
+        self._writer.start(profile="ros2", library=LIBRARY)
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._model_stamp_ns, self._fiducials_key = 0, b""  # the last model and preop fiducials in this file

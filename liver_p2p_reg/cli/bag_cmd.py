@@ -140,9 +140,7 @@ def run_play(args: argparse.Namespace) -> int:
         raise InputError(f"bag play needs rclpy ({exc}): pip install -e '.[ros]' or source ROS 2 Jazzy") from None
     if not args.rate > 0:
         raise InputError(f"--rate must be > 0, got {args.rate}")
-    from liver_p2p_reg.bags.io import bag_source
-
-    bag_source(Path(args.bag))  # not found, a pipe, no bag, a malformed metadata.yaml: one line
+    # not found, a pipe, no bag, a malformed metadata.yaml: one line from main_play's bag_topics, before rclpy starts
     return main_play(args.bag, args.rate, args.loop, args.wait_s, clock=args.clock, all_topics=args.all_topics)
 
 
