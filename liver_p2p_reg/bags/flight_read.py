@@ -12,7 +12,7 @@ from typing import Any
 
 from liver_p2p_reg.bags.flight_records import Damaged, RecordedMessage, checked_values
 from liver_p2p_reg.bags.io import bag_error_reason, is_bag_error, typestore
-from liver_p2p_reg.bags.mcap_check import MCAP_MAGIC, mcap_closed, mcap_record_heads
+from liver_p2p_reg.bags.mcap_check import MCAP_MAGIC, mcap_closed, mcap_record_heads, summary_start
 from liver_p2p_reg.bags.recorder import FORMAT, LIBRARY, TOPIC_META, TOPIC_PREFIX, continuation, recording_series
 from liver_p2p_reg.errors import InputError
 
@@ -160,8 +160,7 @@ def _flight_marks(path: Path, state: ReadState) -> bool:
         size = os.fstat(fh.fileno()).st_size
         starts = [8]
         if mcap_closed(fh, size):  # the summary repeats every channel: found even where the data's are damaged
-            fh.seek(size - 8 - 29 + 9)
-            starts.append(struct.unpack("<Q", fh.read(8))[0])  # the Footer's summary_start (0: no summary)
+            starts.append(summary_start(fh, size))
         for start in filter(None, starts):
             for offset, opcode, length in mcap_record_heads(fh, start, size):
                 if offset + 9 + length > size:

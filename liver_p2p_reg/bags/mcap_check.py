@@ -11,6 +11,7 @@ from liver_p2p_reg.errors import InputError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = 0x02  # MCAP opcode of the Footer record (29 bytes with its head), just before the closing magic
+_FOOTER_BYTES = 29  # opcode, length, summary_start, summary_offset_start, summary_crc
 
 
 def starts_as_mcap(path: Path) -> bool:
@@ -24,11 +25,17 @@ def starts_as_mcap(path: Path) -> bool:
 
 def mcap_closed(fh: BinaryIO, size: int) -> bool:
     """Whether an MCAP file ends with its Footer and magic (closed by its writer, not cut short)."""
-    if size < 8 + 29 + 8:
+    if size < 8 + _FOOTER_BYTES + 8:
         return False
-    fh.seek(size - 8 - 29)
-    tail = fh.read(29 + 8)
+    fh.seek(size - 8 - _FOOTER_BYTES)
+    tail = fh.read(_FOOTER_BYTES + 8)
     return tail[0] == _FOOTER and tail[-8:] == MCAP_MAGIC
+
+
+def summary_start(fh: BinaryIO, size: int) -> int:
+    """Where a closed MCAP file's summary section begins (its Footer's summary_start; 0: no summary)."""
+    fh.seek(size - 8 - _FOOTER_BYTES + 9)
+    return struct.unpack("<Q", fh.read(8))[0]
 
 
 def mcap_record_heads(fh: BinaryIO, start: int, size: int) -> Iterator[tuple[int, int, int]]:
