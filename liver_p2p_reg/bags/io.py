@@ -192,7 +192,7 @@ def bag_source(path: Path) -> Path:
         mcaps = sorted(path.glob("*.mcap"))
         if len(mcaps) != 1:  # a folder of one MCAP without metadata.yaml: read the file itself
             raise InputError(f"{path} is not a rosbag2 directory (no metadata.yaml)")
-        return mcaps[0]
+        return bag_source(mcaps[0])  # read as the bare file it is: the same framing checks
     if not path.is_file() or path.suffix != ".mcap":  # a pipe would block; another file is no bag
         raise InputError(f"not a rosbag2 directory or .mcap file: {path}")
     check_bare_mcap(path)

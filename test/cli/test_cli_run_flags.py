@@ -160,3 +160,10 @@ def test_bag_make_refuses_an_out_named_like_a_file(bag, tmp_path, capsys) -> Non
     rc, err = _run(["bag", "import", bag.parent / "case.npz", tmp_path / "out.mcap"], capsys)
     _one_line(rc, err, "a bag is a folder")
     assert not (tmp_path / "out.mcap").exists()
+
+
+def test_a_cut_mcap_alone_in_a_folder_is_checked_like_a_bare_one(bag, tmp_path, capsys) -> None:
+    folder = tmp_path / "one"
+    folder.mkdir()
+    (folder / "x.mcap").write_bytes(next(bag.glob("*.mcap")).read_bytes()[:5000])
+    _one_line(*_run(["bag", "info", folder], capsys), "ends without its footer")
