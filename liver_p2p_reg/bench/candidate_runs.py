@@ -17,14 +17,18 @@ def run_candidate(
     workers: int,
     data_root: str | None = None,
     threads: int | None = None,
+    settings: dict[str, float] | None = None,
 ) -> None:
-    """Benchmark weights `weights` (empty: the bundled ones) on every set into OUT_ROOT/NAME/SET.
+    """Benchmark weights `weights` (empty: the bundled ones) on every set into OUT_ROOT/NAME/SET; `settings`: more
+    config values for the run (e.g. a threshold a rule chooses).
 
     Rows already in a run's cases.csv are kept, so an interrupted selection resumes.
     """
     config = Path(out_root) / f"{name}.yaml"
     config.parent.mkdir(parents=True, exist_ok=True)
-    config.write_text(f"weights_path: '{Path(weights).resolve() if weights else ''}'\n")
+    lines = [f"weights_path: '{Path(weights).resolve() if weights else ''}'"]
+    lines += [f"{key}: {value!r}" for key, value in (settings or {}).items()]
+    config.write_text("\n".join(lines) + "\n")
     for dataset, extra in sets.items():
         cmd = [sys.executable, "-m", "liver_p2p_reg", "-q", "benchmark", "--dataset", dataset]
         cmd += ["--methods", ",".join(methods), "--out", str(Path(out_root) / name / dataset)]

@@ -1,0 +1,116 @@
+"""The RANSAC candidate's threshold rule (docs/benchmark_real/RULE_ransac_candidate_threshold.md), from composed rows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from liver_p2p_reg.bench.cases_csv import CASES_CSV, read_rows
+from liver_p2p_reg.bench.ransac_candidate_rule import CANDIDATE, GROUPS, REFERENCE, RUN, SETS
+from liver_p2p_reg.bench.small_view_rule import SLACK_MM, tre_stats
+
+THRESHOLDS = (0.15, 0.20, 0.25)  # the candidates for `ransac_candidate_visibility`
+RUN_THRESHOLD = 0.3  # the candidate's runs were made with this value (its default until the rule says otherwise)
+TIE_MM = 0.01  # pooled small-view means this close: the smaller threshold wins (RANSAC on fewer views)
+
+
+def _key(row: dict) -> tuple[str, float]:
+    return row["case_id"], row["added_noise_mm"]
+
+
+def _by_method(rows: list[dict], method: str) -> dict[tuple[str, float], dict]:
+    return {_key(r): r for r in rows if r["method"] == method}
+
+
+def _tre(row: dict) -> float:
+    return float("inf") if row["failed"] else row["rms_tre_mm"]
+
+
+def composed_rows(rows: list[dict], threshold: float) -> list[dict]:
+    """Each case's row with RANSAC's pose where its M/N is below `threshold` (<= RUN_THRESHOLD), else the default's.
+
+    Exact, not an estimate: below the threshold the candidate's path is the one it ran at RUN_THRESHOLD, above it
+    the RANSAC hypothesis returns before any work and the path is the default's (`shared_path_mismatches` checks it).
+    """
+    if not 0 < threshold <= RUN_THRESHOLD:
+        raise ValueError(f"a threshold is composed from runs at {RUN_THRESHOLD}; {threshold} is outside (0, it]")
+    ref, cand = _by_method(rows, REFERENCE), _by_method(rows, CANDIDATE)
+    if ref.keys() != cand.keys():
+        raise ValueError(f"the two runs hold other cases: {len(ref)} {REFERENCE} rows, {len(cand)} {CANDIDATE} rows")
+    return [cand[k] if cand[k]["method_visibility"] < threshold else ref[k] for k in sorted(ref)]
+
+
+def shared_path_mismatches(rows: list[dict]) -> list[str]:
+    """Cases where the two runs should agree bit for bit and do not: M/N differs, or M/N >= RUN_THRESHOLD (no
+    RANSAC pose) and the RMS-TRE or the failure differs."""
+    ref, cand = _by_method(rows, REFERENCE), _by_method(rows, CANDIDATE)
+    bad = []
+    for k in sorted(ref.keys() & cand.keys()):
+        a, b = ref[k], cand[k]
+        if a["method_visibility"] != b["method_visibility"]:
+            bad.append(f"{k[0]} (+{k[1]} mm): M/N {a['method_visibility']} vs {b['method_visibility']}")
+        elif a["method_visibility"] >= RUN_THRESHOLD and _tre(a) != _tre(b):
+            bad.append(f"{k[0]} (+{k[1]} mm): RMS-TRE {_tre(a)} vs {_tre(b)} with no RANSAC pose")
+    return bad
+
+
+def real_run_mismatches(composed: list[dict], run_rows: list[dict]) -> list[str]:
+    """Cases where a real run of the chosen threshold (its CANDIDATE rows) differs from the composed rows."""
+    real = _by_method(run_rows, CANDIDATE)
+    bad = [f"{k[0]} (+{k[1]} mm): missing from the real run" for k in map(_key, composed) if k not in real]
+    bad += [
+        f"{_key(r)[0]} (+{_key(r)[1]} mm): composed {_tre(r)} vs run {_tre(real[_key(r)])}"
+        for r in composed
+        if _key(r) in real and _tre(r) != _tre(real[_key(r)])
+    ]
+    return bad
+
+
+def set_rows(out_root: str, dataset: str) -> list[dict]:
+    """One validation set's rows of both methods (the earlier rule's runs)."""
+    return read_rows(Path(out_root) / RUN / dataset / CASES_CSV)
+
+
+def threshold_verdict(out_root: str) -> tuple[list[str], str, float | None]:
+    """The rule's table, its verdict line and the chosen threshold (None: none passes or a check failed)."""
+    table = [
+        "| set | `ransac_candidate_visibility` | bins | poses | mean RMS-TRE (mm) | success@10 mm | >= 20 mm |"
+        " views given RANSAC's pose |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    checks, passing, small_rows = [], set(THRESHOLDS), {t: [] for t in THRESHOLDS}
+    for dataset in SETS:
+        rows = set_rows(out_root, dataset)
+        checks += [f"{dataset}: {m}" for m in shared_path_mismatches(rows)]
+        ref = [r for r in rows if r["method"] == REFERENCE]
+        options = {"default (none)": ref, **{f"{t:.2f}": composed_rows(rows, t) for t in THRESHOLDS}}
+        stats = {}
+        for label, chosen in options.items():
+            stats[label] = {
+                g: tre_stats([r for r in chosen if lo <= r["visibility"] < hi]) for g, (lo, hi) in GROUPS.items()
+            }
+            given = sum(r["method"] == CANDIDATE and r["method_visibility"] < RUN_THRESHOLD for r in chosen)
+            for g, s in stats[label].items():
+                table.append(
+                    f"| {dataset} | {label} | {g} | {s['n']} | {s['mean']:.2f} | {100 * s['s10']:.1f} % | "
+                    f"{s['gross']} | {given if g == next(iter(GROUPS)) else ''} |"
+                )
+        small, above = GROUPS
+        base = stats["default (none)"]
+        for t in THRESHOLDS:
+            s = stats[f"{t:.2f}"]
+            ok1 = s[small]["mean"] < base[small]["mean"] and s[small]["s10"] >= base[small]["s10"]
+            ok2 = s[above]["mean"] <= base[above]["mean"] + SLACK_MM and s[above]["gross"] <= base[above]["gross"]
+            if not (ok1 and ok2):
+                passing.discard(t)
+            lo, hi = GROUPS[small]
+            small_rows[t] += [r for r in composed_rows(rows, t) if lo <= r["visibility"] < hi]
+    pooled = {t: tre_stats(small_rows[t])["mean"] for t in THRESHOLDS}
+    table += ["", "Mean RMS-TRE (mm) of the three sets' [0.05, 0.2) poses pooled, per threshold: "]
+    table[-1] += ", ".join(f"{t:.2f}: {pooled[t]:.2f}" + (" (passes 1-2)" if t in passing else "") for t in THRESHOLDS)
+    if checks:
+        return table + ["", *checks[:20]], f"The composition check failed on {len(checks)} case(s): no verdict.", None
+    if not passing:
+        return table, "No threshold passes rules 1 and 2 on all three sets: the value stays 0.3.", None
+    best = min(pooled[t] for t in passing)
+    chosen = min(t for t in passing if pooled[t] <= best + TIE_MM)
+    return table, f"Threshold {chosen:.2f} passes rules 1 and 2 on all three sets and is chosen (rule 3 next).", chosen
