@@ -5,12 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from liver_p2p_reg.bench.cases_csv import CASES_CSV, read_rows
-from liver_p2p_reg.bench.ransac_candidate_rule import CANDIDATE, GROUPS, REFERENCE, RUN, SETS
+from liver_p2p_reg.bench.ransac_candidate_rule import CANDIDATE, GROUPS, REFERENCE, RUN, SETS, TIME_LIMIT_MS, median_ms
 from liver_p2p_reg.bench.small_view_rule import SLACK_MM, tre_stats
 
 THRESHOLDS = (0.15, 0.20, 0.25)  # the candidates for `ransac_candidate_visibility`
 RUN_THRESHOLD = 0.3  # the candidate's runs were made with this value (its default until the rule says otherwise)
 TIE_MM = 0.01  # pooled small-view means this close: the smaller threshold wins (RANSAC on fewer views)
+SPEED_BLOCK = "SPEED-RANSAC-THRESHOLD"  # the speed.md block bench_paths.py writes for the chosen threshold
 
 
 def _key(row: dict) -> tuple[str, float]:
@@ -74,7 +75,7 @@ def threshold_verdict(out_root: str) -> tuple[list[str], str, float | None]:
     """The rule's table, its verdict line and the chosen threshold (None: none passes or a check failed)."""
     table = [
         "| set | `ransac_candidate_visibility` | bins | poses | mean RMS-TRE (mm) | success@10 mm | >= 20 mm |"
-        " views given RANSAC's pose |",
+        " views with M/N below it |",
         "|---|---|---|---|---|---|---|---|",
     ]
     checks, passing, small_rows = [], set(THRESHOLDS), {t: [] for t in THRESHOLDS}
@@ -88,11 +89,12 @@ def threshold_verdict(out_root: str) -> tuple[list[str], str, float | None]:
             stats[label] = {
                 g: tre_stats([r for r in chosen if lo <= r["visibility"] < hi]) for g, (lo, hi) in GROUPS.items()
             }
-            given = sum(r["method"] == CANDIDATE and r["method_visibility"] < RUN_THRESHOLD for r in chosen)
             for g, s in stats[label].items():
+                lo, hi = GROUPS[g]
+                given = sum(r["method"] == CANDIDATE and lo <= r["visibility"] < hi for r in chosen)
                 table.append(
                     f"| {dataset} | {label} | {g} | {s['n']} | {s['mean']:.2f} | {100 * s['s10']:.1f} % | "
-                    f"{s['gross']} | {given if g == next(iter(GROUPS)) else ''} |"
+                    f"{s['gross']} | {given} |"
                 )
         small, above = GROUPS
         base = stats["default (none)"]
@@ -114,3 +116,18 @@ def threshold_verdict(out_root: str) -> tuple[list[str], str, float | None]:
     best = min(pooled[t] for t in passing)
     chosen = min(t for t in passing if pooled[t] <= best + TIE_MM)
     return table, f"Threshold {chosen:.2f} passes rules 1 and 2 on all three sets and is chosen (rule 3 next).", chosen
+
+
+def timed_method(threshold: float) -> str:
+    """The method spec `scripts/bench_paths.py` times the candidate at `threshold` by (its row name there)."""
+    return f"{CANDIDATE}:ransac_candidate_visibility={threshold:g}"
+
+
+def time_verdict(speed_md: Path, threshold: float) -> tuple[str, bool]:
+    """Rule 3 for the chosen threshold: its line and whether it passes (NaN: not measured, fails)."""
+    ms = median_ms(speed_md, timed_method(threshold), SPEED_BLOCK)
+    ok = ms <= TIME_LIMIT_MS
+    return (
+        f"Rule 3: median time {ms:.1f} ms per registration (limit {TIME_LIMIT_MS:.0f} ms), {'met' if ok else 'missed'}.",
+        ok,
+    )

@@ -13,6 +13,7 @@ from liver_p2p_reg.bench.ransac_threshold_rule import (
     real_run_mismatches,
     shared_path_mismatches,
     threshold_verdict,
+    time_verdict,
 )
 
 # (true visibility, M/N, default's RMS-TRE, candidate's RMS-TRE at 0.3): one case each
@@ -72,7 +73,22 @@ def test_the_smallest_threshold_that_passes_and_helps_most_is_chosen(tmp_path: P
     # 0.25 gives RANSAC's pose to the case above 0.2 it spoils (rule 2); 0.15 and 0.20 help alike below 0.2
     assert chosen == 0.15 and "0.15 passes rules 1 and 2" in line
     assert "0.15: 6.00 (passes 1-2), 0.20: 6.00 (passes 1-2), 0.25: 6.00" in table[-1]
-    assert any("| real-val-v2 | 0.25 | [0.2, 0.3) | 2 | 14.50 | 50.0 % | 1 |" in row for row in table)
+    assert any("| real-val-v2 | 0.25 | [0.2, 0.3) | 2 | 14.50 | 50.0 % | 1 | 1 |" in row for row in table)
+    assert any("| real-val-v2 | 0.15 | [0.05, 0.2) | 3 | 6.00 | 100.0 % | 0 | 2 |" in row for row in table)
+
+
+def test_the_time_rule_reads_the_chosen_thresholds_row_of_its_own_block(tmp_path: Path) -> None:
+    speed = tmp_path / "speed.md"
+    speed.write_text(
+        f"<!-- SPEED-RANSAC:START -->\n| {CANDIDATE} | 120.0 | 1 |\n<!-- SPEED-RANSAC:END -->\n"
+        "<!-- SPEED-RANSAC-THRESHOLD:START -->\n"
+        f"| {CANDIDATE}:ransac_candidate_visibility=0.2 | 151.5 | 170.2 |\n"
+        f"| {CANDIDATE}:ransac_candidate_visibility=0.15 | 110.0 | 170.2 |\n"
+        "<!-- SPEED-RANSAC-THRESHOLD:END -->\n"
+    )
+    assert time_verdict(speed, 0.15) == ("Rule 3: median time 110.0 ms per registration (limit 150 ms), met.", True)
+    assert time_verdict(speed, 0.20)[1] is False and "151.5 ms" in time_verdict(speed, 0.20)[0]
+    assert time_verdict(speed, 0.25)[1] is False  # not measured: fails
 
 
 def test_a_threshold_that_loses_a_success_below_0_2_fails(tmp_path: Path) -> None:
