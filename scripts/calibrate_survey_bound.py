@@ -51,6 +51,7 @@ from liver_p2p_reg.registration.error_calibration import (
     SURVEY,
     SURVEY_TRACKED_METHOD,
     deform_settings,
+    pose_settings,
     read_calibration,
 )
 from liver_p2p_reg.registration.weights_id import weights_sha256
@@ -134,6 +135,7 @@ def fit(data: dict, single: dict) -> dict:
         {
             "method": config.method,
             "weights_sha256": weights_sha256(config),
+            "pose": pose_settings(config),
             **({"deform": deform_settings(config)} if deformed else {}),
             "left_out_failed_poses": 0,  # a frame without a pose has no survey fit to bound
             "visibility_edges": [],

@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         BUNDLED_DEFORMED_CALIBRATION,
         DEFORMED,
         deform_settings,
+        pose_settings,
         read_calibration,
     )
     from liver_p2p_reg.registration.weights_id import weights_sha256
@@ -93,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
     cal.update(
         method=config.method,
         weights_sha256=weights,
+        pose=pose_settings(config),
         provenance={
             "summary": f"{', '.join(s['set'] for s in sets)} ({len(val['count'])} poses, "
             f"{args.noise_mm:g} mm noise, seed {args.seed}; scale fitted on livers {cal['fit_livers']}, quantiles "

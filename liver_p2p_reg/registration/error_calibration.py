@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import functools
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from liver_p2p_reg.config import FeatureSection, FreeSpaceSection, IcpSection, P2PSection, PreprocessSection
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_bound import FEATURES, PoseEvidence
 from liver_p2p_reg.registration.weights_id import weights_sha256
@@ -44,6 +45,7 @@ class BoundCalibration:
     positions: str = RIGID  # RIGID: the pose's; DEFORMED: the non-rigid stage's (of `deform` settings)
     deform: dict[str, Any] | None = None  # the non-rigid stage's settings a DEFORMED calibration ran with
     view: str = FRAME  # the poses or fits it was made of: of single frames, or survey mode's (fused surveys)
+    pose: dict[str, Any] | None = None  # the pose's settings it ran with (pose_settings); None: not recorded
 
     def scale_mm(self, features: np.ndarray) -> np.ndarray:
         """Predicted error scale (mm) of each row of features; inf where a feature is not finite."""
@@ -126,6 +128,7 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
             positions=str(raw.get("positions", RIGID)),
             deform=dict(raw["deform"]) if raw.get("deform") is not None else None,
             view=str(raw.get("view", FRAME)),
+            pose=dict(raw["pose"]) if raw.get("pose") is not None else None,
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
@@ -206,7 +209,28 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
             "error bound calibrated with other matcher weights: its coverage is not known "
             "(recalibrate: liver-p2p calibrate-bound)"
         )
+    if calibration.pose is not None:  # calibrations made before the settings were recorded are taken as they are
+        ours = pose_settings(config)
+        differ = sorted(k for k in set(ours) | set(calibration.pose) if calibration.pose.get(k) != ours.get(k))
+        if differ:
+            shown = ", ".join(differ[:3]) + (f" and {len(differ) - 3} more" if len(differ) > 3 else "")
+            return f"error bound calibrated with other {shown}: its coverage is not known"
     return ""
+
+
+# The settings that move the pose: preprocessing, features, matching and P2P, ICP, free space. A calibration holds for
+# the poses these values give. Not among them: the weights (checked by their hash: a path differs from machine to
+# machine), the frame the input comes in (`sensor_at_frame_origin` says where a cloud's sensor is, not how to
+# register it), and the random streams (the seed, RANSAC's thread count: another draw of the same distribution of
+# errors; the benchmark gives every case a seed of its own), nor threads and the verdict's thresholds.
+POSE_SECTIONS = (PreprocessSection, FeatureSection, P2PSection, IcpSection, FreeSpaceSection)
+NOT_POSE_SETTINGS = ("weights_path", "sensor_at_frame_origin", "open3d_threads")
+
+
+def pose_settings(config: Any) -> dict[str, Any]:
+    """The settings a calibration records and a pose is checked against (`calibration_note`)."""
+    names = [f.name for section in POSE_SECTIONS for f in fields(section) if f.name not in NOT_POSE_SETTINGS]
+    return {name: getattr(config, name) for name in names}
 
 
 # The settings that change the deformed positions, and the gates that decide which poses the stage is applied on

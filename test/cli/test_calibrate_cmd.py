@@ -9,8 +9,9 @@ import pytest
 from synthetic_cases import partial_case
 
 from liver_p2p_reg.cli import main
+from liver_p2p_reg.config import Config
 from liver_p2p_reg.phantom.casefile import write_case
-from liver_p2p_reg.registration.error_calibration import read_calibration
+from liver_p2p_reg.registration.error_calibration import pose_settings, read_calibration
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +54,7 @@ def test_the_command_calibrates_and_reproduces_its_calibration_bitwise(case_dir,
     assert _calibrate(case_dir, out) == 0
     cal = read_calibration(out)
     assert cal.method == "fpfh-ransac-icp" and cal.weights_sha256 == ""
+    assert cal.pose == pose_settings(Config.from_yaml(case_dir[1]))  # what a pose is checked against
     raw = json.loads(out.read_text())
     assert raw["provenance"]["seed"] == 0 and raw["provenance"]["sets"][0]["cases"] == 6
     assert sorted(raw["fit_livers"] + raw["calibration_livers"]) == [900, 901]

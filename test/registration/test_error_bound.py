@@ -13,7 +13,12 @@ from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.confidence import result_warnings
 from liver_p2p_reg.registration.error_bound import pose_evidence
-from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, ErrorModel, read_calibration
+from liver_p2p_reg.registration.error_calibration import (
+    BUNDLED_CALIBRATION,
+    ErrorModel,
+    pose_settings,
+    read_calibration,
+)
 
 
 def _model(source, target, T, visibility, noise_rng=None):
@@ -145,6 +150,23 @@ def test_a_calibration_made_with_other_weights_is_told(tmp_path, registered):
     result = Registrar(error_calibration_path=str(path)).register(source, target)
     assert "other matcher weights" in result.error_calibration_note
     assert result.to_json_dict()["error_calibration_note"] == result.error_calibration_note
+
+
+def test_a_calibration_made_with_other_pose_settings_is_told(tmp_path, registered):
+    _, source, target, _, _ = registered
+    raw = json.loads(BUNDLED_CALIBRATION.read_text())
+    raw.pop("pose", None)  # a calibration made before the settings were recorded is taken as it is
+    path = tmp_path / "recorded.json"
+    path.write_text(json.dumps(raw))
+    assert Registrar(error_calibration_path=str(path), k=3).register(source, target).error_calibration_note == ""
+    raw["pose"] = pose_settings(Config())
+    path.write_text(json.dumps(raw))
+    same = Registrar(error_calibration_path=str(path), seed=7, open3d_threads=2).register(source, target)
+    assert same.error_calibration_note == ""  # another random draw of the same errors
+    other = Registrar(error_calibration_path=str(path), k=3, screen_icp_points=200).register(source, target)
+    assert other.error_calibration_note == (
+        "error bound calibrated with other k, screen_icp_points: its coverage is not known"
+    )
 
 
 def test_the_verdict_follows_the_bound(registered):
