@@ -185,7 +185,13 @@ class Registrar:
         try:
             source = clean_points(source_mm, "source", min_points=self.config.min_points)
             centre = source[np.argmax(source[:, 0])]  # a deterministic cap of the surface
-            near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(len(source) // 3, 3)]
+            share = 1 / 3
+            threshold = self.config.ransac_candidate_visibility
+            if check_method_name(method or self.config.method).ransac_candidate and threshold > 0:
+                # a cap small enough for RANSAC's pose too: Open3D's import and the source's FPFH (~0.5 s) are
+                # paid here, not by the first small view (M/N, a voxel share, follows the point share of a cap)
+                share = min(share, threshold / 2)
+            near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(int(len(source) * share), 3)]
             self.register(source, source[near], method=method)
             if self.config.deform:  # the elastic model (seconds) is built here, not on the first frame
                 self.prepare_deformation(source, source_triangles, mesh_vertices_mm=mesh_vertices_mm)

@@ -52,6 +52,16 @@ def test_above_the_visibility_threshold_it_is_the_default_bit_for_bit(case, belo
     assert [c.name for c in hybrid.screened] == [c.name for c in default.screened]
 
 
+def test_warm_up_takes_ransacs_path_only_for_a_method_that_has_it(case) -> None:
+    source = case[0]
+    for method, threshold, warmed in ((METHOD, 0.3, True), (METHOD, 0.0, False), ("learned-p2p-icp", 0.3, False)):
+        registrar = Registrar(Config(k=2, ransac_candidate_visibility=threshold))
+        registrar.warm_up(source, method)
+        # the source's FPFH: RANSAC's pose was computed on the warm-up's cap, before any real view
+        assert any(key.startswith("fpfh:") for key in registrar.cache) is warmed, (method, threshold)
+        assert any(key.startswith("icp-source-index:") for key in registrar.cache)  # the rest warmed as before
+
+
 def test_ransac_pose_is_screened_besides_refine_candidates(case) -> None:
     from liver_p2p_reg.registration.hypotheses import screen_candidates
     from liver_p2p_reg.registration.preprocess import preprocess_pair
