@@ -30,10 +30,10 @@ def set_stats(out_root: str, dataset: str) -> dict[str, dict[str, dict[str, floa
     }
 
 
-def median_ms(speed_md: Path, method: str = CANDIDATE, block: str = SPEED_BLOCK) -> float:
-    """A method's median total time in the `block` table of `speed_md` (NaN when absent)."""
+def median_ms(speed_md: Path, method: str = CANDIDATE, mark: str = SPEED_BLOCK) -> float:
+    """A method's median total time in the `mark` block's table of `speed_md` (NaN when absent)."""
     text = speed_md.read_text() if speed_md.exists() else ""
-    start, end = f"<!-- {block}:START -->", f"<!-- {block}:END -->"
+    start, end = f"<!-- {mark}:START -->", f"<!-- {mark}:END -->"
     block = text[text.find(start) : text.find(end)] if start in text and end in text else ""
     match = re.search(rf"^\| {re.escape(method)} \| ([0-9.]+) \|", block, re.M)
     return float(match.group(1)) if match else float("nan")

@@ -105,7 +105,7 @@ def threshold_verdict(out_root: str) -> tuple[list[str], str, float | None]:
             if not (ok1 and ok2):
                 passing.discard(t)
             lo, hi = GROUPS[small]
-            small_rows[t] += [r for r in composed_rows(rows, t) if lo <= r["visibility"] < hi]
+            small_rows[t] += [r for r in options[f"{t:.2f}"] if lo <= r["visibility"] < hi]
     pooled = {t: tre_stats(small_rows[t])["mean"] for t in THRESHOLDS}
     table += ["", "Mean RMS-TRE (mm) of the three sets' [0.05, 0.2) poses pooled, per threshold: "]
     table[-1] += ", ".join(f"{t:.2f}: {pooled[t]:.2f}" + (" (passes 1-2)" if t in passing else "") for t in THRESHOLDS)

@@ -188,8 +188,8 @@ class Registrar:
             share = 1 / 3
             threshold = self.config.ransac_candidate_visibility
             if check_method_name(method or self.config.method).ransac_candidate and threshold > 0:
-                # a cap small enough for RANSAC's pose too: Open3D's import and the source's FPFH (~0.5 s) are
-                # paid here, not by the first small view (M/N, a voxel share, follows the point share of a cap)
+                # a cap small enough for RANSAC's pose too: Open3D's first use and the source's FPFH are paid here,
+                # not by the first small view (M/N, a voxel share, follows the point share of a cap)
                 share = min(share, threshold / 2)
             near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(int(len(source) * share), 3)]
             self.register(source, source[near], method=method)
