@@ -210,8 +210,7 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
             "(recalibrate: liver-p2p calibrate-bound)"
         )
     if calibration.pose is not None:  # calibrations made before the settings were recorded are taken as they are
-        ours = pose_settings(config)
-        differ = sorted(k for k in set(ours) | set(calibration.pose) if calibration.pose.get(k) != ours.get(k))
+        differ = differing_settings(calibration.pose, pose_settings(config))
         if differ:
             shown = ", ".join(differ[:3]) + (f" and {len(differ) - 3} more" if len(differ) > 3 else "")
             return f"error bound calibrated with other {shown}: its coverage is not known"
@@ -225,6 +224,11 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
 # errors; the benchmark gives every case a seed of its own), nor threads and the verdict's thresholds.
 POSE_SECTIONS = (PreprocessSection, FeatureSection, P2PSection, IcpSection, FreeSpaceSection)
 NOT_POSE_SETTINGS = ("weights_path", "sensor_at_frame_origin", "open3d_threads")
+
+
+def differing_settings(recorded: dict[str, Any], ours: dict[str, Any]) -> list[str]:
+    """The names, sorted, whose value a calibration recorded differs from this run's (or one of them lacks)."""
+    return sorted(k for k in set(recorded) | set(ours) if recorded.get(k) != ours.get(k))
 
 
 def pose_settings(config: Any) -> dict[str, Any]:
@@ -293,8 +297,7 @@ def attach_deformed_error_model(result: Any, config: Any, view: str = FRAME) -> 
     model = ErrorModel(result.error_model.evidence, calibration, config.error_coverage)
     result.deformed_error_model = model
     result.deformed_error_bound_mm = model.pose_bound_mm()
-    ours, theirs = deform_settings(config), calibration.deform or {}
-    differ = [k for k in sorted(set(ours) | set(theirs)) if theirs.get(k) != ours.get(k)]
+    differ = differing_settings(calibration.deform or {}, deform_settings(config))
     notes = [calibration_note(calibration, result.method, config)]
     if differ:
         notes.append(f"deformed-position bound calibrated with other {', '.join(differ)}: its coverage is not known")
