@@ -1,0 +1,62 @@
+"""Where a method's poses beyond the rigid bound come from, per visibility bin (liver_p2p_reg/bench/failure_sources.py).
+
+    .venv/bin/python scripts/small_view_failures.py [--sets real-val-v2,real-val-v2-arap,real-val-camera-v2] \
+        [--config config/ransac_candidate_020.yaml] [--method learned-p2p-ransac-icp] [--out out/failures/NAME] [--readme FILE --block NAME]
+
+Every case of each set with 2 mm of the benchmark's noise added (`--noise-bins all`: the noiseless case beside its
+noisy copy, as the selection runs), below visibility 0.3, registered with the configured default method; ICP from
+the true pose beside it; on a failure (> 5 mm beyond that bound) ICP from each candidate. The rows go to
+OUT/SET.json (kept: a second call with the same settings reads them instead of registering again).
+Meant for the validation sets: it says what to work on, not how good the method is.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from liver_p2p_reg.bench.case_runs import NOISE_MM, set_rows
+from liver_p2p_reg.bench.failure_sources import run_case, summary_table
+from liver_p2p_reg.bench.readme import write_headline
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import InputError
+
+TOP_VISIBILITY = 0.3
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sets", default="real-val-v2,real-val-v2-arap,real-val-camera-v2")
+    parser.add_argument("--config", help="YAML of settings (default: the defaults)")
+    parser.add_argument("--method", help="the method (default: the config's)")
+    parser.add_argument("--out", default="out/failures/default")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--readme", help="markdown file to write the table into (its --block)")
+    parser.add_argument("--block", default="FAILURE-SOURCES")
+    args = parser.parse_args(argv)
+    try:
+        config = Config.from_yaml(args.config) if args.config else Config()
+        config = config.replace(method=args.method) if args.method else config
+        rows = {
+            name: set_rows(
+                name, run_case, config.to_dict(), Path(args.out), below_visibility=TOP_VISIBILITY, workers=args.workers
+            )
+            for name in args.sets.split(",")
+        }
+    except InputError as exc:
+        parser.exit(2, f"error: {exc}\n")
+    errors = sum(bool(r["error"]) for rows_ in rows.values() for r in rows_)
+    settings = f"`--config {args.config}`" if args.config else "the defaults"
+    caption = (
+        f"Method `{config.method}` with {settings}; {NOISE_MM:g} mm noise copies beside the noiseless cases; "
+        f"{errors} registrations raised. Command: `python scripts/small_view_failures.py --sets {args.sets}"
+        + (f" --config {args.config}" if args.config else "")
+        + (f" --method {args.method}" if args.method else "")
+        + f" --out {args.out} --readme {args.readme} --block {args.block}`"
+    )
+    write_headline(caption, summary_table(rows, TOP_VISIBILITY), args.readme, args.block)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
