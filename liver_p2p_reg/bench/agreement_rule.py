@@ -1,0 +1,154 @@
+"""The learned matches' agreement as a second cue of the screening: the data per case, the composed poses, the rule
+(docs/benchmark_real/RULE_feature_agreement.md)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_seed, read_case
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.metrics import rms_tre_mm
+from liver_p2p_reg.registration.registrar import Registrar
+
+METHOD = "learned-p2p-ransac-icp"
+THRESHOLD = 0.2  # ransac_candidate_visibility: the cue applies where the RANSAC candidate does
+SETTINGS = {"method": METHOD, "ransac_candidate_visibility": THRESHOLD}
+SETS = ("real-val-v2", "real-val-v2-arap", "real-val-camera-v2")
+LAMBDAS = (0.1, 0.25, 0.5, 1.0)
+AGREE_MM = 10.0  # a confident match agrees with a pose when the pose brings its source point this close
+GROSS_MM = 20.0
+MIN_GAIN_MM = 0.2
+_CACHE: dict[str, Any] = {}
+
+
+def agreement(
+    T_mm: np.ndarray, source_mm: np.ndarray, target_mm: np.ndarray, confidence: np.ndarray, radius_mm: float = AGREE_MM
+) -> float:
+    """The confidence-weighted share of target points whose best source match the pose T brings within `radius_mm`.
+
+    `source_mm[i]` is target point i's best match and `confidence[i]` its dual-softmax confidence; 0 without any.
+    """
+    moved = source_mm @ T_mm[:3, :3].T + T_mm[:3, 3]
+    close = np.linalg.norm(moved - target_mm, axis=1) < radius_mm
+    total = float(confidence.sum())
+    return float(confidence[close].sum() / total) if total > 0 else 0.0
+
+
+def keyed_choice(candidates: list[dict[str, Any]], lam: float) -> int:
+    """The index of the screened candidate with the lowest residual x (1 + lam x (1 - agreement / the best
+    agreement)); the first of equals, as the screening. Without any agreement the residual alone decides."""
+    best = max(c["agreement"] for c in candidates)
+    keys = [c["short_residual_mm"] * (1 + lam * (1 - (c["agreement"] / best if best > 0 else 1.0))) for c in candidates]
+    return int(np.argmin(keys))
+
+
+def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
+    """One case registered as the benchmark does; on a view that screened two or more candidates, each one's short
+    residual, agreement and RMS-TRE after the full ICP from its own pose."""
+    import torch
+
+    from liver_p2p_reg.registration.context import MethodContext
+    from liver_p2p_reg.registration.matching import dual_softmax, score_matrix
+    from liver_p2p_reg.registration.pipeline import feature_provider
+    from liver_p2p_reg.registration.preprocess import preprocess_pair
+
+    data = read_case(info.path)
+    src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
+    config = Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)})
+    registrar = Registrar(config)
+    registrar.cache = _CACHE
+    source, target = data["src_pcd"], add_target_noise(np.asarray(data["tgt_pcd"], float), info)
+    result = registrar.register(source, target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker)
+    row: dict[str, Any] = {
+        "case_id": info.case_id,
+        "visibility": info.visibility,
+        "method_visibility": float(result.visibility),
+        "rms_tre_mm": float(rms_tre_mm(result.T_target_source, src_marker, tgt_marker)),
+        "screened": [],
+    }
+    if not result.visibility < config.ransac_candidate_visibility or len(result.screened) < 2:
+        return row
+    prep = preprocess_pair(source, target, config, registrar.cache)
+    provider = feature_provider("learned", config, MethodContext(cache=registrar.cache), source, [])()
+    with torch.inference_mode():
+        x_src, x_tgt = provider.describe(
+            torch.as_tensor(prep.source, dtype=torch.float32), torch.as_tensor(prep.target, dtype=torch.float32), {}
+        )
+        confidence, match = dual_softmax(score_matrix(x_src, x_tgt), config.temperature).max(dim=0)
+    matched_mm = prep.source_norm.invert(prep.source[match.numpy()])
+    target_mm = prep.target_norm.invert(prep.target)
+    weights = confidence.numpy().astype(np.float64)
+    raw = {c.name: c.T_target_source for c in result.candidates}
+    chosen = result.candidates[result.chosen].name
+    for screened in result.screened:
+        refined = registrar.register(source, target, method="track", initial_T_mm=raw[screened.name])
+        row["screened"].append(
+            {
+                "name": screened.name,
+                "chosen": screened.name == chosen,
+                "short_residual_mm": float(screened.residual_mm),
+                "agreement": agreement(screened.T_target_source, matched_mm, target_mm, weights),
+                "rms_tre_mm": float(rms_tre_mm(refined.T_target_source, src_marker, tgt_marker)),
+            }
+        )
+    return row
+
+
+def composed_tre(rows: list[dict[str, Any]], lam: float) -> np.ndarray:
+    """Each case's RMS-TRE when the screening's key carries `lam` (the method's own where nothing was screened)."""
+    return np.array(
+        [
+            r["screened"][keyed_choice(r["screened"], lam)]["rms_tre_mm"] if r["screened"] else r["rms_tre_mm"]
+            for r in rows
+        ]
+    )
+
+
+def reproduction_mismatches(rows: list[dict[str, Any]], tolerance_mm: float = 1e-6) -> list[str]:
+    """Cases where lambda = 0 does not give the method's own pose (then the composition is not the pipeline's)."""
+    bad = []
+    for r in rows:
+        if not r["screened"]:
+            continue
+        pick = r["screened"][keyed_choice(r["screened"], 0.0)]
+        if not pick["chosen"] or abs(pick["rms_tre_mm"] - r["rms_tre_mm"]) > tolerance_mm:
+            bad.append(r["case_id"])
+    return bad
+
+
+def verdict(rows_by_set: dict[str, list[dict[str, Any]]]) -> tuple[list[str], str, float | None]:
+    """The rule's table (per set: mean / poses >= 20 mm for lambda 0 and each candidate), its verdict line, the
+    chosen lambda (None: none)."""
+    small = {name: [r for r in rows if 0.05 <= r["visibility"] < 0.2] for name, rows in rows_by_set.items()}
+    lams = (0.0, *LAMBDAS)
+    tre = {(name, lam): composed_tre(rows, lam) for name, rows in small.items() for lam in lams}
+    head = "| set (poses at [0.05, 0.2)) | " + " | ".join(f"lambda {lam:g}" for lam in lams) + " |"
+    table = [head, "|" + "---|" * (len(lams) + 1)]
+    for name, rows in small.items():
+        cells = [f"{tre[name, lam].mean():.2f} / {int((tre[name, lam] >= GROSS_MM).sum())}" for lam in lams]
+        table.append(f"| {name} ({len(rows)}) | " + " | ".join(cells) + " |")
+    pooled = {lam: float(np.concatenate([tre[name, lam] for name in small]).mean()) for lam in lams}
+    table.append("| pooled mean | " + " | ".join(f"{pooled[lam]:.2f}" for lam in lams) + " |")
+    passing = [
+        lam
+        for lam in LAMBDAS
+        if all(
+            tre[name, lam].mean() <= tre[name, 0.0].mean()
+            and (tre[name, lam] >= GROSS_MM).sum() <= (tre[name, 0.0] >= GROSS_MM).sum()
+            for name in small
+        )
+    ]
+    if not passing:
+        return table, "No lambda passes rule 1 on all three sets: none is chosen.", None
+    best = min(passing, key=lambda lam: (round(pooled[lam], 2), lam))
+    gain = pooled[0.0] - pooled[best]
+    if gain < MIN_GAIN_MM:
+        line = f"Lambda {best:g} passes rule 1 but lowers the pooled mean by {gain:.2f} mm (< {MIN_GAIN_MM}): none is chosen."
+        return table, line, None
+    return (
+        table,
+        f"Lambda {best:g} passes rules 1 and 2 (pooled mean {pooled[0.0]:.2f} -> {pooled[best]:.2f} mm).",
+        best,
+    )
