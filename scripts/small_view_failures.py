@@ -1,7 +1,7 @@
 """Where a method's poses beyond the rigid bound come from, per visibility bin (liver_p2p_reg/bench/failure_sources.py).
 
     .venv/bin/python scripts/small_view_failures.py [--sets real-val-v2,real-val-v2-arap,real-val-camera-v2] \
-        [--config config/ransac_candidate_020.yaml] [--method learned-p2p-ransac-icp] [--out out/failures/NAME] [--readme FILE --block NAME]
+        [--config config/ransac_candidate_020.yaml] [--method learned-p2p-ransac-icp] [--sensor-aware] [--out out/failures/NAME] [--readme FILE --block NAME]
 
 Every case of each set with 2 mm of the benchmark's noise added (`--noise-bins all`: the noiseless case beside its
 noisy copy, as the selection runs), below visibility 0.3, registered with the configured default method; ICP from
@@ -13,6 +13,7 @@ Meant for the validation sets: it says what to work on, not how good the method 
 from __future__ import annotations
 
 import argparse
+from functools import partial
 from pathlib import Path
 
 from liver_p2p_reg.bench.case_runs import NOISE_MM, set_rows
@@ -29,6 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sets", default="real-val-v2,real-val-v2-arap,real-val-camera-v2")
     parser.add_argument("--config", help="YAML of settings (default: the defaults)")
     parser.add_argument("--method", help="the method (default: the config's)")
+    parser.add_argument("--sensor-aware", action="store_true", help="give each registration its case's sensor origin")
     parser.add_argument("--out", default="out/failures/default")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--readme", help="markdown file to write the table into (its --block)")
@@ -37,21 +39,32 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = Config.from_yaml(args.config) if args.config else Config()
         config = config.replace(method=args.method) if args.method else config
+        run = partial(run_case, sensor_aware=True) if args.sensor_aware else run_case
+        tag = {"sensor_aware": True} if args.sensor_aware else None
         rows = {
             name: set_rows(
-                name, run_case, config.to_dict(), Path(args.out), below_visibility=TOP_VISIBILITY, workers=args.workers
+                name,
+                run,
+                config.to_dict(),
+                Path(args.out),
+                below_visibility=TOP_VISIBILITY,
+                workers=args.workers,
+                tag=tag,
             )
             for name in args.sets.split(",")
         }
     except InputError as exc:
         parser.exit(2, f"error: {exc}\n")
     errors = sum(bool(r["error"]) for rows_ in rows.values() for r in rows_)
-    settings = f"`--config {args.config}`" if args.config else "the defaults"
+    settings = (f"`--config {args.config}`" if args.config else "the defaults") + (
+        ", each registration given its sensor origin (free space)" if args.sensor_aware else ""
+    )
     caption = (
         f"Method `{config.method}` with {settings}; {NOISE_MM:g} mm noise copies beside the noiseless cases; "
         f"{errors} registrations raised. Command: `python scripts/small_view_failures.py --sets {args.sets}"
         + (f" --config {args.config}" if args.config else "")
         + (f" --method {args.method}" if args.method else "")
+        + (" --sensor-aware" if args.sensor_aware else "")
         + f" --out {args.out} --readme {args.readme} --block {args.block}`"
     )
     write_headline(caption, summary_table(rows, TOP_VISIBILITY), args.readme, args.block)

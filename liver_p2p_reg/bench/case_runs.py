@@ -25,17 +25,20 @@ def set_rows(
     *,
     below_visibility: float,
     workers: int,
+    tag: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """`run(case, settings)` for every case of `dataset` (named or a folder) below `below_visibility`, beside its
     2 mm noise copy (as the selection runs, `--noise-bins all`), on `workers` processes of one thread each.
 
-    The rows are kept in OUT/DATASET.json with the settings: a second call with the same settings reads them; one
-    with other settings is refused (InputError), so rows of two configurations never mix.
+    The rows are kept in OUT/DATASET.json with the settings and `tag` (what else `run` was told, e.g. a bound
+    keyword): a second call with the same settings and tag reads them; one with others is refused (InputError), so
+    rows of two configurations never mix.
     """
+    stamp = {**settings, **(tag or {})}
     saved = out / f"{Path(dataset).name}.json"
     if saved.exists():
         made = json.loads(saved.read_text())
-        if made["settings"] != settings:
+        if made["settings"] != stamp:
             raise InputError(f"{saved} was made with other settings: remove it or give another --out")
         return made["rows"]
     folder, _ = resolve_dataset(dataset, None)
@@ -47,5 +50,5 @@ def set_rows(
             rows.append(row)
             bar.update()
     out.mkdir(parents=True, exist_ok=True)
-    saved.write_text(json.dumps({"settings": settings, "rows": rows}, indent=0) + "\n")
+    saved.write_text(json.dumps({"settings": stamp, "rows": rows}, indent=0) + "\n")
     return rows

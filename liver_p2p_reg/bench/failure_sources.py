@@ -18,10 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bench.cases import BIN_LABELS, CaseInfo, add_target_noise, case_seed, read_case, visibility_bin
+from liver_p2p_reg.bench.cases import (
+    BIN_LABELS,
+    CaseInfo,
+    add_target_noise,
+    case_seed,
+    read_case,
+    sensor_origin_mm,
+    visibility_bin,
+)
 from liver_p2p_reg.bench.harness import true_pose_mm
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import LiverP2PError
+from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm
 from liver_p2p_reg.registration.registrar import Registrar
 
@@ -49,9 +57,12 @@ def classify(
     return "search" if bound_res_mm < RESIDUAL_RATIO * final_res_mm else "ambiguous"
 
 
-def run_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
+def run_case(info: CaseInfo, config_dict: dict[str, Any], sensor_aware: bool = False) -> dict[str, Any]:
     """Register one case as the benchmark does, ICP from the true pose beside it and, on a failure, from every
-    candidate; the row names the failure's source. A method's error becomes the row's `error`."""
+    candidate; the row names the failure's source. A method's error becomes the row's `error`.
+
+    `sensor_aware`: the registration gets the case's sensor origin (free space), as the benchmark's `[fs]` rows.
+    """
     data = read_case(info.path)
     src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
     registrar = Registrar(Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)}))
@@ -69,7 +80,12 @@ def run_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
         return float(rms_tre_mm(refined.T_target_source, src_marker, tgt_marker)), float(refined.residual_mm)
 
     try:
-        result = registrar.register(source, target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker)
+        origin = sensor_origin_mm(data) if sensor_aware else None
+        if sensor_aware and origin is None:
+            raise InputError(f"case {info.case_id} stores no sensor origin (only camera crops do)")
+        result = registrar.register(
+            source, target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker, sensor_origin_mm=origin
+        )
         final = float(rms_tre_mm(result.T_target_source, src_marker, tgt_marker))
         bound, bound_res = from_pose(true_pose_mm(data, info))
         reached: list[tuple[bool, float]] = []

@@ -82,3 +82,5 @@ def test_set_runs_are_kept_by_settings_and_never_mixed(tmp_path: Path) -> None:
     assert json.dumps(again) == json.dumps(rows)
     with pytest.raises(InputError, match="made with other settings"):
         set_rows(str(folder), run_case, {**settings, "k": 7}, tmp_path / "out", below_visibility=0.35, workers=1)
+    with pytest.raises(InputError, match="made with other settings"):  # what else the run was told counts too
+        set_rows(str(folder), run_case, settings, tmp_path / "out", below_visibility=0.35, workers=1, tag={"fs": True})

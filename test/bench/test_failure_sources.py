@@ -60,3 +60,10 @@ def test_real_cases_are_registered_beside_their_bound_and_classified_by_it(tmp_p
             reached_basin = best <= row["bound_rms_tre_mm"] + MARGIN_MM
             assert (row["source"] in ("pick", "screening")) == reached_basin
     assert run_case(case_info(paths[0]), config) == rows[0]  # seeded: the same twice
+
+
+def test_a_sensor_aware_run_needs_the_cases_origin(tmp_path: Path) -> None:
+    path = write_cases(tmp_path / "cases", per_bin=1)[0]  # random crops store no sensor origin
+    row = run_case(case_info(path), Config(method="fpfh-ransac-icp").to_dict(), sensor_aware=True)
+    assert row["error"].startswith("InputError: case case_0_0 stores no sensor origin")
+    assert "rms_tre_mm" not in row
