@@ -8,7 +8,8 @@ than `MARGIN_MM` worse than the bound is a failure of the method, and ICP is the
   search scored by the residual would prefer the true basin;
 - "ambiguous": none reaches it, and the residual does not prefer the true basin (deformation or a symmetric patch):
   geometry alone cannot tell, other evidence must (features, free space, more views).
-The thresholds were fixed before the first run; the split tells which part of the method to work on.
+The thresholds were set when this module was written, before its first run; they sort failures and choose nothing.
+The split tells which part of the method to work on.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from liver_p2p_reg.bench.cases import (
+    BIN_EDGES,
     BIN_LABELS,
     CaseInfo,
     add_target_noise,
@@ -120,7 +122,7 @@ def summary_table(rows_by_set: dict[str, list[dict[str, Any]]], top_bin: float =
     for name, rows in rows_by_set.items():
         for index, label in enumerate(BIN_LABELS):
             members = [r for r in rows if not r["error"] and visibility_bin(r["visibility"]) == index]
-            if not members or float(label.split(",")[0].strip("[")) >= top_bin:
+            if not members or BIN_EDGES[index] >= top_bin:
                 continue
             final = np.array([r["rms_tre_mm"] for r in members])
             bound = np.array([r["bound_rms_tre_mm"] for r in members])
