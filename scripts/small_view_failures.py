@@ -1,11 +1,12 @@
 """Where a method's poses beyond the rigid bound come from, per visibility bin (liver_p2p_reg/bench/failure_sources.py).
 
     .venv/bin/python scripts/small_view_failures.py [--sets real-val-v2,real-val-v2-arap,real-val-camera-v2] \
-        [--config config/ransac_candidate_020.yaml] [--method learned-p2p-ransac-icp] [--sensor-aware] [--out out/failures/NAME] [--readme FILE --block NAME]
+        [--config config/ransac_candidate_020.yaml] [--method learned-p2p-ransac-icp] [--sensor-aware] \
+        [--out out/failures/NAME] [--readme FILE --block NAME]
 
-Every case of each set with 2 mm of the benchmark's noise added (`--noise-bins all`: the noiseless case beside its
-noisy copy, as the selection runs), below visibility 0.3, registered with the configured default method; ICP from
-the true pose beside it; on a failure (> 5 mm beyond that bound) ICP from each candidate. The rows go to
+Every case of each set below visibility 0.3, beside its copy with 2 mm of the benchmark's noise (as the selection
+runs), registered with the configured method; ICP from the true pose beside it; on a failure (> 5 mm beyond that
+bound) ICP from each candidate. The rows go to
 OUT/SET.json (kept: a second call with the same settings reads them instead of registering again).
 Meant for the validation sets: it says what to work on, not how good the method is.
 """
@@ -18,7 +19,7 @@ from pathlib import Path
 
 from liver_p2p_reg.bench.case_runs import NOISE_MM, set_rows
 from liver_p2p_reg.bench.failure_sources import run_case, summary_table
-from liver_p2p_reg.bench.readme import write_headline
+from liver_p2p_reg.bench.readme import check_readme, write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 
@@ -37,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--block", default="FAILURE-SOURCES")
     args = parser.parse_args(argv)
     try:
+        if args.readme:  # before the work, not after it
+            check_readme(args.readme, args.block)
         config = Config.from_yaml(args.config) if args.config else Config()
         config = config.replace(method=args.method) if args.method else config
         run = partial(run_case, sensor_aware=True) if args.sensor_aware else run_case
