@@ -14,11 +14,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from liver_p2p_reg.bench.agreement_rule import SETS, SETTINGS, collect_case, reproduction_mismatches, verdict
+from liver_p2p_reg.bench.agreement_rule import SETS, SETTINGS, TAG, collect_case, reproduction_mismatches, verdict
 from liver_p2p_reg.bench.candidate_runs import publish_report
 from liver_p2p_reg.bench.case_runs import set_rows
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.errors import LiverP2PError
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,10 +30,12 @@ def main(argv: list[str] | None = None) -> int:
     settings = Config.from_dict(SETTINGS).to_dict()
     try:
         rows = {
-            name: set_rows(name, collect_case, settings, Path(args.out), below_visibility=0.2, workers=args.workers)
+            name: set_rows(
+                name, collect_case, settings, Path(args.out), below_visibility=0.2, workers=args.workers, tag=TAG
+            )
             for name in SETS
         }
-    except InputError as exc:
+    except LiverP2PError as exc:  # a set's cases could not be read, or a registration raised: nothing is kept
         parser.exit(2, f"error: {exc}\n")
     table, line, _ = verdict(rows)
     bad = {name: reproduction_mismatches(set_) for name, set_ in rows.items()}

@@ -18,10 +18,11 @@ from functools import partial
 from pathlib import Path
 
 from liver_p2p_reg.bench.case_runs import NOISE_MM, set_rows
-from liver_p2p_reg.bench.failure_sources import run_case, summary_table
+from liver_p2p_reg.bench.failure_sources import MARGIN_MM, run_case, summary_table
 from liver_p2p_reg.bench.readme import check_readme, write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
+from liver_p2p_reg.registration.registrar import available_methods
 
 TOP_VISIBILITY = 0.3
 
@@ -42,8 +43,11 @@ def main(argv: list[str] | None = None) -> int:
             check_readme(args.readme, args.block)
         config = Config.from_yaml(args.config) if args.config else Config()
         config = config.replace(method=args.method) if args.method else config
+        if config.method not in available_methods():
+            raise InputError(f"unknown method {config.method!r}; choose one of {', '.join(available_methods())}")
         run = partial(run_case, sensor_aware=True) if args.sensor_aware else run_case
-        tag = {"sensor_aware": True} if args.sensor_aware else None
+        # the margin decides which poses get ICP from every candidate, so kept rows hold to it
+        tag = {"margin_mm": MARGIN_MM, **({"sensor_aware": True} if args.sensor_aware else {})}
         rows = {
             name: set_rows(
                 name,
@@ -58,17 +62,20 @@ def main(argv: list[str] | None = None) -> int:
         }
     except InputError as exc:
         parser.exit(2, f"error: {exc}\n")
-    errors = sum(bool(r["error"]) for rows_ in rows.values() for r in rows_)
+    errors = [r["error"] for rows_ in rows.values() for r in rows_ if r["error"]]
+    if len(errors) == sum(map(len, rows.values())):  # nothing to show: say why instead of an empty table
+        parser.exit(2, f"error: every registration raised, e.g. {errors[0] if errors else 'no cases'}\n")
     settings = (f"`--config {args.config}`" if args.config else "the defaults") + (
         ", each registration given its sensor origin (free space)" if args.sensor_aware else ""
     )
     caption = (
         f"Method `{config.method}` with {settings}; {NOISE_MM:g} mm noise copies beside the noiseless cases; "
-        f"{errors} registrations raised. Command: `python scripts/small_view_failures.py --sets {args.sets}"
+        f"{len(errors)} registrations raised. Command: `python scripts/small_view_failures.py --sets {args.sets}"
         + (f" --config {args.config}" if args.config else "")
         + (f" --method {args.method}" if args.method else "")
         + (" --sensor-aware" if args.sensor_aware else "")
-        + f" --out {args.out} --readme {args.readme} --block {args.block}`"
+        + f" --out {args.out}"
+        + (f" --readme {args.readme} --block {args.block}`" if args.readme else "`")
     )
     write_headline(caption, summary_table(rows, TOP_VISIBILITY), args.readme, args.block)
     return 0

@@ -18,6 +18,7 @@ SETTINGS = {"method": METHOD, "ransac_candidate_visibility": THRESHOLD}
 SETS = ("real-val-v2", "real-val-v2-arap", "real-val-camera-v2")
 LAMBDAS = (0.1, 0.25, 0.5, 1.0)
 AGREE_MM = 10.0  # a confident match agrees with a pose when the pose brings its source point this close
+TAG = {"agree_mm": AGREE_MM}  # kept rows hold to the radius their agreements were measured with
 GROSS_MM = 20.0
 MIN_GAIN_MM = 0.2
 _CACHE: dict[str, Any] = {}
@@ -142,7 +143,8 @@ def verdict(rows_by_set: dict[str, list[dict[str, Any]]]) -> tuple[list[str], st
     ]
     if not passing:
         return table, "No lambda passes rule 1 on all three sets: none is chosen.", None
-    best = min(passing, key=lambda lam: (round(pooled[lam], 2), lam))
+    lowest = min(pooled[lam] for lam in passing)
+    best = min(lam for lam in passing if pooled[lam] <= lowest + 0.01)  # a tie within 0.01 mm: the smaller lambda
     gain = pooled[0.0] - pooled[best]
     if gain < MIN_GAIN_MM:
         line = f"Lambda {best:g} passes rule 1 but lowers the pooled mean by {gain:.2f} mm (< {MIN_GAIN_MM}): none is chosen."

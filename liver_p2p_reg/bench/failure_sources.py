@@ -1,15 +1,19 @@
 """Where a method's poses beyond the rigid bound come from: a wrong pick, too few screened, no candidate, ambiguity.
 
 For each pose the method's error is set beside the bound's (the configured ICP from the true pose). A pose more
-than `MARGIN_MM` worse than the bound is a failure of the method, and ICP is then run from each of its candidates:
-- "pick": a screened candidate reaches the bound's basin (within the margin), the screening chose another;
-- "screening": only a candidate that was not screened reaches it;
+than `MARGIN_MM` worse than the bound is a failure of the method, and the full ICP is then run from each of its
+candidates:
+- "pick": a screened candidate reaches the bound's basin (within the margin), and the screening (by the residual
+  after its short ICP) chose another pose;
+- "screening": only a candidate that was not screened (beyond `refine_candidates`, or skipped as a near-duplicate
+  of a screened one) reaches it;
 - "search": none reaches it, and the bound's residual is below `RESIDUAL_RATIO` x the chosen pose's: a wider
   search scored by the residual would prefer the true basin;
 - "ambiguous": none reaches it, and the residual does not prefer the true basin (deformation or a symmetric patch):
   geometry alone cannot tell, other evidence must (features, free space, more views).
-The thresholds were set when this module was written, before its first run; they sort failures and choose nothing.
-The split tells which part of the method to work on.
+The rows keep the numbers (each candidate's error after ICP, both residuals), and the table classifies them, so a
+label is never older than the thresholds. The thresholds sort failures and choose nothing; an exploratory pass
+before this module used the same 5 mm margin.
 """
 
 from __future__ import annotations
@@ -92,11 +96,12 @@ def run_case(info: CaseInfo, config_dict: dict[str, Any], sensor_aware: bool = F
         bound, bound_res = from_pose(true_pose_mm(data, info))
         reached: list[tuple[bool, float]] = []
         if final > bound + MARGIN_MM:
-            screened = {c.name for c in result.screened}
+            # without a screening (one candidate, or refine_candidates 1) the chosen one is all that was weighed
+            chosen = {result.candidates[result.chosen].name} if result.chosen is not None else set()
+            screened = {c.name for c in result.screened} or chosen
             reached = [(c.name in screened, from_pose(c.T_target_source)[0]) for c in result.candidates if c.ok]
     except LiverP2PError as exc:
         return {**row, "error": f"{type(exc).__name__}: {exc}"}
-    source_name = classify(final, float(result.residual_mm), bound, bound_res, reached)
     return {
         **row,
         "method_visibility": float(result.visibility),
@@ -106,10 +111,15 @@ def run_case(info: CaseInfo, config_dict: dict[str, Any], sensor_aware: bool = F
         "bound_residual_mm": bound_res,
         "chosen": result.candidates[result.chosen].name if result.chosen is not None else "",
         "n_candidates": len(result.candidates),
-        "best_candidate_rms_tre_mm": min((tre for _, tre in reached), default=float("nan")),
-        "source": source_name,
+        "reached": reached,  # (screened, RMS-TRE after ICP from it) per candidate; only for a pose beyond its bound
         "error": "",
     }
+
+
+def source_of(row: dict[str, Any]) -> str:
+    """A kept row's failure source ("" within the margin), by `classify` from its numbers."""
+    reached = [(bool(screened), float(tre)) for screened, tre in row["reached"]]
+    return classify(row["rms_tre_mm"], row["residual_mm"], row["bound_rms_tre_mm"], row["bound_residual_mm"], reached)
 
 
 def summary_table(rows_by_set: dict[str, list[dict[str, Any]]], top_bin: float = 0.3) -> list[str]:
@@ -126,11 +136,10 @@ def summary_table(rows_by_set: dict[str, list[dict[str, Any]]], top_bin: float =
                 continue
             final = np.array([r["rms_tre_mm"] for r in members])
             bound = np.array([r["bound_rms_tre_mm"] for r in members])
-            failed = [r for r in members if r["source"]]
-            excess = {
-                s: sum(r["rms_tre_mm"] - r["bound_rms_tre_mm"] for r in failed if r["source"] == s) for s in SOURCES
-            }
-            counts = " | ".join(f"{sum(r['source'] == s for r in failed)}" for s in SOURCES)
+            sources = [source_of(r) for r in members]
+            failed = [(r, s) for r, s in zip(members, sources, strict=True) if s]
+            excess = {s: sum(r["rms_tre_mm"] - r["bound_rms_tre_mm"] for r, t in failed if t == s) for s in SOURCES}
+            counts = " | ".join(f"{sum(t == s for _, t in failed)}" for s in SOURCES)
             shares = ", ".join(f"{s} {excess[s] / len(members):.2f}" for s in SOURCES if excess[s])
             lines.append(
                 f"| {name} | {label} | {len(members)} | {final.mean():.2f} / {bound.mean():.2f} | {len(failed)} | "

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 from synthetic_cases import write_cases
 
 from liver_p2p_reg.bench.cases import case_info
-from liver_p2p_reg.bench.failure_sources import MARGIN_MM, classify, run_case, summary_table
+from liver_p2p_reg.bench.failure_sources import MARGIN_MM, classify, run_case, source_of, summary_table
 from liver_p2p_reg.config import Config
 
 
@@ -32,12 +31,15 @@ def test_the_margin_is_measured_from_the_bound() -> None:
     assert classify(6.0 + MARGIN_MM + 0.01, 9.0, 6.0, 2.0, [(True, 6.0 + MARGIN_MM)]) == "pick"
 
 
-def test_the_table_counts_sources_and_their_share_of_the_mean() -> None:
-    def row(visibility: float, final: float, bound: float, source: str) -> dict:
-        return {"visibility": visibility, "rms_tre_mm": final, "bound_rms_tre_mm": bound, "source": source, "error": ""}
+def test_the_table_classifies_the_kept_numbers_and_counts_each_sources_share_of_the_mean() -> None:
+    def row(visibility: float, final: float, bound: float, reached: list, final_res: float = 2.0) -> dict:
+        numbers = {"rms_tre_mm": final, "residual_mm": final_res, "bound_rms_tre_mm": bound, "bound_residual_mm": 2.0}
+        return {"visibility": visibility, **numbers, "reached": reached, "error": ""}
 
-    rows = [row(0.12, 100.0, 5.0, "search"), row(0.12, 5.0, 5.0, ""), row(0.13, 45.0, 5.0, "pick"), row(0.13, 7, 5, "")]
-    rows += [row(0.25, 5.0, 5.0, ""), {"visibility": 0.12, "error": "RegistrationError: none"}, row(0.45, 9, 5, "")]
+    rows = [row(0.12, 100.0, 5.0, [[True, 90.0]], final_res=3.0), row(0.12, 5.0, 5.0, [])]  # search; at the bound
+    rows += [row(0.13, 45.0, 5.0, [[True, 6.0]]), row(0.13, 7.0, 5.0, [])]  # pick; within the margin
+    rows += [row(0.25, 5.0, 5.0, []), {"visibility": 0.12, "error": "RegistrationError: none"}, row(0.45, 9, 5, [])]
+    assert [source_of(r) for r in rows[:4]] == ["search", "", "pick", ""]
     lines = summary_table({"set-a": rows})
     assert len(lines) == 4  # header, rule, [0.10,0.15), [0.2,0.3); the raised one and the bin from 0.3 are left out
     assert lines[2] == "| set-a | [0.10,0.15) | 4 | 39.25 / 5.00 | 2 | 1 | 0 | 1 | 0 | pick 10.00, search 23.75 |"
@@ -53,12 +55,10 @@ def test_real_cases_are_registered_beside_their_bound_and_classified_by_it(tmp_p
         assert row["error"] == "" and row["method"] == method
         assert row["bound_rms_tre_mm"] < 30.0  # ICP from the true pose stays near it on the smooth deformation
         beyond = row["rms_tre_mm"] > row["bound_rms_tre_mm"] + MARGIN_MM
-        assert bool(row["source"]) == beyond
-        best = row["best_candidate_rms_tre_mm"]
-        assert np.isnan(best) != beyond  # ICP from the candidates ran exactly for the failures
-        if beyond:  # the source follows from the numbers
-            reached_basin = best <= row["bound_rms_tre_mm"] + MARGIN_MM
-            assert (row["source"] in ("pick", "screening")) == reached_basin
+        assert bool(source_of(row)) == beyond
+        assert bool(row["reached"]) == beyond  # ICP from the candidates ran exactly for the failures
+        if beyond:  # one entry per usable candidate, screened ones among them
+            assert len(row["reached"]) <= row["n_candidates"] and any(screened for screened, _ in row["reached"])
     assert run_case(case_info(paths[0]), config) == rows[0]  # seeded: the same twice
 
 
