@@ -7,10 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_seed, read_case
-from liver_p2p_reg.config import Config
+from liver_p2p_reg.bench.case_runs import case_registrar
+from liver_p2p_reg.bench.cases import CaseInfo
 from liver_p2p_reg.metrics import rms_tre_mm
-from liver_p2p_reg.registration.registrar import Registrar
 
 METHOD = "learned-p2p-ransac-icp"
 THRESHOLD = 0.2  # ransac_candidate_visibility: the cue applies where the RANSAC candidate does
@@ -21,7 +20,6 @@ AGREE_MM = 10.0  # a confident match agrees with a pose when the pose brings its
 TAG = {"agree_mm": AGREE_MM}  # kept rows hold to the radius their agreements were measured with
 GROSS_MM = 20.0
 MIN_GAIN_MM = 0.2
-_CACHE: dict[str, Any] = {}
 
 
 def agreement(
@@ -55,12 +53,9 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
     from liver_p2p_reg.registration.pipeline import feature_provider
     from liver_p2p_reg.registration.preprocess import preprocess_pair
 
-    data = read_case(info.path)
+    data, target, registrar = case_registrar(info, config_dict)
     src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
-    config = Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)})
-    registrar = Registrar(config)
-    registrar.cache = _CACHE
-    source, target = data["src_pcd"], add_target_noise(np.asarray(data["tgt_pcd"], float), info)
+    source, config = data["src_pcd"], registrar.config
     result = registrar.register(source, target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker)
     row: dict[str, Any] = {
         "case_id": info.case_id,
@@ -75,7 +70,9 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
     provider = feature_provider("learned", config, MethodContext(cache=registrar.cache), source, [])()
     with torch.inference_mode():
         x_src, x_tgt = provider.describe(
-            torch.as_tensor(prep.source, dtype=torch.float32), torch.as_tensor(prep.target, dtype=torch.float32), {}
+            torch.as_tensor(prep.source, dtype=torch.float32),
+            torch.as_tensor(prep.target, dtype=torch.float32),
+            registrar.cache,  # the source's features the registration just computed
         )
         confidence, match = dual_softmax(score_matrix(x_src, x_tgt), config.temperature).max(dim=0)
     matched_mm = prep.source_norm.invert(prep.source[match.numpy()])

@@ -7,15 +7,37 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
-from liver_p2p_reg.bench.cases import CaseInfo, case_info, list_case_paths, resolve_dataset, with_noise
+from liver_p2p_reg.bench.cases import (
+    CaseInfo,
+    add_target_noise,
+    case_info,
+    case_seed,
+    list_case_paths,
+    read_case,
+    resolve_dataset,
+    with_noise,
+)
 from liver_p2p_reg.bench.harness import omp_threads
+from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.files import write_text_atomic
 from liver_p2p_reg.pools import spawn_pool
+from liver_p2p_reg.registration.registrar import Registrar
 
 NOISE_MM = 2.0
+_CACHE: dict[str, Any] = {}  # one per worker process, shared across cases as the benchmark shares it
+
+
+def case_registrar(info: CaseInfo, config_dict: dict[str, Any]) -> tuple[dict[str, Any], np.ndarray, Registrar]:
+    """A case as the benchmark registers it: its data, its target with the case's added noise, and a Registrar of
+    the settings with the case's seed (the process's shared cache)."""
+    data = read_case(info.path)
+    registrar = Registrar(Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)}))
+    registrar.cache = _CACHE
+    return data, add_target_noise(np.asarray(data["tgt_pcd"], float), info), registrar
 
 
 def set_rows(

@@ -23,27 +23,21 @@ from typing import Any
 
 import numpy as np
 
+from liver_p2p_reg.bench.case_runs import case_registrar
 from liver_p2p_reg.bench.cases import (
     BIN_EDGES,
     BIN_LABELS,
     CaseInfo,
-    add_target_noise,
-    case_seed,
-    read_case,
     sensor_origin_mm,
     visibility_bin,
 )
 from liver_p2p_reg.bench.harness import true_pose_mm
-from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.metrics import rms_tre_mm
-from liver_p2p_reg.registration.registrar import Registrar
 
 MARGIN_MM = 5.0  # a pose this much worse than the bound is the method's failure, not the deformation's
 RESIDUAL_RATIO = 0.9  # the residual "prefers" the true basin when the bound's is below this share of the chosen one's
 SOURCES = ("pick", "screening", "search", "ambiguous")
-
-_CACHE: dict[str, Any] = {}  # one per worker process, shared across cases as the benchmark shares it
 
 
 def classify(
@@ -69,11 +63,9 @@ def run_case(info: CaseInfo, config_dict: dict[str, Any], sensor_aware: bool = F
 
     `sensor_aware`: the registration gets the case's sensor origin (free space), as the benchmark's `[fs]` rows.
     """
-    data = read_case(info.path)
+    data, target, registrar = case_registrar(info, config_dict)
     src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
-    registrar = Registrar(Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)}))
-    registrar.cache = _CACHE
-    source, target = data["src_pcd"], add_target_noise(np.asarray(data["tgt_pcd"], float), info)
+    source = data["src_pcd"]
     row: dict[str, Any] = {
         "case_id": info.case_id,
         "method": config_dict["method"],

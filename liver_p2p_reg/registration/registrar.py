@@ -185,13 +185,13 @@ class Registrar:
         try:
             source = clean_points(source_mm, "source", min_points=self.config.min_points)
             centre = source[np.argmax(source[:, 0])]  # a deterministic cap of the surface
-            share = 1 / 3
+            count = len(source) // 3
             threshold = self.config.ransac_candidate_visibility
             if check_method_name(method or self.config.method).ransac_candidate and threshold > 0:
                 # a cap small enough for RANSAC's pose too: Open3D's first use and the source's FPFH are paid here,
                 # not by the first small view (M/N, a voxel share, follows the point share of a cap)
-                share = min(share, threshold / 2)
-            near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(int(len(source) * share), 3)]
+                count = min(count, int(len(source) * threshold / 2))
+            near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(count, 3)]
             self.register(source, source[near], method=method)
             if self.config.deform:  # the elastic model (seconds) is built here, not on the first frame
                 self.prepare_deformation(source, source_triangles, mesh_vertices_mm=mesh_vertices_mm)
