@@ -9,6 +9,7 @@ import numpy as np
 
 from liver_p2p_reg.bench.case_runs import case_registrar
 from liver_p2p_reg.bench.cases import CaseInfo
+from liver_p2p_reg.bench.composed_rule import rule_verdict
 from liver_p2p_reg.metrics import rms_tre_mm
 
 METHOD = "learned-p2p-ransac-icp"
@@ -18,8 +19,6 @@ SETS = ("real-val-v2", "real-val-v2-arap", "real-val-camera-v2")
 LAMBDAS = (0.1, 0.25, 0.5, 1.0)
 AGREE_MM = 10.0  # a confident match agrees with a pose when the pose brings its source point this close
 TAG = {"agree_mm": AGREE_MM}  # kept rows hold to the radius their agreements were measured with
-GROSS_MM = 20.0
-MIN_GAIN_MM = 0.2
 
 
 def agreement(
@@ -121,33 +120,6 @@ def verdict(rows_by_set: dict[str, list[dict[str, Any]]]) -> tuple[list[str], st
     chosen lambda (None: none)."""
     small = {name: [r for r in rows if 0.05 <= r["visibility"] < 0.2] for name, rows in rows_by_set.items()}
     lams = (0.0, *LAMBDAS)
-    tre = {(name, lam): composed_tre(rows, lam) for name, rows in small.items() for lam in lams}
-    head = "| set (poses at [0.05, 0.2)) | " + " | ".join(f"lambda {lam:g}" for lam in lams) + " |"
-    table = [head, "|" + "---|" * (len(lams) + 1)]
-    for name, rows in small.items():
-        cells = [f"{tre[name, lam].mean():.2f} / {int((tre[name, lam] >= GROSS_MM).sum())}" for lam in lams]
-        table.append(f"| {name} ({len(rows)}) | " + " | ".join(cells) + " |")
-    pooled = {lam: float(np.concatenate([tre[name, lam] for name in small]).mean()) for lam in lams}
-    table.append("| pooled mean | " + " | ".join(f"{pooled[lam]:.2f}" for lam in lams) + " |")
-    passing = [
-        lam
-        for lam in LAMBDAS
-        if all(
-            tre[name, lam].mean() <= tre[name, 0.0].mean()
-            and (tre[name, lam] >= GROSS_MM).sum() <= (tre[name, 0.0] >= GROSS_MM).sum()
-            for name in small
-        )
-    ]
-    if not passing:
-        return table, "No lambda passes rule 1 on all three sets: none is chosen.", None
-    lowest = min(pooled[lam] for lam in passing)
-    best = min(lam for lam in passing if pooled[lam] <= lowest + 0.01)  # a tie within 0.01 mm: the smaller lambda
-    gain = pooled[0.0] - pooled[best]
-    if gain < MIN_GAIN_MM:
-        line = f"Lambda {best:g} passes rule 1 but lowers the pooled mean by {gain:.2f} mm (< {MIN_GAIN_MM}): none is chosen."
-        return table, line, None
-    return (
-        table,
-        f"Lambda {best:g} passes rules 1 and 2 (pooled mean {pooled[0.0]:.2f} -> {pooled[best]:.2f} mm).",
-        best,
-    )
+    tre = {name: {lam: composed_tre(rows, lam) for lam in lams} for name, rows in small.items()}
+    table, line, chosen = rule_verdict(tre, 0.0, LAMBDAS, {lam: f"lambda {lam:g}" for lam in lams}, "lambda")
+    return table, line, None if chosen is None else float(chosen)

@@ -1,0 +1,142 @@
+"""The small views' close contenders judged after the full ICP and the elastic stage: the data per case, the composed
+poses, the rule (docs/benchmark_real/RULE_deformed_screening.md)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from liver_p2p_reg.bench.case_runs import case_registrar
+from liver_p2p_reg.bench.cases import CaseInfo
+from liver_p2p_reg.bench.composed_rule import rule_verdict
+from liver_p2p_reg.metrics import rms_tre_mm
+
+METHOD = "learned-p2p-ransac-icp"
+THRESHOLD = 0.2  # ransac_candidate_visibility: the judges apply where the RANSAC candidate does
+SETTINGS = {"method": METHOD, "ransac_candidate_visibility": THRESHOLD}
+SETS = ("real-val-v2", "real-val-v2-arap", "real-val-camera-v2")
+JUDGES = ("rigid", "deformed", "predictive")
+RATIOS = (1.1, 1.25, 1.5)
+SAME_POSE_MM = 0.5  # refined poses this close (RMS at the preop points) share the stage's numbers
+TAG = {"max_ratio": max(RATIOS), "same_pose_mm": SAME_POSE_MM}
+CANDIDATES = tuple((judge, r) for judge in JUDGES for r in RATIOS)  # the rule's tie order: the cheaper first
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
+    """One case registered as the benchmark does; on a small view that screened two or more candidates, each
+    contender's (short residual within max(RATIOS) x the lowest) error and keys after the full ICP and the stage."""
+    data, target, registrar = case_registrar(info, config_dict)
+    src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
+    source, config = np.asarray(data["src_pcd"], float), registrar.config
+    result = registrar.register(source, target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker)
+    row: dict[str, Any] = {
+        "case_id": info.case_id,
+        "visibility": info.visibility,
+        "method_visibility": float(result.visibility),
+        "rms_tre_mm": float(rms_tre_mm(result.T_target_source, src_marker, tgt_marker)),
+        "added_ms": 0.0,
+        "screened": [],
+    }
+    if not result.visibility < config.ransac_candidate_visibility or len(result.screened) < 2:
+        return row
+    raw = {c.name: c.T_target_source for c in result.candidates}
+    chosen = result.candidates[result.chosen].name
+    lowest = min(s.residual_mm for s in result.screened)
+    probe = source[:: max(len(source) // 2000, 1)]  # where two refined poses are compared
+    done: list[tuple[np.ndarray, dict[str, Any]]] = []
+    start, own_icp_ms = time.perf_counter(), 0.0
+    for screened in result.screened:
+        if not screened.residual_mm <= max(RATIOS) * lowest:
+            continue
+        icp_start = time.perf_counter()
+        refined = registrar.register(source, target, method="track", initial_T_mm=raw[screened.name])
+        if screened.name == chosen:  # the pipeline refines its choice anyway
+            own_icp_ms = (time.perf_counter() - icp_start) * 1e3
+        moved = probe @ refined.T_target_source[:3, :3].T + refined.T_target_source[:3, 3]
+        twin = next((k for p, k in done if np.sqrt(np.mean(np.sum((p - moved) ** 2, axis=1))) < SAME_POSE_MM), None)
+        if twin is None:
+            registrar.deform(refined, source, target, data.get("src_triangles"))
+            stage = refined.deformation
+            twin = {
+                "deformed_residual_mm": _finite(stage.residual_after_mm),
+                "holdout_gain": _finite(stage.holdout_gain),
+                "stage_applied": bool(stage.applied),
+            }
+            done.append((moved, twin))
+        row["screened"].append(
+            {
+                "name": screened.name,
+                "chosen": screened.name == chosen,
+                "short_residual_mm": float(screened.residual_mm),
+                "rms_tre_mm": float(rms_tre_mm(refined.T_target_source, src_marker, tgt_marker)),
+                "full_residual_mm": float(refined.residual_mm),
+                **twin,
+            }
+        )
+    # what the judges add: the other contenders' ICP and every stage run
+    row["added_ms"] = (time.perf_counter() - start) * 1e3 - own_icp_ms
+    return row
+
+
+def key(contender: dict[str, Any], judge: str) -> float:
+    """A contender's key under `judge` (lowest wins); see the rule."""
+    rigid = contender["full_residual_mm"]
+    if judge == "rigid":
+        return rigid
+    deformed = contender["deformed_residual_mm"] if contender["deformed_residual_mm"] is not None else rigid
+    if judge == "deformed" or contender["holdout_gain"] is None:
+        return deformed
+    return deformed * (1.0 - contender["holdout_gain"])
+
+
+def judged_choice(contenders: list[dict[str, Any]], judge: str | None, ratio: float) -> int:
+    """The index of the winner among the contenders within `ratio` x the lowest short residual (judge None: the
+    screening's own choice, the lowest short residual); the first of equals."""
+    lowest = min(c["short_residual_mm"] for c in contenders)
+    if judge is None:
+        return int(np.argmin([c["short_residual_mm"] for c in contenders]))
+    keys = [key(c, judge) if c["short_residual_mm"] <= ratio * lowest else np.inf for c in contenders]
+    return int(np.argmin(keys))
+
+
+def composed_tre(rows: list[dict[str, Any]], judge: str | None, ratio: float = 1.0) -> np.ndarray:
+    """Each case's RMS-TRE when `judge` picks among its contenders (the method's own where none were kept)."""
+    return np.array(
+        [
+            r["screened"][judged_choice(r["screened"], judge, ratio)]["rms_tre_mm"]
+            if r["screened"]
+            else r["rms_tre_mm"]
+            for r in rows
+        ]
+    )
+
+
+def reproduction_mismatches(rows: list[dict[str, Any]], tolerance_mm: float = 1e-6) -> list[str]:
+    """Cases where the screening's own choice among the kept contenders is not the method's pose."""
+    bad = []
+    for r in rows:
+        if not r["screened"]:
+            continue
+        pick = r["screened"][judged_choice(r["screened"], None, 1.0)]
+        if not pick["chosen"] or abs(pick["rms_tre_mm"] - r["rms_tre_mm"]) > tolerance_mm:
+            bad.append(r["case_id"])
+    return bad
+
+
+def verdict(rows_by_set: dict[str, list[dict[str, Any]]]) -> tuple[list[str], str, tuple[str, float] | None]:
+    """The rule's table (per set: mean / poses >= 20 mm for the method's own and each candidate), its verdict line,
+    the chosen (judge, ratio) (None: none)."""
+    small = {name: [r for r in rows if 0.05 <= r["visibility"] < 0.2] for name, rows in rows_by_set.items()}
+    tre = {
+        name: {"own": composed_tre(rows, None), **{c: composed_tre(rows, *c) for c in CANDIDATES}}
+        for name, rows in small.items()
+    }
+    label = {"own": "the method's own", **{c: f"{c[0]} r{c[1]:g}" for c in CANDIDATES}}
+    table, line, chosen = rule_verdict(tre, "own", CANDIDATES, label, "judge")
+    return table, line, chosen  # type: ignore[return-value]

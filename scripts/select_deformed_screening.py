@@ -1,0 +1,66 @@
+"""Apply the deformed-screening rule (docs/benchmark_real/RULE_deformed_screening.md) on the three validation sets.
+
+    .venv/bin/python scripts/select_deformed_screening.py [--out out/select_deformed] \
+        [--report docs/benchmark_real/selection_deformed_screening.md]
+
+`learned-p2p-ransac-icp` at `ransac_candidate_visibility` 0.2 on every case below visibility 0.2 and its 2 mm noise
+copy; per close contender its error and residuals after the full ICP and the elastic stage
+(liver_p2p_reg/bench/deformed_screening.py). Rows kept in OUT/SET.json. Each judge's poses are composed from them;
+the screening's own choice must give the method's own pose in every case, or there is no verdict.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from liver_p2p_reg.bench.candidate_runs import publish_report
+from liver_p2p_reg.bench.case_runs import set_rows
+from liver_p2p_reg.bench.deformed_screening import SETS, SETTINGS, TAG, collect_case, reproduction_mismatches, verdict
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.errors import LiverP2PError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="out/select_deformed")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--report", help="write the table and verdict here (markdown)")
+    args = parser.parse_args(argv)
+    settings = Config.from_dict(SETTINGS).to_dict()
+    try:
+        rows = {
+            name: set_rows(
+                name, collect_case, settings, Path(args.out), below_visibility=0.2, workers=args.workers, tag=TAG
+            )
+            for name in SETS
+        }
+    except LiverP2PError as exc:  # a set's cases could not be read, or a registration raised: nothing is kept
+        parser.exit(2, f"error: {exc}\n")
+    table, line, _ = verdict(rows)
+    bad = {name: reproduction_mismatches(set_) for name, set_ in rows.items()}
+    judged = [r for set_ in rows.values() for r in set_ if r["screened"]]
+    added = np.array([r["added_ms"] for r in judged]) if judged else np.zeros(1)
+    table += [
+        "",
+        f"Cases with two or more screened candidates: {len(judged)}; the screening's own choice differs from the "
+        f"method's own pose in {sum(map(len, bad.values()))}"
+        + "".join(f"; {n}: {', '.join(b[:3])}" for n, b in bad.items() if b)
+        + ".",
+        f"Time the judges add per such case (the other contenders' full ICP and every contender's elastic stage, one "
+        f"thread): median {np.median(added):.0f} ms, 90th percentile {np.percentile(added, 90):.0f} ms.",
+    ]
+    if any(bad.values()):
+        line = "The screening's own choice does not reproduce the method's poses: no verdict."
+    command = f"python scripts/select_deformed_screening.py --out {args.out}" + (
+        f" --report {args.report}" if args.report else ""
+    )
+    title = "Close contenders judged after the full ICP and the elastic stage, on the validation sets (rule: RULE_deformed_screening.md)"
+    publish_report(title, table, line, command, args.report)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

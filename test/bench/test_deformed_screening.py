@@ -1,0 +1,104 @@
+"""The deformed-screening rule: the keys, the judged choice, the composed poses, the verdict; real collected rows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synthetic_cases import write_cases
+
+from liver_p2p_reg.bench.cases import case_info
+from liver_p2p_reg.bench.deformed_screening import (
+    SETTINGS,
+    collect_case,
+    composed_tre,
+    judged_choice,
+    key,
+    reproduction_mismatches,
+    verdict,
+)
+from liver_p2p_reg.config import Config
+
+
+def _contender(short: float, full: float, tre: float, deformed=None, gain=None, chosen=False) -> dict:
+    return {
+        "short_residual_mm": short,
+        "full_residual_mm": full,
+        "deformed_residual_mm": deformed,
+        "holdout_gain": gain,
+        "rms_tre_mm": tre,
+        "chosen": chosen,
+    }
+
+
+def test_each_judge_keys_its_own_number_and_falls_back_where_the_stage_did_not_run() -> None:
+    c = _contender(2.0, 1.9, 5.0, deformed=1.5, gain=0.2)
+    assert key(c, "rigid") == 1.9
+    assert key(c, "deformed") == 1.5
+    assert key(c, "predictive") == pytest.approx(1.2)
+    no_gain = _contender(2.0, 1.9, 5.0, deformed=1.5)
+    assert key(no_gain, "predictive") == 1.5
+    no_stage = _contender(2.0, 6.0, 5.0)  # a gross pose: the stage did not fit
+    assert key(no_stage, "deformed") == key(no_stage, "predictive") == 6.0
+
+
+def test_only_contenders_within_the_ratio_are_judged_and_the_first_of_equals_wins() -> None:
+    flip = _contender(2.0, 2.1, 90.0, deformed=2.0, chosen=True)
+    truth = _contender(2.3, 2.0, 6.0, deformed=1.6)  # 1.15 x the lowest short residual
+    assert judged_choice([flip, truth], None, 1.0) == 0  # the screening's own: the lowest short residual
+    assert judged_choice([flip, truth], "rigid", 1.1) == 0  # the truth is not a contender at 1.1
+    assert judged_choice([flip, truth], "rigid", 1.25) == 1
+    assert judged_choice([flip, truth], "deformed", 1.25) == 1
+    twins = [_contender(2.0, 2.0, 9.0, chosen=True), _contender(2.0, 2.0, 5.0)]
+    assert judged_choice(twins, "rigid", 1.5) == 0
+    row = {"case_id": "c", "visibility": 0.12, "rms_tre_mm": 90.0, "screened": [flip, truth]}
+    assert composed_tre([row], "rigid", 1.5).tolist() == [6.0]
+    assert composed_tre([row], None).tolist() == [90.0]
+    assert composed_tre([{**row, "screened": []}], "rigid", 1.5).tolist() == [90.0]  # nothing kept: the own pose
+    assert reproduction_mismatches([row]) == []
+    assert reproduction_mismatches([{**row, "rms_tre_mm": 6.0}]) == ["c"]
+
+
+def _set(spoil: bool = False) -> list[dict]:
+    """20 small views: one flip every judge from r 1.25 up mends; with `spoil`, a right pose the rigid judge loses."""
+    rows = [{"case_id": f"g{i}", "visibility": 0.1, "rms_tre_mm": 5.0, "screened": []} for i in range(18)]
+    flip = [_contender(2.0, 2.1, 90.0, deformed=2.0, chosen=True), _contender(2.3, 2.0, 6.0, deformed=1.6)]
+    rows.append({"case_id": "f", "visibility": 0.1, "rms_tre_mm": 90.0, "screened": flip})
+    good = [_contender(2.0, 2.0, 5.0, deformed=1.5, chosen=True), _contender(2.05, 1.95, 80.0, deformed=1.9)]
+    rows.append({"case_id": "s", "visibility": 0.15, "rms_tre_mm": 5.0, "screened": good if spoil else good[:1]})
+    return rows
+
+
+def test_the_verdict_takes_the_cheapest_of_the_lowest_pooled_means_without_harm() -> None:
+    table, line, chosen = verdict({"a": _set(), "b": _set(), "c": _set()})
+    assert chosen == ("rigid", 1.25) and line.startswith("Rigid r1.25 passes rules 1 and 2 (pooled mean 9.25 -> 5.05")
+    assert (
+        table[2]
+        == "| a (20) | 9.25 / 1 | 9.25 / 1 | 5.05 / 0 | 5.05 / 0 | 9.25 / 1 | 5.05 / 0 | 5.05 / 0 | 9.25 / 1 | 5.05 / 0 | 5.05 / 0 |"
+    )
+    # the rigid judge spoils a right pose on one set (80 mm: a gross pose more): only the deformed judges pass
+    table, line, chosen = verdict({"a": _set(), "b": _set(), "c": _set(spoil=True)})
+    assert chosen == ("deformed", 1.25), (line, table)  # at 1.1 the flip's truth (1.15 x) is not a contender
+    # nothing mended anywhere: no gain, none chosen
+    calm = [r if r["case_id"] != "f" else {**r, "rms_tre_mm": 6.0, "screened": []} for r in _set()]
+    assert verdict({"a": calm, "b": calm, "c": calm})[2] is None
+
+
+def test_collected_rows_reproduce_the_methods_own_pose(tmp_path: Path) -> None:
+    paths = write_cases(tmp_path / "cases", per_bin=1)[:3]  # ellipsoids at 20-50 %: the threshold is raised to reach
+    config = Config.from_dict({**SETTINGS, "ransac_candidate_visibility": 1.0}).to_dict()
+    rows = [collect_case(case_info(path), config) for path in paths]
+    contenders = [c for row in rows for c in row["screened"]]
+    assert contenders and any(c["deformed_residual_mm"] is not None for c in contenders)  # the stage ran on some
+    for row in rows:
+        if row["screened"]:
+            assert sum(c["chosen"] for c in row["screened"]) == 1
+            lowest = min(c["short_residual_mm"] for c in row["screened"])
+            assert all(c["short_residual_mm"] <= 1.5 * lowest for c in row["screened"])
+            assert row["added_ms"] > 0.0
+    for c in contenders:
+        assert np.isfinite(c["full_residual_mm"]) and np.isfinite(c["rms_tre_mm"])
+        if c["full_residual_mm"] > 5.0:  # deform_max_residual_mm: the stage refuses a gross pose before its fit
+            assert c["deformed_residual_mm"] is None and c["holdout_gain"] is None
+    assert reproduction_mismatches(rows) == []
