@@ -123,6 +123,10 @@ class IcpSection:
     # learned-p2p-ransac-icp: the FPFH + RANSAC pose is screened beside P2P's candidates when the view's
     # estimated visibility (intraop / preop voxels) is below this (0: never, 1: always)
     ransac_candidate_visibility: float = 0.3
+    # learned-p2p-ransac-icp on those small views: the screened candidates whose short residual is within this factor
+    # of the lowest are each refined by the full ICP and the one the elastic stage fits best wins (0: off; 1.5 chosen
+    # on validation sets, docs/benchmark_real/RULE_deformed_screening.md; needs the preop model's elastic model)
+    contender_judge_ratio: float = 0.0
     icp_max_iterations: int = 50
     icp_max_corr_norm: float = 0.1  # ICP correspondence gate (normalized units)
     icp_trim_ratio: float = 0.8  # robust ICP keeps this share of closest pairs
@@ -316,6 +320,10 @@ class Config(
             raise InputError(f"deform_min_gain must be in [0, 1), got {self.deform_min_gain}")
         if not -1 <= self.deform_min_holdout_gain < 1:
             raise InputError(f"deform_min_holdout_gain must be in [-1, 1), got {self.deform_min_holdout_gain}")
+        if not (self.contender_judge_ratio == 0 or 1 <= self.contender_judge_ratio < float("inf")):
+            raise InputError(
+                f"contender_judge_ratio must be 0 (off) or a finite factor >= 1, got {self.contender_judge_ratio}"
+            )
         if not 0 <= self.ransac_candidate_visibility <= 1:
             raise InputError(f"ransac_candidate_visibility must be in [0, 1], got {self.ransac_candidate_visibility}")
         if not 0 <= self.expected_extent_min_mm < self.expected_extent_max_mm:

@@ -20,6 +20,9 @@ class Candidate:
     inliers: int = 0  # matches within the inlier radius (used by the inlier-count rule)
     # share of the view's footprint this pose contradicts (freespace.py); NaN: sensor origin unknown
     free_space_violation: float = float("nan")
+    # a screened contender's key under `contender_judge_ratio` (its residual after the elastic stage's fit from its
+    # full ICP, mm; lowest wins); NaN: not judged
+    judge_key_mm: float = float("nan")
 
     def to_json_dict(self) -> dict[str, Any]:
         return {
@@ -30,6 +33,7 @@ class Candidate:
             "inliers": int(self.inliers),
             "ok": bool(self.ok),
             "free_space_violation": _finite_or_none(self.free_space_violation),
+            "judge_key_mm": _finite_or_none(self.judge_key_mm),
         }
 
 

@@ -1,12 +1,17 @@
 """Apply the deformed-screening rule (docs/benchmark_real/RULE_deformed_screening.md) on the three validation sets.
 
     .venv/bin/python scripts/select_deformed_screening.py [--out out/select_deformed] \
-        [--report docs/benchmark_real/selection_deformed_screening.md]
+        [--report docs/benchmark_real/selection_deformed_screening.md] [--check-run] \
+        [--test-report docs/benchmark_real/judgement_deformed_screening.md]
 
 `learned-p2p-ransac-icp` at `ransac_candidate_visibility` 0.2 on every case below visibility 0.2 and its 2 mm noise
 copy; per close contender its error and residuals after the full ICP and the elastic stage
 (liver_p2p_reg/bench/deformed_screening.py). Rows kept in OUT/SET.json. Each judge's poses are composed from them;
 the screening's own choice must give the method's own pose in every case, or there is no verdict.
+
+`--check-run` (rule 3): the judge built in (`contender_judge_ratio`) on every such case of real-val-v2 must give
+the composed pose. `--test-report`: the four real test sets' small views, the method's own poses beside the judged
+ones and the rigid bound (rows kept in OUT/test/SET.json).
 """
 
 from __future__ import annotations
@@ -18,7 +23,20 @@ import numpy as np
 
 from liver_p2p_reg.bench.candidate_runs import publish_report
 from liver_p2p_reg.bench.case_runs import set_rows
-from liver_p2p_reg.bench.deformed_screening import SETS, SETTINGS, TAG, collect_case, reproduction_mismatches, verdict
+from liver_p2p_reg.bench.deformed_screening import (
+    CHECK_SET,
+    SETS,
+    SETTINGS,
+    TAG,
+    TEST_SETS,
+    check_mismatches,
+    collect_case,
+    judged_case,
+    judgement_table,
+    noisy,
+    reproduction_mismatches,
+    verdict,
+)
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 
@@ -28,15 +46,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="out/select_deformed")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report", help="write the table and verdict here (markdown)")
+    parser.add_argument("--check-run", action="store_true", help="run the built-in judge on real-val-v2 (rule 3)")
+    parser.add_argument("--test-report", help="judge it on the four real test sets; the table goes here (markdown)")
     args = parser.parse_args(argv)
     settings = Config.from_dict(SETTINGS).to_dict()
+    out = Path(args.out)
     try:
         rows = {
-            name: set_rows(
-                name, collect_case, settings, Path(args.out), below_visibility=0.2, workers=args.workers, tag=TAG
-            )
+            name: set_rows(name, collect_case, settings, out, below_visibility=0.2, workers=args.workers, tag=TAG)
             for name in SETS
         }
+        check = (
+            set_rows(CHECK_SET, judged_case, settings, out / "check", below_visibility=0.2, workers=args.workers)
+            if args.check_run
+            else None
+        )
+        tested = (
+            {
+                name: set_rows(name, judged_case, settings, out / "test", below_visibility=0.2, workers=args.workers)
+                for name in TEST_SETS
+            }
+            if args.test_report
+            else None
+        )
     except LiverP2PError as exc:  # a set's cases could not be read, or a registration raised: nothing is kept
         parser.exit(2, f"error: {exc}\n")
     table, line, _ = verdict(rows)
@@ -54,11 +86,37 @@ def main(argv: list[str] | None = None) -> int:
     ]
     if any(bad.values()):
         line = "The screening's own choice does not reproduce the method's poses: no verdict."
+    if check is not None:
+        off = check_mismatches(check, rows[CHECK_SET])
+        table.append(
+            f"Rule 3's check (`--check-run`): the judge built in (`contender_judge_ratio` 1.5) on the {len(check)} "
+            f"poses of {CHECK_SET} gives the composed pose (RMS-TRE within 0.01 mm) in {len(check) - len(off)}"
+            + (f"; not in {', '.join(off[:5])}" if off else "")
+            + "."
+        )
     command = f"python scripts/select_deformed_screening.py --out {args.out}" + (
         f" --report {args.report}" if args.report else ""
     )
     title = "Close contenders judged after the full ICP and the elastic stage, on the validation sets (rule: RULE_deformed_screening.md)"
-    publish_report(title, table, line, command, args.report)
+    publish_report(title, table, line, command + (" --check-run" if check is not None else ""), args.report)
+    if tested is not None:
+        pooled = {
+            name: (np.mean([r["own_mm"] for r in noisy(rs)]), np.mean([r["judged_mm"] for r in noisy(rs)]))
+            for name, rs in tested.items()
+        }
+        summary = (
+            "2 mm noise, pooled over [0.05, 0.2), own -> judged mean: "
+            + "; ".join(f"{name} {a:.2f} -> {b:.2f} mm" for name, (a, b) in pooled.items())
+            + f". Judged lower on {sum(b < a for a, b in pooled.values())} of {len(pooled)} sets."
+        )
+        title = "The contenders' judge (elastic stage's residual, r 1.5) on the real test sets' small views"
+        publish_report(
+            title,
+            judgement_table(tested),
+            summary,
+            f"python scripts/select_deformed_screening.py --out {args.out} --test-report {args.test_report}",
+            args.test_report,
+        )
     return 0
 
 

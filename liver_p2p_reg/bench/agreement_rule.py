@@ -9,7 +9,8 @@ import numpy as np
 
 from liver_p2p_reg.bench.case_runs import case_registrar
 from liver_p2p_reg.bench.cases import CaseInfo
-from liver_p2p_reg.bench.composed_rule import rule_verdict
+from liver_p2p_reg.bench.composed_rule import composed, rule_verdict
+from liver_p2p_reg.bench.composed_rule import reproduction_mismatches as own_mismatches
 from liver_p2p_reg.metrics import rms_tre_mm
 
 METHOD = "learned-p2p-ransac-icp"
@@ -95,24 +96,12 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
 
 def composed_tre(rows: list[dict[str, Any]], lam: float) -> np.ndarray:
     """Each case's RMS-TRE when the screening's key carries `lam` (the method's own where nothing was screened)."""
-    return np.array(
-        [
-            r["screened"][keyed_choice(r["screened"], lam)]["rms_tre_mm"] if r["screened"] else r["rms_tre_mm"]
-            for r in rows
-        ]
-    )
+    return composed(rows, lambda screened: keyed_choice(screened, lam))
 
 
 def reproduction_mismatches(rows: list[dict[str, Any]], tolerance_mm: float = 1e-6) -> list[str]:
     """Cases where lambda = 0 does not give the method's own pose (then the composition is not the pipeline's)."""
-    bad = []
-    for r in rows:
-        if not r["screened"]:
-            continue
-        pick = r["screened"][keyed_choice(r["screened"], 0.0)]
-        if not pick["chosen"] or abs(pick["rms_tre_mm"] - r["rms_tre_mm"]) > tolerance_mm:
-            bad.append(r["case_id"])
-    return bad
+    return own_mismatches(rows, lambda screened: keyed_choice(screened, 0.0), tolerance_mm)
 
 
 def verdict(rows_by_set: dict[str, list[dict[str, Any]]]) -> tuple[list[str], str, float | None]:

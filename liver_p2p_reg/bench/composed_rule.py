@@ -2,13 +2,38 @@
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Sequence
+from typing import Any
 
 import numpy as np
 
 GROSS_MM = 20.0
 MIN_GAIN_MM = 0.2
 TIE_MM = 0.01  # pooled means this close are a tie: the earlier candidate (the cheaper or smaller) wins
+
+
+Choice = Callable[[list[dict[str, Any]]], int]  # a case's kept candidates -> the index of the one taken
+
+
+def composed(rows: list[dict[str, Any]], choose: Choice) -> np.ndarray:
+    """Each case's RMS-TRE when `choose` picks among its kept candidates (`screened`; the method's own pose where
+    none were kept)."""
+    return np.array(
+        [r["screened"][choose(r["screened"])]["rms_tre_mm"] if r["screened"] else r["rms_tre_mm"] for r in rows]
+    )
+
+
+def reproduction_mismatches(rows: list[dict[str, Any]], own: Choice, tolerance_mm: float = 1e-6) -> list[str]:
+    """Cases where `own` (the screening's own choice composed from the kept numbers) is not the method's pose: then
+    the composition is not the pipeline's."""
+    bad = []
+    for r in rows:
+        if not r["screened"]:
+            continue
+        pick = r["screened"][own(r["screened"])]
+        if not pick["chosen"] or abs(pick["rms_tre_mm"] - r["rms_tre_mm"]) > tolerance_mm:
+            bad.append(r["case_id"])
+    return bad
 
 
 def rule_verdict(

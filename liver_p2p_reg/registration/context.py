@@ -20,6 +20,8 @@ class MethodContext:
     cache: dict[str, Any] = field(default_factory=dict)
     initial_T_mm: np.ndarray | None = None  # a prior T_target_source (method `track`)
     sensor_origin_mm: np.ndarray | None = None  # (3,) where the target's sensor stood, target frame (free space)
+    # small views' contenders -> their keys (contenders.py: the elastic stage's residual); None: no judge
+    judge_keys: Callable[[list[np.ndarray], list[float]], list[float]] | None = None
 
 
 def remember_latest(

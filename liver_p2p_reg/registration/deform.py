@@ -119,6 +119,48 @@ def not_applied(T: np.ndarray, reason: str, **known: Any) -> Deformation:
     return Deformation(applied=False, reason=reason, T_target_source=np.asarray(T, dtype=np.float64).copy(), **known)
 
 
+def _refusal(residual_mm: float, n_view_points: int, config: Config) -> str:
+    """Why the stage does not fit from a pose of this residual on a view of this size ("": it fits)."""
+    cfg = config.deformation
+    if n_view_points < cfg.deform_min_points:
+        return f"too little overlap: {n_view_points} view points < deform_min_points"
+    if not residual_mm <= cfg.deform_max_residual_mm:
+        return f"rigid residual {residual_mm:.1f} mm > {cfg.deform_max_residual_mm:g} mm: a gross pose"
+    return ""
+
+
+def fitted_residual_mm(
+    T_mm: np.ndarray,
+    residual_mm: float,
+    source_mm: np.ndarray,
+    target_mm: np.ndarray,
+    config: Config,
+    cache: dict[str, Any],
+    triangles: np.ndarray | None = None,
+    fit_points_mm: np.ndarray | None = None,
+) -> float | None:
+    """The stage's residual after its fit from the rigid pose `T_mm` (of ICP residual `residual_mm`): what the view
+    leaves unexplained by a plausible deformation. None where the stage would not fit (`deform_result`'s checks
+    before its fit; those after it and the held-out check do not run)."""
+    from liver_p2p_reg.registration.deform_fit import fit_deformation
+
+    if _refusal(residual_mm, len(target_mm), config):
+        return None
+    try:
+        model = elastic_model(cache, source_mm, triangles, config, fit_points_mm)
+    except InputError:
+        return None
+    cfg = config.deformation
+    fit = fit_deformation(
+        model,
+        target_mm,
+        np.asarray(T_mm, dtype=np.float64),
+        regularization=cfg.deform_regularization,
+        iterations=cfg.deform_iterations,
+    )
+    return float(fit.residual_after_mm) if np.isfinite(fit.residual_after_mm) else None
+
+
 def deform_result(
     result: RegistrationResult,
     source_mm: np.ndarray,
@@ -136,12 +178,9 @@ def deform_result(
     cfg = config.deformation
     if not result.ok:
         return not_applied(T, f"the rigid registration failed ({result.message or 'no pose'})")
-    if len(target_mm) < cfg.deform_min_points:
-        return not_applied(T, f"too little overlap: {len(target_mm)} view points < deform_min_points")
-    if not result.residual_mm <= cfg.deform_max_residual_mm:
-        return not_applied(
-            T, f"rigid residual {result.residual_mm:.1f} mm > {cfg.deform_max_residual_mm:g} mm: a gross pose"
-        )
+    refusal = _refusal(result.residual_mm, len(target_mm), config)
+    if refusal:
+        return not_applied(T, refusal)
     try:
         model = elastic_model(cache, source_mm, triangles, config, fit_points_mm)
     except InputError as exc:

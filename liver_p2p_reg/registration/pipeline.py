@@ -16,6 +16,7 @@ import numpy as np
 from liver_p2p_reg.config import Config, P2PSection
 from liver_p2p_reg.errors import InputError, RegistrationError
 from liver_p2p_reg.registration import baselines
+from liver_p2p_reg.registration.contenders import judge_contenders
 from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.freespace import penalized
 from liver_p2p_reg.registration.hypotheses import (
@@ -196,8 +197,17 @@ def run_feature_pipeline(
     if refine:
         t = time.perf_counter()
         T_norm = refine_pose(T_norm, prep, config, ctx.cache)
-        residual = residual_norm(T_norm, prep)
         times["refine"] = lap_ms(t)
+        judged = ransac_candidate and prep.visibility < config.ransac_candidate_visibility
+        if judged and ctx.judge_keys is not None and config.contender_judge_ratio > 0 and len(screened) >= 2:
+            t = time.perf_counter()
+            chosen, T_norm, keys = judge_contenders(
+                tried, chosen, T_norm, poses_norm, prep, config, ctx.cache, ctx.judge_keys
+            )
+            for candidate, (i, *_) in zip(screened, tried, strict=True):
+                candidate.judge_key_mm = keys.get(i, float("nan"))
+            times["judge"] = lap_ms(t)
+        residual = residual_norm(T_norm, prep)
     uncertainty = uncertainty_mm(T_norm, prep, config, times)
     violation_final, free_space = final_free_space(scorer, T_norm, times)
     return RegistrationResult(

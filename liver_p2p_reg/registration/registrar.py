@@ -82,9 +82,18 @@ class Registrar:
         fid_s, fid_t = _check_fiducials(source_fiducials_mm, target_fiducials_mm)
         name = method or self.config.method
         check_method_name(name)  # before the stage's surface: an unknown name is said first
-        # the non-rigid stage's surface is checked before any work: a bad one must not cost the rigid pose later
-        preop = _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm) if self.config.deform else None
+        # the elastic model's surface is checked before any work: a bad one must not cost the rigid pose later
+        judge = self.config.contender_judge_ratio > 0
+        preop = (
+            _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm)
+            if self.config.deform or judge
+            else None
+        )
         ctx = MethodContext(fid_s, fid_t, self.cache, _check_pose(initial_T_mm), _check_origin(sensor_origin_mm))
+        if judge and preop is not None:  # small views' contenders judged by the elastic stage (contenders.py)
+            from liver_p2p_reg.registration.contenders import elastic_keys
+
+            ctx.judge_keys = elastic_keys(self.config, self.cache, source, target, *_stage_surface(source, preop))
         pin_threads(self.config.num_threads)  # the same arithmetic whatever ran before, on any thread
         result = run_method(name, source, target, self.config, ctx)
         result.method = name
@@ -105,7 +114,7 @@ class Registrar:
         if fid_s is not None and fid_t is not None:
             result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)
             result.max_tre_mm = float(np.max(tre_mm(result.T_target_source, fid_s, fid_t)))
-        if preop is not None:
+        if preop is not None and self.config.deform:
             self._deform(result, source, target, preop, fid_s, fid_t, "frame", start=time.perf_counter())
         result.runtime_ms["total"] = (time.perf_counter() - start) * 1e3
         return result
@@ -154,9 +163,7 @@ class Registrar:
         from liver_p2p_reg.registration.deform import deform_result
         from liver_p2p_reg.registration.error_calibration import attach_deformed_error_model
 
-        mesh_vertices, tris = preop
-        surface = source if mesh_vertices is None else mesh_vertices
-        fit = None if mesh_vertices is None else source  # beside a mesh: fitted through the registered cloud
+        surface, tris, fit = _stage_surface(source, preop)
         result.deformation = deform_result(result, surface, target, self.config, self.cache, tris, fit)
         attach_deformed_error_model(result, self.config, view)  # the bound of the deformed positions, when applied
         result.runtime_ms["deform"] = (time.perf_counter() - start) * 1e3
@@ -192,8 +199,12 @@ class Registrar:
                 # not by the first small view (M/N, a voxel share, follows the point share of a cap)
                 count = min(count, int(len(source) * threshold / 2))
             near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(count, 3)]
-            self.register(source, source[near], method=method)
-            if self.config.deform:  # the elastic model (seconds) is built here, not on the first frame
+            # with the contenders' judge the cap's registration builds the elastic model of the given surface
+            surface = dict(source_triangles=source_triangles, mesh_vertices_mm=mesh_vertices_mm)
+            self.register(source, source[near], method=method, **(surface if self.config.contender_judge_ratio else {}))
+            if (
+                self.config.deform or self.config.contender_judge_ratio
+            ):  # the elastic model (seconds): here, not on the first frame
                 self.prepare_deformation(source, source_triangles, mesh_vertices_mm=mesh_vertices_mm)
         except LiverP2PError:
             pass
@@ -213,9 +224,9 @@ class Registrar:
             source = clean_points(source_mm, "preop model", min_points=4)
         else:
             source = clean_points(source_mm, "source", min_points=self.config.min_points)
-        mesh_vertices, tris = _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm)
-        surface = source if mesh_vertices is None else mesh_vertices
-        fit = None if mesh_vertices is None else source
+        surface, tris, fit = _stage_surface(
+            source, _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm)
+        )
         try:
             elastic_model(self.cache, surface, tris, self.config, fit)
         except LiverP2PError as exc:
@@ -253,6 +264,15 @@ def _preop_surface(
     if tris is not None:
         vertices, tris = finite_mesh(vertices, tris, "preop mesh")  # one warning for its vertices and triangles
     return clean_points(vertices, "preop mesh", min_points=4), tris if tris is None or len(tris) else None
+
+
+def _stage_surface(
+    source: np.ndarray, preop: tuple[np.ndarray | None, np.ndarray | None]
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The elastic model's (surface points, triangles, fit points) from `_preop_surface`'s pair: the source itself,
+    or beside a mesh its vertices, fitted through the registered cloud (denser than a decimated mesh's vertices)."""
+    mesh_vertices, tris = preop
+    return (source, tris, None) if mesh_vertices is None else (mesh_vertices, tris, source)
 
 
 def _without_nonfinite(points: np.ndarray, tris: np.ndarray, name: str) -> np.ndarray | None:

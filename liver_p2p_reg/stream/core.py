@@ -208,8 +208,7 @@ class NodeCore:
         return mesh_diagnostic(mesh, current)
 
     def prepare_deformation(self) -> Diagnostic | None:
-        """Build the current model's elastic model now if `deform` is on and it is not built for this model, mesh and
-        settings yet (after a mesh or a parameter change); its diagnostic, None when there was nothing to do."""
+        """Build the elastic model now if `deform` or the judge needs it and it is not built: the diagnostic or None."""
         with self._register_lock:
             stage = self._prepare_stage_locked(force=False)
         return None if stage is None else stage.diagnostic()
@@ -337,7 +336,8 @@ class NodeCore:
             self._intake.keep_latest(IntraopCloud(cloud.frame_id, cloud.stamp_ns, points_decoder(points, n_raw)))
             prep_ms = (time.perf_counter() - start) * 1e3
             cached = set(self.registrar.cache)
-            frame = Frame(preop, points, fid_s, fid_t, cloud.frame_id, reason, self._origin())
+            surface = self.mesh.judge_kwargs(self.config, preop_frame, preop_stamp, preop)  # the stage's elastic model
+            frame = Frame(preop, points, fid_s, fid_t, cloud.frame_id, reason, self._origin(), surface)
             result = solve_frame(frame, self.registrar, self.config, self._tracker, self._survey, values, warnings)
         except Refused as refused:
             return CoreOutput([Diagnostic(refused.level, DIAG_NAME, refused.message, values)], reason=reason)

@@ -116,6 +116,14 @@ class MeshStore:
         points); `find` says why a mesh of that frame and stamp was not taken."""
         return self.find(frame_id, stamp_ns, points_mm)[0]
 
+    def judge_kwargs(
+        self, config: Config, frame_id: str, stamp_ns: int, points_mm: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """The model's mesh as the Registrar's arguments when the contenders' judge is on, so that it judges on the
+        stage's own elastic model; {} otherwise (or without a mesh: the surface is then rebuilt from the points)."""
+        mesh = self.for_model(frame_id, stamp_ns, points_mm) if config.contender_judge_ratio else None
+        return {} if mesh is None else mesh.stage_kwargs
+
     def find(self, frame_id: str, stamp_ns: int, points_mm: np.ndarray | None) -> tuple[PreopMesh | None, str]:
         """(the mesh of this model or None, why a mesh of its frame and stamp does not serve it: "" when it does or
         when there is none)."""
@@ -208,7 +216,7 @@ class ElasticPreparation:
     ) -> PreparedStage | None:
         """Prepare it when `deform` is on and (or `force`) it was not prepared for these; None when nothing was done.
         `mesh_problem`: why a /preop/mesh of the model's frame and stamp was not taken (said in the diagnostic)."""
-        if not config.deform or points is None:
+        if not (config.deform or config.contender_judge_ratio > 0) or points is None:  # the judge needs the model too
             return None
         key = (points, mesh, config.deform_modes, config.deform_target_tets)
         if not force and self._for is not None and all(a is b for a, b in zip(key, self._for, strict=True)):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -32,6 +32,8 @@ class Frame:
     frame_id: str
     reason: str
     origin_mm: np.ndarray | None
+    # the preop mesh's Registrar arguments when the contenders' judge needs the elastic model (else empty)
+    surface: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def guarded(what: str, call: Callable[[], Any]) -> Any:
@@ -65,6 +67,7 @@ def solve_frame(
                 source_fiducials_mm=f.fid_s,
                 target_fiducials_mm=f.fid_t,
                 sensor_origin_mm=f.origin_mm,
+                surface=f.surface,
             ),
         )
         result, track_ms = step.result, None
@@ -84,6 +87,7 @@ def solve_frame(
                 source_fiducials_mm=f.fid_s,
                 target_fiducials_mm=f.fid_t,
                 sensor_origin_mm=f.origin_mm,
+                **f.surface,
             ),
         )
         if track_ms is not None:  # a rejected tracking attempt is part of this frame's latency

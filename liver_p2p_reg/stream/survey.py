@@ -108,8 +108,10 @@ class Survey:
         source_fiducials_mm: np.ndarray | None = None,
         target_fiducials_mm: np.ndarray | None = None,
         sensor_origin_mm: np.ndarray | None = None,
+        surface: dict[str, np.ndarray] | None = None,
     ) -> SurveyStep:
-        """Process one frame (sensor frame, mm). Raises what `Registrar.register` raises (no pose then)."""
+        """Process one frame (sensor frame, mm). Raises what `Registrar.register` raises (no pose then). `surface`:
+        the preop mesh's Registrar arguments for a frame's global registration (the contenders' judge)."""
         fid = {
             "source_fiducials_mm": source_fiducials_mm,
             "target_fiducials_mm": target_fiducials_mm,
@@ -127,10 +129,14 @@ class Survey:
                 return SurveyStep(result, self._values(), warnings)
             self.state, self.reason = STOPPED, f"tracking failed at frame {self.frames + 1} of the survey: {problem}"
         if self.state == STOPPED:
-            result = self.registrar.register(preop_mm, points_mm, **fid)  # frame by frame, as continuous mode
+            result = self.registrar.register(
+                preop_mm, points_mm, **fid, **(surface or {})
+            )  # frame by frame, as continuous mode
             warnings.append(f"survey stopped ({self.reason}); ~/reset_survey starts over")
             return SurveyStep(result, self._values(), warnings)
-        result = self.registrar.register(preop_mm, points_mm, **fid)  # the first frame: a global registration
+        result = self.registrar.register(
+            preop_mm, points_mm, **fid, **(surface or {})
+        )  # the first frame: a global registration
         if self._warnings(result):  # fusing from a doubtful pose would spread its error over the whole survey
             warnings.append("survey waits for a first frame that registers without warnings")
             return SurveyStep(result, self._values(), warnings)

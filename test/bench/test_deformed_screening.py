@@ -11,9 +11,12 @@ from synthetic_cases import write_cases
 from liver_p2p_reg.bench.cases import case_info
 from liver_p2p_reg.bench.deformed_screening import (
     SETTINGS,
+    check_mismatches,
     collect_case,
     composed_tre,
+    judged_case,
     judged_choice,
+    judgement_table,
     key,
     reproduction_mismatches,
     verdict,
@@ -102,3 +105,33 @@ def test_collected_rows_reproduce_the_methods_own_pose(tmp_path: Path) -> None:
         if c["full_residual_mm"] > 5.0:  # deform_max_residual_mm: the stage refuses a gross pose before its fit
             assert c["deformed_residual_mm"] is None and c["holdout_gain"] is None
     assert reproduction_mismatches(rows) == []
+
+
+def test_the_built_in_judge_gives_the_composed_pose(tmp_path: Path) -> None:
+    """Rule 3's check on real cases: contender_judge_ratio 1.5 built in gives the pose composed from kept numbers."""
+    paths = write_cases(tmp_path / "cases", per_bin=1)[:3]
+    config = Config.from_dict({**SETTINGS, "ransac_candidate_visibility": 1.0}).to_dict()
+    infos = [case_info(path) for path in paths]
+    kept = [collect_case(info, config) for info in infos]
+    judged = [judged_case(info, config) for info in infos]
+    assert check_mismatches(judged, kept) == []
+    assert [r["own_mm"] for r in judged] == pytest.approx([r["rms_tre_mm"] for r in kept])
+    assert all(np.isfinite(r["bound_mm"]) and r["judge_ms"] >= 0 for r in judged)
+    off = [{**judged[0], "judged_mm": judged[0]["judged_mm"] + 1.0}, *judged[1:]]
+    assert check_mismatches(off, kept) == [judged[0]["case_id"]]
+
+
+def test_the_judgement_table_reads_the_noise_copies_per_bin() -> None:
+    def row(i: int, vis: float, own: float, judged: float, noise: bool = True) -> dict:
+        return {
+            "case_id": f"c{i}" + ("+noise2mm" if noise else ""),
+            "visibility": vis,
+            "own_mm": own,
+            "judged_mm": judged,
+            "bound_mm": 5.0,
+        }
+
+    rows = [row(0, 0.12, 30.0, 6.0), row(1, 0.13, 6.0, 8.0), row(2, 0.12, 90.0, 90.0, noise=False)]
+    table = judgement_table({"s": rows})
+    assert table[2] == "| s | [0.10, 0.15) | 2 | 18.00 / 50.0 % / 1 | 7.00 / 100.0 % / 0 | 5.00 | 1.40x |"
+    assert len(table) == 3  # no other bin has a pose

@@ -150,6 +150,53 @@ def test_register_node_runs_the_ransac_candidate_method(ros_context):
         assert "fpfh-ransac" in [c.name for c in result.candidates]
 
 
+def test_register_node_judges_small_views_contenders_on_the_preop_mesh(ros_context):
+    """contender_judge_ratio over DDS: the contenders are judged by the elastic model of /preop/mesh (the stage's)."""
+    from synthetic_cases import rigid
+    from visualization_msgs.msg import Marker
+
+    from liver_p2p_reg.metrics import transform_points
+    from liver_p2p_reg.phantom.simulate import simulate_liver
+    from liver_p2p_reg.ros.messages import triangle_list_marker
+    from liver_p2p_reg.ros.rclpy_types import RCLPY_MARKER_TYPES
+
+    sim = simulate_liver(3, 1, target_tets=1500)
+    surface = sim.deformations[0].surface_mm
+    centre = surface[np.argmax(surface[:, 0] + surface[:, 2])]
+    view_mm = transform_points(
+        rigid(np.random.default_rng(3)),
+        surface[np.argsort(np.linalg.norm(surface - centre, axis=1))[: int(0.15 * len(surface))]],
+    )
+    overrides = [
+        Parameter("method", value="learned-p2p-ransac-icp"),
+        Parameter("ransac_candidate_visibility", value=1.0),
+        Parameter("contender_judge_ratio", value=100.0),  # every screened candidate a contender
+        Parameter("deform_modes", value=12),
+        Parameter("deform_target_tets", value=1500),
+        Parameter("sensor_at_frame_origin", value=False),  # a synthetic view: no camera at its frame's origin
+    ]
+    with pose_graph(overrides, "test_helper_judge") as (node, helper, executor, poses):
+        types = RCLPY_TYPES.cloud
+        helper.create_publisher(Marker, TOPIC_PREOP_MESH, rclpy_qos(TOPIC_PREOP_MESH)).publish(
+            triangle_list_marker(sim.vertices_mm / 1000.0, sim.triangles, RCLPY_MARKER_TYPES, "ct", 5)
+        )
+        helper.create_publisher(PointCloud2, TOPIC_PREOP, rclpy_qos(TOPIC_PREOP)).publish(
+            points_to_cloud(sim.vertices_mm / 1000.0, types, frame_id="ct", stamp_ns=5)
+        )
+        assert spin_until(
+            executor, lambda: node.core.preop_mm is not None and node.core.mesh.for_model("ct", 5) is not None
+        )
+        intraop = helper.create_publisher(PointCloud2, TOPIC_INTRAOP, rclpy_qos(TOPIC_INTRAOP))
+        intraop.publish(points_to_cloud(view_mm / 1000.0, types, frame_id="camera", stamp_ns=7))
+        assert spin_until(executor, lambda: len(poses) > 0 and node.core.last_output is not None, timeout_s=90.0)
+        result = node.core.last_output.result
+        keys = [c.judge_key_mm for c in result.screened]
+        assert "judge" in result.runtime_ms and len(keys) >= 2 and np.all(np.isfinite(keys)), keys
+        assert result.candidates[result.chosen].name == result.screened[int(np.argmin(keys))].name
+        models = [k for k in node.core.registrar.cache if isinstance(k, str) and k.startswith("elastic:")]
+        assert len(models) == 1 and "True)" in models[0], models  # the mesh's model, not one rebuilt from the points
+
+
 def test_preop_loader_missing_file_is_fatal_input_error(ros_context, tmp_path):
     with pytest.raises(InputError, match="not found"):
         PreopLoaderNode(parameter_overrides=[Parameter("model_path", value=str(tmp_path / "missing.stl"))])
