@@ -52,11 +52,11 @@ def pick_cases(dataset: str, per_bin: int) -> list:
 
 
 def registrar_for(spec: str, threads: int) -> Registrar:
-    """A Registrar for `METHOD` or `METHOD:key=value` (one setting changed, e.g. `fpfh-ransac-icp:open3d_threads=2`)."""
-    name, _, setting = spec.partition(":")
-    key, _, value = setting.partition("=")
-    config = Config(method=name, num_threads=threads)
-    return Registrar(config.replace(**{key: value}) if setting else config)  # replace() coerces the text to the type
+    """A Registrar for `METHOD` or `METHOD:key=value[+key=value...]` (settings changed, e.g.
+    `fpfh-ransac-icp:open3d_threads=2`)."""
+    name, _, settings = spec.partition(":")
+    changed = dict(setting.partition("=")[::2] for setting in settings.split("+")) if settings else {}
+    return Registrar(Config(method=name, num_threads=threads).replace(**changed))  # replace() coerces the text
 
 
 def load_case(case) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -66,7 +66,11 @@ def load_case(case) -> tuple[np.ndarray, np.ndarray, dict]:
     return (
         data["src_pcd"],
         target,
-        {"source_fiducials_mm": data["src_marker"], "target_fiducials_mm": data["tgt_marker"]},
+        {
+            "source_fiducials_mm": data["src_marker"],
+            "target_fiducials_mm": data["tgt_marker"],
+            "source_triangles": data.get("src_triangles"),  # the elastic model's surface, where a method uses one
+        },
     )
 
 

@@ -49,15 +49,17 @@ def set_rows(
     below_visibility: float,
     workers: int,
     tag: dict[str, Any] | None = None,
+    from_visibility: float = 0.0,
 ) -> list[dict[str, Any]]:
-    """`run(case, settings)` for every case of `dataset` (named or a folder) below `below_visibility`, beside its
-    2 mm noise copy (as the selection runs, `--noise-bins all`), on `workers` processes of one thread each.
+    """`run(case, settings)` for every case of `dataset` (named or a folder) from `from_visibility` and below
+    `below_visibility`, beside its 2 mm noise copy (as the selection runs, `--noise-bins all`), on `workers` processes of one thread each.
 
     The rows are kept in OUT/DATASET.json with the settings, the cases' cut and `tag` (what else `run` was told, e.g.
     a bound keyword): a second call with the same ones reads them; one with others is refused (InputError), so rows
     of two configurations never mix. The file is written whole or not at all.
     """
-    stamp = {**settings, "below_visibility": below_visibility, "noise_mm": NOISE_MM, **(tag or {})}
+    cut = {"from_visibility": from_visibility} if from_visibility > 0 else {}  # (absent: from 0, as before it existed)
+    stamp = {**settings, **cut, "below_visibility": below_visibility, "noise_mm": NOISE_MM, **(tag or {})}
     saved = out / f"{Path(dataset).name}.json"
     if saved.exists():
         try:
@@ -72,7 +74,7 @@ def set_rows(
         raise InputError(f"workers must be >= 1, got {workers}")
     folder, _ = resolve_dataset(dataset, None)
     infos = with_noise([case_info(p) for p in list_case_paths(folder)], [NOISE_MM], "all")
-    infos = [i for i in infos if i.visibility < below_visibility]
+    infos = [i for i in infos if from_visibility <= i.visibility < below_visibility]
     rows = []
     with omp_threads(1), spawn_pool(workers) as pool, tqdm(total=len(infos), desc=dataset, unit="case") as bar:
         for row in pool.map(run, infos, [settings] * len(infos), chunksize=4):

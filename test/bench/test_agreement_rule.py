@@ -115,6 +115,20 @@ def test_set_runs_are_kept_by_settings_and_never_mixed(tmp_path: Path) -> None:
         set_rows(str(folder), run_case, settings, tmp_path / "out", below_visibility=0.35, workers=1, tag={"fs": True})
 
 
+def test_set_runs_take_a_visibility_band_and_keep_it_in_the_stamp(tmp_path: Path) -> None:
+    folder = tmp_path / "cases"
+    write_cases(folder, per_bin=1)  # one case per bin [0.2, 0.3) ... [0.9, 1.0]
+    settings = Config(method="fpfh-ransac-icp").to_dict()
+    rows = set_rows(
+        str(folder), run_case, settings, tmp_path / "out", from_visibility=0.3, below_visibility=0.5, workers=1
+    )
+    assert [r["case_id"] for r in rows] == ["case_1_0", "case_1_0+noise2mm", "case_2_0", "case_2_0+noise2mm"]
+    assert all(0.3 <= r["visibility"] < 0.5 for r in rows)
+    assert json.loads((tmp_path / "out" / "cases.json").read_text())["settings"]["from_visibility"] == 0.3
+    with pytest.raises(InputError, match="made with other settings"):  # the band's lower end counts
+        set_rows(str(folder), run_case, settings, tmp_path / "out", below_visibility=0.5, workers=1)
+
+
 def test_damaged_kept_rows_and_no_workers_are_one_line_errors(tmp_path: Path) -> None:
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "cases.json").write_text('{"settings": {"method": "icp"}, "rows": [')  # cut short
