@@ -12,6 +12,7 @@ the screening's own choice must give the method's own pose in every case, or the
 `--check-run` (rule 3): the judge built in (`contender_judge_ratio`) on every such case of real-val-v2 must give
 the composed pose. `--test-report`: the four real test sets' views below 0.3, the method's own poses beside the
 judged ones and the rigid bound (rows kept in OUT/test/SET.json below 0.2 and OUT/test_020/SET.json from 0.2).
+`--margin-report`: RULE_judge_margin.md composed from the kept rows.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from liver_p2p_reg.bench.deformed_screening import (
     collect_case,
     judged_case,
     judgement_table,
+    margin_verdict,
     noisy,
     reproduction_mismatches,
     verdict,
@@ -48,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--report", help="write the table and verdict here (markdown)")
     parser.add_argument("--check-run", action="store_true", help="run the built-in judge on real-val-v2 (rule 3)")
     parser.add_argument("--test-report", help="judge it on the four real test sets; the table goes here (markdown)")
+    parser.add_argument("--margin-report", help="apply RULE_judge_margin.md to the kept rows; the table goes here")
     args = parser.parse_args(argv)
     settings = Config.from_dict(SETTINGS).to_dict()
     out = Path(args.out)
@@ -111,6 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     title = "Close contenders judged after the full ICP and the elastic stage, on the validation sets (rule: RULE_deformed_screening.md)"
     publish_report(title, table, line, command + (" --check-run" if check is not None else ""), args.report)
+    if args.margin_report:
+        m_table, m_line, _ = margin_verdict(rows)
+        title = "A margin before the contenders' judge overrules the screening, on the validation sets (rule: RULE_judge_margin.md)"
+        m_command = f"python scripts/select_deformed_screening.py --out {args.out} --margin-report {args.margin_report}"
+        publish_report(title, m_table, m_line, m_command, args.margin_report)
     if tested is not None:
         small = {name: [r for r in noisy(rs) if 0.05 <= r["visibility"] < 0.2] for name, rs in tested.items()}
         pooled = {

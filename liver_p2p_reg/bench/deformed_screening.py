@@ -21,6 +21,7 @@ SETS = ("real-val-v2", "real-val-v2-arap", "real-val-camera-v2")
 CHECK_SET = "real-val-v2"  # rule 3: the built-in judge's real run must give the composed poses here
 TEST_SETS = ("real-test-v2", "real-test-v2-arap", "real-test-camera-v2", "real-test-camera-v2-arap")
 CHOSEN = ("deformed", 1.5)  # the selection's verdict (selection_deformed_screening.md)
+MARGINS = (0.02, 0.05, 0.10)  # RULE_judge_margin.md's candidates
 BINS = ((0.05, 0.10), (0.10, 0.15), (0.15, 0.20), (0.20, 0.30))  # from 0.2 up: a view estimated smaller
 JUDGES = ("rigid", "deformed", "predictive")
 RATIOS = (1.1, 1.25, 1.5)
@@ -160,19 +161,24 @@ def key(contender: dict[str, Any], judge: str) -> float:
     return deformed * (1.0 - contender["holdout_gain"])
 
 
-def judged_choice(contenders: list[dict[str, Any]], judge: str | None, ratio: float) -> int:
+def judged_choice(contenders: list[dict[str, Any]], judge: str | None, ratio: float, margin: float = 0.0) -> int:
     """The index of the winner among the contenders within `ratio` x the lowest short residual (judge None: the
-    screening's own choice, the lowest short residual); the first of equals."""
-    lowest = min(c["short_residual_mm"] for c in contenders)
+    screening's own choice, the lowest short residual); the first of equals. With `margin` another contender wins
+    only when its key is below (1 - margin) x the screening's choice's key (RULE_judge_margin.md)."""
+    shorts = [c["short_residual_mm"] for c in contenders]
+    own = int(np.argmin(shorts))
     if judge is None:
-        return int(np.argmin([c["short_residual_mm"] for c in contenders]))
-    keys = [key(c, judge) if c["short_residual_mm"] <= ratio * lowest else np.inf for c in contenders]
-    return int(np.argmin(keys))
+        return own
+    keys = [key(c, judge) if c["short_residual_mm"] <= ratio * shorts[own] else np.inf for c in contenders]
+    best = int(np.argmin(keys))
+    if margin > 0 and not keys[best] < (1.0 - margin) * keys[own]:  # (at 0 the first of equals, as the judge chose)
+        return own
+    return best
 
 
-def composed_tre(rows: list[dict[str, Any]], judge: str | None, ratio: float = 1.0) -> np.ndarray:
+def composed_tre(rows: list[dict[str, Any]], judge: str | None, ratio: float = 1.0, margin: float = 0.0) -> np.ndarray:
     """Each case's RMS-TRE when `judge` picks among its contenders (the method's own where none were kept)."""
-    return composed(rows, lambda contenders: judged_choice(contenders, judge, ratio))
+    return composed(rows, lambda contenders: judged_choice(contenders, judge, ratio, margin))
 
 
 def reproduction_mismatches(rows: list[dict[str, Any]], tolerance_mm: float = 1e-6) -> list[str]:
@@ -191,3 +197,13 @@ def verdict(rows_by_set: dict[str, list[dict[str, Any]]]) -> tuple[list[str], st
     label = {"own": "the method's own", **{c: f"{c[0]} r{c[1]:g}" for c in CANDIDATES}}
     table, line, chosen = rule_verdict(tre, "own", CANDIDATES, label, "judge")
     return table, line, chosen  # type: ignore[return-value]
+
+
+def margin_verdict(rows_by_set: dict[str, list[dict[str, Any]]]) -> tuple[list[str], str, float | None]:
+    """RULE_judge_margin.md: the table (per set: mean / poses >= 20 mm at m = 0 and each margin), the verdict line,
+    the chosen margin (None: none)."""
+    small = {name: [r for r in rows if 0.05 <= r["visibility"] < 0.2] for name, rows in rows_by_set.items()}
+    tre = {name: {m: composed_tre(rows, *CHOSEN, m) for m in (0.0, *MARGINS)} for name, rows in small.items()}
+    label = {m: f"margin {m:g}" for m in (0.0, *MARGINS)}
+    table, line, chosen = rule_verdict(tre, 0.0, MARGINS, label, "margin")
+    return table, line, None if chosen is None else float(chosen)

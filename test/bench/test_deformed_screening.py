@@ -18,6 +18,7 @@ from liver_p2p_reg.bench.deformed_screening import (
     judged_choice,
     judgement_table,
     key,
+    margin_verdict,
     reproduction_mismatches,
     verdict,
 )
@@ -135,3 +136,20 @@ def test_the_judgement_table_reads_the_noise_copies_per_bin() -> None:
     table = judgement_table({"s": rows})
     assert table[2] == "| s | [0.10, 0.15) | 2 | 18.00 / 50.0 % / 1 | 7.00 / 100.0 % / 0 | 5.00 | 1.40x |"
     assert len(table) == 3  # no other bin has a pose
+
+
+def test_a_margin_keeps_the_screenings_choice_unless_the_stage_clearly_prefers_another() -> None:
+    own = _contender(2.0, 2.0, 5.0, deformed=2.00, chosen=True)
+    close = _contender(2.1, 2.0, 90.0, deformed=1.97)  # 1.5 % lower
+    clear = _contender(2.2, 2.0, 6.0, deformed=1.80)  # 10 % lower
+    assert judged_choice([own, close], "deformed", 1.5, margin=0.0) == 1
+    assert judged_choice([own, close], "deformed", 1.5, margin=0.02) == 0
+    assert judged_choice([own, close, clear], "deformed", 1.5, margin=0.05) == 2
+    assert judged_choice([own, close, clear], "deformed", 1.5, margin=0.10) == 0  # 1.80 is not below 0.9 x 2.00
+    twin_first = [_contender(2.1, 2.0, 7.0, deformed=1.5), _contender(2.0, 2.0, 5.0, deformed=1.5, chosen=True)]
+    assert judged_choice(twin_first, "deformed", 1.5) == 0  # margin 0: the judge as chosen, first of equals
+    assert judged_choice(twin_first, "deformed", 1.5, margin=0.02) == 1  # an equal key never overrules
+    table, line, chosen = margin_verdict({"a": _set(), "b": _set(), "c": _set()})
+    assert (
+        chosen is None and "none is chosen" in line and table[0].startswith("| set (poses at [0.05, 0.2)) | margin 0 |")
+    )
