@@ -188,6 +188,8 @@ class _Rerunner:
                 target_fiducials_mm=fid_t,
                 initial_T_mm=None if extras.get("initial_T_mm") is None else np.asarray(extras["initial_T_mm"]),
                 sensor_origin_mm=extras.get("sensor_origin_mm"),
+                # the contenders' judge on the recorded mesh, as the command judged
+                **(self.mesh.stage_kwargs if self.mesh is not None and core.config.contender_judge_ratio else {}),
             )
         except LiverP2PError:
             return None, None

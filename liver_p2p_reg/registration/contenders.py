@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from liver_p2p_reg.config import Config
+from liver_p2p_reg.registration.freespace import Scorer, penalized
 from liver_p2p_reg.registration.preprocess import PreprocessedPair, denormalize_transform, residual_norm
 from liver_p2p_reg.registration.refine import refine_poses
 
@@ -32,14 +33,19 @@ def judge_contenders(
     config: Config,
     cache: dict[str, Any],
     keys_of: KeysOf,
+    scorer: Scorer | None = None,
 ) -> tuple[int, np.ndarray, dict[int, float]]:
     """The winner among the screening's contenders: those of `tried` (index, pose, short residual, violation) whose
-    short residual is within `contender_judge_ratio` x the lowest, with the screening's `chosen` (already refined
-    to `T_norm`) always one. Each other contender is refined by the full ICP from its own pose, as the pipeline
-    refines a winner. Returns (winner index, its refined pose, each contender's key in mm); the first of equals wins.
+    screening key (the short residual, made worse by its free-space violation when the sensor origin is known) is
+    within `contender_judge_ratio` x the lowest, the screening's `chosen` (already refined to `T_norm`) always one.
+    Each other contender is refined by the full ICP from its own pose, as the pipeline refines a winner; the keys
+    are made worse by the refined poses' free-space violations alike (`scorer`; unchanged without an origin).
+    Returns (winner index, its refined pose, each contender's key in mm); the first of equals wins.
     """
-    lowest = min(res for _, _, res, _ in tried)
-    contenders = [i for i, _, res, _ in tried if i == chosen or res <= config.contender_judge_ratio * lowest]
+    weight = config.free_space_weight
+    screening = {i: penalized(res, v, weight) for i, _, res, v in tried}
+    lowest = min(screening.values())
+    contenders = [i for i, *_ in tried if i == chosen or screening[i] <= config.contender_judge_ratio * lowest]
     if len(contenders) < 2:
         return chosen, T_norm, {}
     others = [i for i in contenders if i != chosen]
@@ -48,6 +54,9 @@ def judge_contenders(
     scale = prep.source_norm.scale_mm
     poses_mm = [denormalize_transform(refined[i], prep.source_norm, prep.target_norm) for i in contenders]
     keys = keys_of(poses_mm, [residual_norm(refined[i], prep) * scale for i in contenders])
+    if scorer is not None and scorer.view is not None:
+        violation = scorer([refined[i] for i in contenders])
+        keys = [penalized(k, float(v), weight) for k, v in zip(keys, violation, strict=True)]
     best = int(np.argmin(keys))
     return contenders[best], refined[contenders[best]], dict(zip(contenders, keys, strict=True))
 

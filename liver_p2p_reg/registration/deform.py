@@ -99,13 +99,18 @@ def elastic_model(
     key_points = source_mm if tris is None else np.concatenate([source_mm.ravel(), tris.ravel().astype(np.float64)])
     params = (config.deform_modes, config.deform_target_tets, tris is not None)
 
-    def build() -> ElasticModel:
+    def build() -> ElasticModel | InputError:
         normals = normals_of(source_mm)
-        return build_elastic_model(
-            source_mm, normals, tris, n_modes=config.deform_modes, target_tets=config.deform_target_tets
-        )
+        try:
+            return build_elastic_model(
+                source_mm, normals, tris, n_modes=config.deform_modes, target_tets=config.deform_target_tets
+            )
+        except InputError as exc:  # kept: a model that cannot be built is not rebuilt (seconds) for every pose
+            return exc
 
     model = remember_latest(cache, "elastic", key_points, params, build)
+    if isinstance(model, InputError):
+        raise InputError(str(model))
     if fit_points_mm is None or fit_points_mm is source_mm:
         return model
     # the fit's data term on the cloud the rigid pose was found on: denser than a decimated mesh's vertices

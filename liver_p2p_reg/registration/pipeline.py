@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -37,6 +38,8 @@ from liver_p2p_reg.registration.preprocess import (
 )
 from liver_p2p_reg.registration.refine import refine_pose
 from liver_p2p_reg.result import Candidate, RegistrationResult
+
+LOG = logging.getLogger("liver_p2p_reg")
 
 if TYPE_CHECKING:  # torch and the P2P module are imported where used: the Open3D baselines need neither
     from liver_p2p_reg.registration.features.base import FeatureProvider
@@ -201,9 +204,14 @@ def run_feature_pipeline(
         judged = ransac_candidate and prep.visibility < config.ransac_candidate_visibility
         if judged and ctx.judge_keys is not None and config.contender_judge_ratio > 0 and len(screened) >= 2:
             t = time.perf_counter()
-            chosen, T_norm, keys = judge_contenders(
-                tried, chosen, T_norm, poses_norm, prep, config, ctx.cache, ctx.judge_keys
-            )
+            try:
+                chosen, T_norm, keys = judge_contenders(
+                    tried, chosen, T_norm, poses_norm, prep, config, ctx.cache, ctx.judge_keys, scorer
+                )
+            except Exception as exc:  # the judge only refines a choice: whatever it raises, the screening's stands
+                LOG.exception("the contenders' judge raised")
+                warnings.append(f"the contenders' judge failed ({type(exc).__name__}: {exc}): the screening's pose")
+                keys = {}
             for candidate, (i, *_) in zip(screened, tried, strict=True):
                 candidate.judge_key_mm = keys.get(i, float("nan"))
             times["judge"] = lap_ms(t)

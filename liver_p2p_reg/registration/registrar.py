@@ -83,7 +83,7 @@ class Registrar:
         name = method or self.config.method
         check_method_name(name)  # before the stage's surface: an unknown name is said first
         # the elastic model's surface is checked before any work: a bad one must not cost the rigid pose later
-        judge = self.config.contender_judge_ratio > 0
+        judge = _judges(self.config, name)
         preop = (
             _preop_surface(source_mm, source, source_triangles, mesh_vertices_mm)
             if self.config.deform or judge
@@ -180,13 +180,15 @@ class Registrar:
         *,
         source_triangles: np.ndarray | None = None,
         mesh_vertices_mm: np.ndarray | None = None,
+        elastic: bool = True,
     ) -> float:
         """Compute everything the method caches about a new source (its preprocessing, source
         features, model weights, ICP index) before the first real target arrives; returns ms.
 
         It registers the source to a fixed partial view of itself through the normal code path,
         so no method needs a hook of its own; the result is discarded and errors are ignored
-        (the first real registration reports them).
+        (the first real registration reports them). The elastic model of the given surface is built too with
+        `deform`, or with the contenders' judge unless `elastic` is False (a stand-in shape's warm-up).
         """
         start = time.perf_counter()
         try:
@@ -199,13 +201,15 @@ class Registrar:
                 # not by the first small view (M/N, a voxel share, follows the point share of a cap)
                 count = min(count, int(len(source) * threshold / 2))
             near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(count, 3)]
-            # with the contenders' judge the cap's registration builds the elastic model of the given surface
-            surface = dict(source_triangles=source_triangles, mesh_vertices_mm=mesh_vertices_mm)
-            self.register(source, source[near], method=method, **(surface if self.config.contender_judge_ratio else {}))
-            if (
-                self.config.deform or self.config.contender_judge_ratio
-            ):  # the elastic model (seconds): here, not on the first frame
-                self.prepare_deformation(source, source_triangles, mesh_vertices_mm=mesh_vertices_mm)
+            # the cap warms the rigid path; a judge there would build a model of no given surface (built below instead)
+            capped = (
+                Registrar(self.config.replace(contender_judge_ratio=0.0)) if self.config.contender_judge_ratio else self
+            )
+            capped.cache = self.cache
+            capped.register(source, source[near], method=method)
+            if self.config.deform or (elastic and _judges(self.config, method or self.config.method)):
+                # the elastic model (seconds) is built here, not on the first frame
+                self.prepare_deformation(source_mm, source_triangles, mesh_vertices_mm=mesh_vertices_mm)
         except LiverP2PError:
             pass
         return (time.perf_counter() - start) * 1e3
@@ -264,6 +268,13 @@ def _preop_surface(
     if tris is not None:
         vertices, tris = finite_mesh(vertices, tris, "preop mesh")  # one warning for its vertices and triangles
     return clean_points(vertices, "preop mesh", min_points=4), tris if tris is None or len(tris) else None
+
+
+def _judges(config: Config, method: str) -> bool:
+    """Whether the contenders' judge can run for `method` (contenders.py): on, a method screening RANSAC's pose on
+    small views, and a threshold above 0; only then is the elastic model's surface checked and built for it."""
+    row = check_method_name(method)
+    return config.contender_judge_ratio > 0 and row.ransac_candidate and config.ransac_candidate_visibility > 0
 
 
 def _stage_surface(

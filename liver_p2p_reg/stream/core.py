@@ -128,7 +128,7 @@ class NodeCore:
         d = np.random.default_rng(0).normal(size=(3000, 3))
         shell = d / np.linalg.norm(d, axis=1, keepdims=True) * [80.0, 55.0, 40.0]
         with self._register_lock:
-            self.registrar.warm_up(shell)
+            self.registrar.warm_up(shell, elastic=False)  # a stand-in shape: no elastic model of it
         return (time.perf_counter() - start) * 1e3
 
     def set_preop(
@@ -183,8 +183,8 @@ class NodeCore:
             if points is None:
                 return Diagnostic(ERROR, PREOP_DIAG_NAME, "no preop model to warm up")
             start = time.perf_counter()
-            self.registrar.warm_up(points)
-            stage = self._prepare_stage_locked(force=True)  # the elastic model too (seconds), when deform is on
+            self.registrar.warm_up(points, elastic=False)  # the elastic model: the next line's, of the mesh if any
+            stage = self._prepare_stage_locked(force=True)  # that model (seconds), when deform or the judge is on
             ms = (time.perf_counter() - start) * 1e3
         values = {
             "points": str(len(points)),

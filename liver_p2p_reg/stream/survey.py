@@ -99,6 +99,7 @@ class Survey:
         self.registrations = 0  # global registrations of the fused surface (the first frame's included)
         self.visibility = 0.0  # of the fused surface
         self.registered_visibility = 0.0  # the fused visibility at the last global registration
+        self._surface: dict[str, np.ndarray] = {}  # the preop mesh's Registrar arguments (step's `surface`)
 
     def step(
         self,
@@ -118,6 +119,7 @@ class Survey:
             "sensor_origin_mm": sensor_origin_mm,
         }
         warnings: list[str] = []
+        self._surface = surface or {}  # the fused surface's global registration judges on it too
         if self.state == FUSING:
             # Frame to fused surface: the sensor moves rigidly over a still organ, so the frames
             # agree with one another better than each agrees with the preop model (deformation).
@@ -192,7 +194,7 @@ class Survey:
         fused = self.fused.points
         correction = self.registrar.register(preop_mm, fused, method="track", initial_T_mm=np.eye(4))
         try:
-            fresh = self.registrar.register(preop_mm, fused)
+            fresh = self.registrar.register(preop_mm, fused, **self._surface)
             if not self._warnings(fresh) and fresh.residual_mm <= correction.residual_mm:
                 correction = fresh
         except LiverP2PError:  # the global step is an improvement, never a requirement

@@ -118,6 +118,7 @@ def test_the_built_in_judge_gives_the_composed_pose(tmp_path: Path) -> None:
     assert check_mismatches(judged, kept) == []
     assert [r["own_mm"] for r in judged] == pytest.approx([r["rms_tre_mm"] for r in kept])
     assert all(np.isfinite(r["bound_mm"]) and r["judge_ms"] >= 0 for r in judged)
+    assert any(r["judge_ms"] > 0 for r in judged)  # the judge ran on some
     off = [{**judged[0], "judged_mm": judged[0]["judged_mm"] + 1.0}, *judged[1:]]
     assert check_mismatches(off, kept) == [judged[0]["case_id"]]
 

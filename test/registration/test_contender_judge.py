@@ -115,6 +115,54 @@ def test_the_stages_residual_explains_a_deformation_and_refuses_what_it_would_no
     assert keys([far], [7.5]) == [7.5]  # the stage does not fit a gross pose: its ICP residual is its key
 
 
+def test_only_a_method_screening_ransacs_pose_is_judged_and_has_its_surface_checked(view) -> None:
+    source, tris, target, T = view
+    bad = np.array([[0, 1, len(source) + 5]])  # indexes a vertex the model does not have
+    for method in ("learned-p2p-icp", "track"):  # no RANSAC candidate: no judge, no elastic model, no surface check
+        registrar = Registrar(Config(**{**JUDGE, "method": method}))
+        result = registrar.register(source, target, initial_T_mm=T, source_triangles=bad)
+        assert "judge" not in result.runtime_ms and all(np.isnan(c.judge_key_mm) for c in result.screened)
+        assert not any(isinstance(k, str) and k.startswith("elastic:") for k in registrar.cache)
+    with pytest.raises(InputError, match="triangles"):  # where the judge runs, a bad surface is refused first
+        _register((source, bad, target, T))
+
+
+def test_with_a_sensor_origin_the_keys_carry_the_free_space_violation(view) -> None:
+    source, tris, target, T = view
+    centre, patch = source.mean(axis=0), np.linalg.solve(T[:3, :3], (target - T[:3, 3]).T).T.mean(axis=0)
+    origin = transform_points(T, (patch + 150.0 * (patch - centre) / np.linalg.norm(patch - centre))[None])[0]
+    runs = [
+        Registrar(Config(**JUDGE, free_space_weight=w)).register(
+            source, target, source_triangles=tris, sensor_origin_mm=origin
+        )
+        for w in (0.0, 0.5)
+    ]
+    assert runs[0].free_space == "on" and "judge" in runs[1].runtime_ms
+    plain, weighed = ({c.name: c.judge_key_mm for c in r.screened if np.isfinite(c.judge_key_mm)} for r in runs)
+    shared = sorted(set(plain) & set(weighed))
+    assert shared and all(weighed[n] >= plain[n] - 1e-12 for n in shared)
+    assert any(weighed[n] > plain[n] for n in shared)  # a contender the camera's view contradicts pays for it
+
+
+def test_a_surface_without_a_solid_leaves_the_rigid_keys_and_is_not_rebuilt(view) -> None:
+    source, _, target, _ = view
+    registrar = Registrar(Config(**JUDGE))
+    flat = np.array([[0, 1, 2]])  # one triangle: no closed solid, no elastic model
+    result = registrar.register(source, target, source_triangles=flat)
+    assert "judge" in result.runtime_ms and result.ok
+    failed = [k for k in registrar.cache if isinstance(k, str) and k.startswith("elastic:")]
+    assert len(failed) == 1 and isinstance(registrar.cache[failed[0]], InputError)
+    kept = registrar.cache[failed[0]]
+    again = registrar.register(source, target, source_triangles=flat)
+    assert registrar.cache[failed[0]] is kept  # the failed build is remembered, not retried per pose
+    assert again.T_target_source.tobytes() == result.T_target_source.tobytes()
+    # without a model each contender's key is its full ICP residual: the winner is the lowest of those
+    assert (
+        result.candidates[result.chosen].name
+        == min((c for c in result.screened if np.isfinite(c.judge_key_mm)), key=lambda c: c.judge_key_mm).name
+    )
+
+
 @pytest.mark.parametrize("ratio", [0.5, -1.0, float("inf"), float("nan")])
 def test_a_ratio_neither_off_nor_a_finite_factor_is_refused(ratio: float) -> None:
     with pytest.raises(InputError, match="contender_judge_ratio must be 0"):
