@@ -131,14 +131,11 @@ class Survey:
                 return SurveyStep(result, self._values(), warnings)
             self.state, self.reason = STOPPED, f"tracking failed at frame {self.frames + 1} of the survey: {problem}"
         if self.state == STOPPED:
-            result = self.registrar.register(
-                preop_mm, points_mm, **fid, **(surface or {})
-            )  # frame by frame, as continuous mode
+            # frame by frame, as continuous mode
+            result = self.registrar.register(preop_mm, points_mm, **fid, **self._surface)
             warnings.append(f"survey stopped ({self.reason}); ~/reset_survey starts over")
             return SurveyStep(result, self._values(), warnings)
-        result = self.registrar.register(
-            preop_mm, points_mm, **fid, **(surface or {})
-        )  # the first frame: a global registration
+        result = self.registrar.register(preop_mm, points_mm, **fid, **self._surface)  # the first frame: a global one
         if self._warnings(result):  # fusing from a doubtful pose would spread its error over the whole survey
             warnings.append("survey waits for a first frame that registers without warnings")
             return SurveyStep(result, self._values(), warnings)
