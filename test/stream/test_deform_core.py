@@ -279,3 +279,28 @@ def test_meshes_beyond_the_triangle_limit_are_refused() -> None:
     many = np.tile(faces, (MAX_MESH_TRIANGLES // len(faces) + 1, 1))
     with pytest.raises(InputError, match="decimate"):
         checked_mesh(vertices, many, "ct", 5)
+
+
+JUDGE = dict(method="learned-p2p-ransac-icp", ransac_candidate_visibility=1.0, contender_judge_ratio=100.0)
+
+
+def test_the_contenders_judge_uses_the_one_elastic_model_of_the_mesh(case) -> None:
+    """With the judge on (deform off) the warm-up builds the mesh's model and a judged registration uses it: no
+    model rebuilt from the points."""
+    core, _, output, warm, built = registered(case, **JUDGE)
+    assert warm.values["deform_model"] == "ready" and warm.values["deform_surface"] == "mesh"
+    assert len(built) == 1 and built[0].endswith("True)")  # the mesh's, built at the model's warm-up
+    assert "judge" in output.result.runtime_ms, output.diagnostics[0].message
+    assert elastic_models(core) == built  # the registration judged on it: nothing rebuilt
+
+
+def test_survey_modes_global_registration_judges_on_the_mesh_too(case) -> None:
+    core = NodeCore(Config(**{**SMALL, **JUDGE, "mode": "survey"}))
+    assert core.set_preop_mesh(case["vertices"], case["triangles"], "ct", 5).level == OK
+    assert core.set_preop(case["points"], "ct", 5).level == OK
+    built = elastic_models(core)
+    core.on_intraop_points(case["view"], "camera", 6)
+    output = core.process_pending(1.0)
+    assert output is not None and output.result is not None and "survey_state" in output.diagnostics[0].values
+    assert "judge" in output.result.runtime_ms, output.diagnostics[0].message  # the survey's first, global one
+    assert len(built) == 1 and elastic_models(core) == built
