@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bench.case_runs import case_registrar
+from liver_p2p_reg.bench.case_runs import screened_case
 from liver_p2p_reg.bench.cases import CaseInfo
 from liver_p2p_reg.bench.composed_rule import composed, rule_verdict
 from liver_p2p_reg.bench.composed_rule import reproduction_mismatches as own_mismatches
@@ -53,17 +53,9 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
     from liver_p2p_reg.registration.pipeline import feature_provider
     from liver_p2p_reg.registration.preprocess import preprocess_pair
 
-    data, target, registrar = case_registrar(info, config_dict)
+    data, target, registrar, result, row = screened_case(info, config_dict)
     src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
     source, config = data["src_pcd"], registrar.config
-    result = registrar.register(source, target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker)
-    row: dict[str, Any] = {
-        "case_id": info.case_id,
-        "visibility": info.visibility,
-        "method_visibility": float(result.visibility),
-        "rms_tre_mm": float(rms_tre_mm(result.T_target_source, src_marker, tgt_marker)),
-        "screened": [],
-    }
     if not result.visibility < config.ransac_candidate_visibility or len(result.screened) < 2:
         return row
     prep = preprocess_pair(source, target, config, registrar.cache)

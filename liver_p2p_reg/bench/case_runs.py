@@ -24,8 +24,10 @@ from liver_p2p_reg.bench.harness import omp_threads
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.files import write_text_atomic
+from liver_p2p_reg.metrics import rms_tre_mm
 from liver_p2p_reg.pools import spawn_pool
 from liver_p2p_reg.registration.registrar import Registrar
+from liver_p2p_reg.result import RegistrationResult
 
 NOISE_MM = 2.0
 _CACHE: dict[str, Any] = {}  # one per worker process, shared across cases as the benchmark shares it
@@ -38,6 +40,24 @@ def case_registrar(info: CaseInfo, config_dict: dict[str, Any]) -> tuple[dict[st
     registrar = Registrar(Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)}))
     registrar.cache = _CACHE
     return data, add_target_noise(np.asarray(data["tgt_pcd"], float), info), registrar
+
+
+def screened_case(
+    info: CaseInfo, config_dict: dict[str, Any]
+) -> tuple[dict[str, Any], np.ndarray, Registrar, RegistrationResult, dict[str, Any]]:
+    """`case_registrar`'s case registered as the benchmark does: (data, noisy target, registrar, result, the row's
+    common fields: case, visibility, the method's estimate of it, RMS-TRE, an empty `screened` list)."""
+    data, target, registrar = case_registrar(info, config_dict)
+    src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
+    result = registrar.register(data["src_pcd"], target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker)
+    row = {
+        "case_id": info.case_id,
+        "visibility": info.visibility,
+        "method_visibility": float(result.visibility),
+        "rms_tre_mm": float(rms_tre_mm(result.T_target_source, src_marker, tgt_marker)),
+        "screened": [],
+    }
+    return data, target, registrar, result, row
 
 
 def set_rows(

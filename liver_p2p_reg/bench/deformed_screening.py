@@ -8,11 +8,13 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bench.case_runs import NOISE_MM, case_registrar
+from liver_p2p_reg.bench.case_runs import NOISE_MM, case_registrar, screened_case
 from liver_p2p_reg.bench.cases import CaseInfo
 from liver_p2p_reg.bench.composed_rule import GROSS_MM, composed, rule_verdict
 from liver_p2p_reg.bench.composed_rule import reproduction_mismatches as own_mismatches
 from liver_p2p_reg.metrics import rms_tre_mm
+from liver_p2p_reg.registration.contenders import SAME_POSE_MM, probe_points, rms_gap_mm
+from liver_p2p_reg.registration.registrar import Registrar
 
 METHOD = "learned-p2p-ransac-icp"
 THRESHOLD = 0.2  # ransac_candidate_visibility: the judges apply where the RANSAC candidate does
@@ -25,7 +27,6 @@ MARGINS = (0.02, 0.05, 0.10)  # RULE_judge_margin.md's candidates
 BINS = ((0.05, 0.10), (0.10, 0.15), (0.15, 0.20), (0.20, 0.30))  # from 0.2 up: a view estimated smaller
 JUDGES = ("rigid", "deformed", "predictive")
 RATIOS = (1.1, 1.25, 1.5)
-SAME_POSE_MM = 0.5  # refined poses this close (RMS at the preop points) share the stage's numbers
 TAG = {"max_ratio": max(RATIOS), "same_pose_mm": SAME_POSE_MM}
 CANDIDATES = tuple((judge, r) for judge in JUDGES for r in RATIOS)  # the rule's tie order: the cheaper first
 
@@ -37,24 +38,16 @@ def _finite(x: float) -> float | None:
 def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
     """One case registered as the benchmark does; on a small view that screened two or more candidates, each
     contender's (short residual within max(RATIOS) x the lowest) error and keys after the full ICP and the stage."""
-    data, target, registrar = case_registrar(info, config_dict)
+    data, target, registrar, result, row = screened_case(info, config_dict)
     src_marker, tgt_marker = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
     source, config = np.asarray(data["src_pcd"], float), registrar.config
-    result = registrar.register(source, target, source_fiducials_mm=src_marker, target_fiducials_mm=tgt_marker)
-    row: dict[str, Any] = {
-        "case_id": info.case_id,
-        "visibility": info.visibility,
-        "method_visibility": float(result.visibility),
-        "rms_tre_mm": float(rms_tre_mm(result.T_target_source, src_marker, tgt_marker)),
-        "added_ms": 0.0,
-        "screened": [],
-    }
+    row["added_ms"] = 0.0
     if not result.visibility < config.ransac_candidate_visibility or len(result.screened) < 2:
         return row
     raw = {c.name: c.T_target_source for c in result.candidates}
     chosen = result.candidates[result.chosen].name
     lowest = min(s.residual_mm for s in result.screened)
-    probe = source[:: max(len(source) // 2000, 1)]  # where two refined poses are compared
+    probe = probe_points(source)  # where two refined poses are compared, as the built-in judge does
     done: list[tuple[np.ndarray, dict[str, Any]]] = []
     start, own_icp_ms = time.perf_counter(), 0.0
     for screened in result.screened:
@@ -65,7 +58,7 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
         if screened.name == chosen:  # the pipeline refines its choice anyway
             own_icp_ms = (time.perf_counter() - icp_start) * 1e3
         moved = probe @ refined.T_target_source[:3, :3].T + refined.T_target_source[:3, 3]
-        twin = next((k for p, k in done if np.sqrt(np.mean(np.sum((p - moved) ** 2, axis=1))) < SAME_POSE_MM), None)
+        twin = next((k for p, k in done if rms_gap_mm(p, moved) < SAME_POSE_MM), None)
         if twin is None:
             registrar.deform(refined, source, target, data.get("src_triangles"))
             stage = refined.deformation
@@ -99,7 +92,7 @@ def judged_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
     markers = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
     source, tris = np.asarray(data["src_pcd"], float), data.get("src_triangles")
     own = registrar.register(source, target)
-    judged_registrar = type(registrar)(registrar.config.replace(contender_judge_ratio=CHOSEN[1]))
+    judged_registrar = Registrar(registrar.config.replace(contender_judge_ratio=CHOSEN[1]))
     judged_registrar.cache = registrar.cache
     judged = judged_registrar.register(source, target, source_triangles=tris)
     bound = registrar.register(source, target, method="track", initial_T_mm=true_pose_mm(data, info))

@@ -74,14 +74,14 @@ def elastic_keys(
     on the model of `surface_mm` + `triangles`), or its ICP residual where the stage does not fit."""
     from liver_p2p_reg.registration.deform import fitted_residual_mm
 
-    probe = np.asarray(source_mm, dtype=np.float64)[:: max(len(source_mm) // PROBE_POINTS, 1)]
+    probe = probe_points(source_mm)
 
     def keys(poses_mm: list[np.ndarray], residuals_mm: list[float]) -> list[float]:
         done: list[tuple[np.ndarray, float | None]] = []
         out = []
         for T, rigid in zip(poses_mm, residuals_mm, strict=True):
             moved = probe @ T[:3, :3].T + T[:3, 3]
-            twin = next((k for k, (p, _) in enumerate(done) if _rms_mm(p, moved) < SAME_POSE_MM), None)
+            twin = next((k for k, (p, _) in enumerate(done) if rms_gap_mm(p, moved) < SAME_POSE_MM), None)
             if twin is None:
                 fitted = fitted_residual_mm(T, rigid, surface_mm, target_mm, config, cache, triangles, fit_points_mm)
                 done.append((moved, fitted))
@@ -93,5 +93,11 @@ def elastic_keys(
     return keys
 
 
-def _rms_mm(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+def probe_points(source_mm: np.ndarray) -> np.ndarray:
+    """The preop points (an even subsample of about PROBE_POINTS) at which two refined poses are compared."""
+    return np.asarray(source_mm, dtype=np.float64)[:: max(len(source_mm) // PROBE_POINTS, 1)]
+
+
+def rms_gap_mm(a_mm: np.ndarray, b_mm: np.ndarray) -> float:
+    """RMS distance between two placements of the same points (mm)."""
+    return float(np.sqrt(np.mean(np.sum((a_mm - b_mm) ** 2, axis=1))))

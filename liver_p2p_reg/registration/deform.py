@@ -18,6 +18,7 @@ from liver_p2p_reg.registration.context import remember_latest
 
 if TYPE_CHECKING:
     from liver_p2p_reg.config import Config
+    from liver_p2p_reg.registration.deform_fit import FitOutcome
     from liver_p2p_reg.registration.mechanics.modes import ElasticModel
     from liver_p2p_reg.result import RegistrationResult
 
@@ -124,14 +125,35 @@ def not_applied(T: np.ndarray, reason: str, **known: Any) -> Deformation:
     return Deformation(applied=False, reason=reason, T_target_source=np.asarray(T, dtype=np.float64).copy(), **known)
 
 
-def _refusal(residual_mm: float, n_view_points: int, config: Config) -> str:
-    """Why the stage does not fit from a pose of this residual on a view of this size ("": it fits)."""
+def _model_for(
+    residual_mm: float,
+    target_mm: np.ndarray,
+    source_mm: np.ndarray,
+    triangles: np.ndarray | None,
+    config: Config,
+    cache: dict[str, Any],
+    fit_points_mm: np.ndarray | None,
+) -> ElasticModel | str:
+    """The elastic model to fit from a rigid pose of this residual on this view, or why the stage does not fit."""
     cfg = config.deformation
-    if n_view_points < cfg.deform_min_points:
-        return f"too little overlap: {n_view_points} view points < deform_min_points"
+    if len(target_mm) < cfg.deform_min_points:
+        return f"too little overlap: {len(target_mm)} view points < deform_min_points"
     if not residual_mm <= cfg.deform_max_residual_mm:
         return f"rigid residual {residual_mm:.1f} mm > {cfg.deform_max_residual_mm:g} mm: a gross pose"
-    return ""
+    try:
+        return elastic_model(cache, source_mm, triangles, config, fit_points_mm)
+    except InputError as exc:
+        return f"no elastic model: {exc}"
+
+
+def _fit(model: ElasticModel, target_mm: np.ndarray, T: np.ndarray, config: Config) -> FitOutcome:
+    """The stage's fit from the rigid pose T with the configured regularization and iterations."""
+    from liver_p2p_reg.registration.deform_fit import fit_deformation
+
+    cfg = config.deformation
+    return fit_deformation(
+        model, target_mm, T, regularization=cfg.deform_regularization, iterations=cfg.deform_iterations
+    )
 
 
 def fitted_residual_mm(
@@ -147,22 +169,10 @@ def fitted_residual_mm(
     """The stage's residual after its fit from the rigid pose `T_mm` (of ICP residual `residual_mm`): what the view
     leaves unexplained by a plausible deformation. None where the stage would not fit (`deform_result`'s checks
     before its fit; those after it and the held-out check do not run)."""
-    from liver_p2p_reg.registration.deform_fit import fit_deformation
-
-    if _refusal(residual_mm, len(target_mm), config):
+    model = _model_for(residual_mm, target_mm, source_mm, triangles, config, cache, fit_points_mm)
+    if isinstance(model, str):
         return None
-    try:
-        model = elastic_model(cache, source_mm, triangles, config, fit_points_mm)
-    except InputError:
-        return None
-    cfg = config.deformation
-    fit = fit_deformation(
-        model,
-        target_mm,
-        np.asarray(T_mm, dtype=np.float64),
-        regularization=cfg.deform_regularization,
-        iterations=cfg.deform_iterations,
-    )
+    fit = _fit(model, target_mm, np.asarray(T_mm, dtype=np.float64), config)
     return float(fit.residual_after_mm) if np.isfinite(fit.residual_after_mm) else None
 
 
@@ -177,24 +187,18 @@ def deform_result(
 ) -> Deformation:
     """Run the non-rigid stage from `result`'s rigid pose (never raises for data it cannot use); the model is
     built on `source_mm` (+ `triangles`) and fitted through `fit_points_mm` when given (else `source_mm`)."""
-    from liver_p2p_reg.registration.deform_fit import fit_deformation, holdout_gain
+    from liver_p2p_reg.registration.deform_fit import holdout_gain
 
     T = np.asarray(result.T_target_source, dtype=np.float64)
     cfg = config.deformation
     if not result.ok:
         return not_applied(T, f"the rigid registration failed ({result.message or 'no pose'})")
-    refusal = _refusal(result.residual_mm, len(target_mm), config)
-    if refusal:
-        return not_applied(T, refusal)
-    try:
-        model = elastic_model(cache, source_mm, triangles, config, fit_points_mm)
-    except InputError as exc:
-        return not_applied(T, f"no elastic model: {exc}")
+    model = _model_for(result.residual_mm, target_mm, source_mm, triangles, config, cache, fit_points_mm)
+    if isinstance(model, str):
+        return not_applied(T, model)
     known = dict(model_build_ms=model.build_ms, n_modes=model.n_modes, n_nodes=len(model.mesh.nodes_mm), model=model)
     start = time.perf_counter()
-    fit = fit_deformation(
-        model, target_mm, T, regularization=cfg.deform_regularization, iterations=cfg.deform_iterations
-    )
+    fit = _fit(model, target_mm, T, config)
     disp = model.nodal_displacement_mm(fit.coefficients_mm)
     norms = np.linalg.norm(disp, axis=1)
     stats = dict(

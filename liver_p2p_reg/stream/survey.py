@@ -99,7 +99,6 @@ class Survey:
         self.registrations = 0  # global registrations of the fused surface (the first frame's included)
         self.visibility = 0.0  # of the fused surface
         self.registered_visibility = 0.0  # the fused visibility at the last global registration
-        self._surface: dict[str, np.ndarray] = {}  # the preop mesh's Registrar arguments (step's `surface`)
 
     def step(
         self,
@@ -119,7 +118,7 @@ class Survey:
             "sensor_origin_mm": sensor_origin_mm,
         }
         warnings: list[str] = []
-        self._surface = surface or {}  # the fused surface's global registration judges on it too
+        surface = surface or {}
         if self.state == FUSING:
             # Frame to fused surface: the sensor moves rigidly over a still organ, so the frames
             # agree with one another better than each agrees with the preop model (deformation).
@@ -127,21 +126,21 @@ class Survey:
             tracked = self._score(preop_mm, points_mm, T, fid)
             problem = self._tracking_problem(tracked)
             if not problem:
-                result = self._fuse(preop_mm, points_mm, tracked, fid)
+                result = self._fuse(preop_mm, points_mm, tracked, fid, surface)
                 return SurveyStep(result, self._values(), warnings)
             self.state, self.reason = STOPPED, f"tracking failed at frame {self.frames + 1} of the survey: {problem}"
         if self.state == STOPPED:
             # frame by frame, as continuous mode
-            result = self.registrar.register(preop_mm, points_mm, **fid, **self._surface)
+            result = self.registrar.register(preop_mm, points_mm, **fid, **surface)
             warnings.append(f"survey stopped ({self.reason}); ~/reset_survey starts over")
             return SurveyStep(result, self._values(), warnings)
-        result = self.registrar.register(preop_mm, points_mm, **fid, **self._surface)  # the first frame: a global one
+        result = self.registrar.register(preop_mm, points_mm, **fid, **surface)  # the first frame: a global one
         if self._warnings(result):  # fusing from a doubtful pose would spread its error over the whole survey
             warnings.append("survey waits for a first frame that registers without warnings")
             return SurveyStep(result, self._values(), warnings)
         self.state, self.reason = FUSING, ""
         self.registrations = 1
-        result = self._fuse(preop_mm, points_mm, result, fid, first=True)
+        result = self._fuse(preop_mm, points_mm, result, fid, surface, first=True)
         return SurveyStep(result, self._values(), warnings)
 
     def fused_view_mm(self) -> np.ndarray | None:
@@ -170,9 +169,16 @@ class Survey:
         )
 
     def _fuse(
-        self, preop_mm: np.ndarray, points_mm: np.ndarray, result: RegistrationResult, fid: dict, first: bool = False
+        self,
+        preop_mm: np.ndarray,
+        points_mm: np.ndarray,
+        result: RegistrationResult,
+        fid: dict,
+        surface: dict[str, np.ndarray],
+        first: bool = False,
     ) -> RegistrationResult:
-        """Merge an accepted frame; re-register the fused surface when its visibility has grown enough."""
+        """Merge an accepted frame; re-register the fused surface (on the preop `surface`, the judge's) when its
+        visibility has grown enough."""
         self.T_mm = np.asarray(result.T_target_source, dtype=np.float64)
         cfg = self.config
         if cfg.outlier_std_ratio > 0:  # flying pixels would pile up in the fused surface frame after frame
@@ -191,7 +197,7 @@ class Survey:
         fused = self.fused.points
         correction = self.registrar.register(preop_mm, fused, method="track", initial_T_mm=np.eye(4))
         try:
-            fresh = self.registrar.register(preop_mm, fused, **self._surface)
+            fresh = self.registrar.register(preop_mm, fused, **surface)
             if not self._warnings(fresh) and fresh.residual_mm <= correction.residual_mm:
                 correction = fresh
         except LiverP2PError:  # the global step is an improvement, never a requirement
