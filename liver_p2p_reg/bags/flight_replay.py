@@ -179,6 +179,7 @@ class _Rerunner:
         """`liver-p2p register`'s Registrar call again, on the recorded mesh with `deform`: its pose (mm) or None,
         and the deformed surface as the command's recording computed it (None when the stage was not applied)."""
         core, extras = self._core(), values["extras"]
+        mesh = {} if self.mesh is None else self.mesh.stage_kwargs
         try:
             result = core.registrar.register(
                 self.source,
@@ -188,8 +189,7 @@ class _Rerunner:
                 target_fiducials_mm=fid_t,
                 initial_T_mm=None if extras.get("initial_T_mm") is None else np.asarray(extras["initial_T_mm"]),
                 sensor_origin_mm=extras.get("sensor_origin_mm"),
-                # the contenders' judge on the recorded mesh, as the command judged
-                **(self.mesh.stage_kwargs if self.mesh is not None and core.config.contender_judge_ratio else {}),
+                **mesh,  # the recorded mesh: the contenders' judge's surface, as the command's (read only by a judge)
             )
         except LiverP2PError:
             return None, None
@@ -201,7 +201,6 @@ class _Rerunner:
             self.note("recorded without the non-rigid stage's values: its deformed surface is not checked")
             return T, None
         # the core's registrar is rigid only (the node runs the stage itself): the stage as the command ran it
-        mesh = {} if self.mesh is None else self.mesh.stage_kwargs
         core.registrar.deform(result, self.source, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, **mesh)
         return T, command_deformation(result, self.mesh, self.source, {})[1]
 

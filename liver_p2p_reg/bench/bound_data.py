@@ -81,7 +81,7 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
             source_fiducials_mm=src,
             target_fiducials_mm=tgt,
             sensor_origin_mm=case_origin(data),
-            source_triangles=source_triangles(data) if config.deform or config.contender_judge_ratio else None,
+            source_triangles=source_triangles(data),  # the registrar reads them only for the stage or the judge
         )
         ok = bool(result.ok and result.error_model is not None)
     except LiverP2PError:
