@@ -82,7 +82,8 @@ class FeatureSection:
     ransac_max_corr_norm: float = 0.05  # FPFH+RANSAC max correspondence distance (paper)
     ransac_max_iterations: int = 100000
     ransac_confidence: float = 0.999
-    # OpenMP threads of Open3D's RANSAC, FGR and ICP (methods fpfh-ransac*, fgr*, icp). RANSAC's threads
+    # OpenMP threads of Open3D's RANSAC, FGR and ICP (methods fpfh-ransac*, fgr*, icp, and the
+    # default's RANSAC candidate on small views). RANSAC's threads
     # draw from one shared generator, so on more than 1 the same seed can give another pose run to run;
     # 1 is reproducible (RANSAC ~8 % slower, docs/results/speed.md)
     open3d_threads: int = 1
@@ -120,10 +121,11 @@ class IcpSection:
     refine_candidates: int = 6
     screen_icp_points: int = 400  # screening ICP: intraop points ...
     screen_icp_iterations: int = 15  # ... and iterations per candidate
-    # learned-p2p-ransac-icp: the FPFH + RANSAC pose is screened beside P2P's candidates when the view's
-    # estimated visibility (intraop / preop voxels) is below this (0: never, 1: always)
-    ransac_candidate_visibility: float = 0.3
-    # learned-p2p-ransac-icp on those small views: the screened candidates whose short residual is within this factor
+    # learned-p2p-icp: the FPFH + RANSAC pose is screened beside P2P's candidates when the view's estimated
+    # visibility (intraop / preop voxels) is below this (0: never, the default before 0.2 was chosen by
+    # docs/benchmark_real/RULE_ransac_candidate_threshold.md; 1: always)
+    ransac_candidate_visibility: float = 0.2
+    # learned-p2p-icp on those small views: the screened candidates whose short residual is within this factor
     # of the lowest are each refined by the full ICP and the one the elastic stage fits best wins (0: off; 1.5 chosen
     # on validation sets, docs/benchmark_real/RULE_deformed_screening.md; needs the preop model's elastic model)
     contender_judge_ratio: float = 0.0

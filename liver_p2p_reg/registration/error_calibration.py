@@ -13,6 +13,7 @@ import numpy as np
 from liver_p2p_reg.config import FeatureSection, FreeSpaceSection, IcpSection, P2PSection, PreprocessSection
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_bound import FEATURES, PoseEvidence
+from liver_p2p_reg.registration.methods import canonical_method
 from liver_p2p_reg.registration.weights_id import weights_sha256
 
 BUNDLED_CALIBRATION = Path(__file__).resolve().parents[1] / "weights" / "error_bound_v1.json"
@@ -202,7 +203,7 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
     # A survey calibration was made of survey mode's frames, its tracked ones scored by `evaluate` among them.
     if calibration.view == SURVEY and method == SURVEY_TRACKED_METHOD:  # the survey of the configured method
         method = getattr(config, "method", method)
-    if method not in (calibration.method, "track"):
+    if canonical_method(method) not in (canonical_method(calibration.method), "track"):
         return f"error bound calibrated for {calibration.method}, not {method}: its coverage is not known"
     if calibration.weights_sha256 and weights_sha256(config) != calibration.weights_sha256:
         return (

@@ -40,6 +40,7 @@ class Method:
     refine: bool = False  # the final trimmed point-to-plane ICP
     ransac_candidate: bool = False  # feature pipelines: FPFH + RANSAC's pose joins the screened candidates
     run: MethodFn | None = None  # a plug-in's own function instead of the pipeline
+    same_as: str = ""  # another name of that row's method (an error-bound calibration of either holds for both)
 
 
 METHODS: dict[str, Method] = {
@@ -49,18 +50,21 @@ METHODS: dict[str, Method] = {
     "learned": Method("Learned matcher, complete-to-partial dual-softmax matching only.", features="learned"),
     "learned-p2p": Method("Learned matcher + the P2P module (the paper's pipeline).", features="learned", p2p=True),
     "learned-p2p-icp": Method(
-        "Learned matcher + P2P, then trimmed point-to-plane ICP (the default).",
-        features="learned",
-        p2p=True,
-        refine=True,
-    ),
-    "learned-p2p-ransac-icp": Method(
-        "Learned matcher + P2P, with FPFH + RANSAC's pose screened beside P2P's candidates on small views "
-        "(ransac_candidate_visibility), then trimmed point-to-plane ICP.",
+        "Learned matcher + P2P, with FPFH + RANSAC's pose screened beside P2P's candidates on views below "
+        "ransac_candidate_visibility, then trimmed point-to-plane ICP (the default).",
         features="learned",
         p2p=True,
         refine=True,
         ransac_candidate=True,
+    ),
+    # The name the RANSAC candidate had while it was an opt-in: kept so that recorded commands and selections run.
+    "learned-p2p-ransac-icp": Method(
+        "The same as learned-p2p-icp (its name while the RANSAC candidate was opt-in).",
+        features="learned",
+        p2p=True,
+        refine=True,
+        ransac_candidate=True,
+        same_as="learned-p2p-icp",
     ),
     "fpfh-ransac": Method("Open3D FPFH + RANSAC (max correspondence distance 0.05 normalized).", estimate="ransac"),
     "fpfh-ransac-icp": Method("FPFH + RANSAC, then trimmed point-to-plane ICP.", estimate="ransac", refine=True),
@@ -88,6 +92,12 @@ def check_method_name(name: str) -> Method:
     if row is None:
         raise InputError(f"unknown method {name!r}; choose one of: {', '.join(method_names())}")
     return row
+
+
+def canonical_method(name: str) -> str:
+    """The name `name` is another name of (`Method.same_as`), else `name` itself (unknown names too)."""
+    row = METHODS.get(name)
+    return row.same_as if row is not None and row.same_as else name
 
 
 def add_method(name: str, method: Method) -> None:

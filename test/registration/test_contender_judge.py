@@ -14,7 +14,7 @@ from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.deform import fitted_residual_mm
 from liver_p2p_reg.registration.methods import run_method
 
-METHOD = "learned-p2p-ransac-icp"
+METHOD = "learned-p2p-icp"
 # every screened candidate a contender, the judge on any view; a small elastic model (fast on CPU)
 JUDGE = dict(
     method=METHOD,
@@ -118,7 +118,7 @@ def test_the_stages_residual_explains_a_deformation_and_refuses_what_it_would_no
 def test_only_a_method_screening_ransacs_pose_is_judged_and_has_its_surface_checked(view) -> None:
     source, tris, target, T = view
     bad = np.array([[0, 1, len(source) + 5]])  # indexes a vertex the model does not have
-    for method in ("learned-p2p-icp", "track"):  # no RANSAC candidate: no judge, no elastic model, no surface check
+    for method in ("fpfh-p2p-icp", "track"):  # no RANSAC candidate: no judge, no elastic model, no surface check
         registrar = Registrar(Config(**{**JUDGE, "method": method}))
         result = registrar.register(source, target, initial_T_mm=T, source_triangles=bad)
         assert "judge" not in result.runtime_ms and all(np.isnan(c.judge_key_mm) for c in result.screened)

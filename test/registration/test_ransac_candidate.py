@@ -1,4 +1,5 @@
-"""learned-p2p-ransac-icp: FPFH + RANSAC's pose screened beside P2P's candidates, and the rule that judges it."""
+"""The default's RANSAC candidate: FPFH + RANSAC's pose screened beside P2P's candidates on small views, and the rule
+that judged it (when it was the opt-in `learned-p2p-ransac-icp`)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from liver_p2p_reg.bench.cases_csv import write_rows
 from liver_p2p_reg.bench.ransac_candidate_rule import CANDIDATE, REFERENCE, RUN, SETS, median_ms, verdict
 from liver_p2p_reg.errors import RegistrationError
 
-METHOD = "learned-p2p-ransac-icp"
+METHOD = "learned-p2p-icp"
+WITHOUT = {"ransac_candidate_visibility": 0.0}  # the default before the switch: no RANSAC candidate
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +34,9 @@ def test_ransac_pose_is_screened_beside_p2p_candidates(case) -> None:
     result = _register(case, Config(k=2, ransac_candidate_visibility=1.0))
     names = [c.name for c in result.candidates]
     assert names[-1] == "fpfh-ransac" and names.count("fpfh-ransac") == 1
-    assert names[:-1] == [c.name for c in _register(case, Config(k=2), "learned-p2p-icp").candidates]
+    default = _register(case, Config(k=2, **WITHOUT))
+    assert names[:-1] == [c.name for c in default.candidates]
     # on this easy crop RANSAC's pose is P2P's: skipped as a near-duplicate, P2P keeps its own screened poses
-    default = _register(case, Config(k=2), "learned-p2p-icp")
     assert [c.name for c in result.screened] == [c.name for c in default.screened]
     assert result.T_target_source.tobytes() == default.T_target_source.tobytes()
     assert result.runtime_ms["ransac"] > 0 and result.rms_tre_mm < 3.0
@@ -44,7 +46,7 @@ def test_ransac_pose_is_screened_beside_p2p_candidates(case) -> None:
 
 @pytest.mark.parametrize("below", [0.0, -0.01])  # never, or just under this view's estimated visibility
 def test_above_the_visibility_threshold_it_is_the_default_bit_for_bit(case, below: float) -> None:
-    default = _register(case, Config(k=2), "learned-p2p-icp")
+    default = _register(case, Config(k=2, **WITHOUT))
     threshold = max(0.0, default.visibility + below) if below else 0.0
     hybrid = _register(case, Config(k=2, ransac_candidate_visibility=threshold))
     assert "ransac" not in hybrid.runtime_ms and len(hybrid.candidates) == len(default.candidates)
@@ -52,9 +54,9 @@ def test_above_the_visibility_threshold_it_is_the_default_bit_for_bit(case, belo
     assert [c.name for c in hybrid.screened] == [c.name for c in default.screened]
 
 
-def test_warm_up_takes_ransacs_path_only_for_a_method_that_has_it(case) -> None:
+def test_warm_up_takes_ransacs_path_only_where_the_method_has_it(case) -> None:
     source = case[0]
-    for method, threshold, warmed in ((METHOD, 0.3, True), (METHOD, 0.0, False), ("learned-p2p-icp", 0.3, False)):
+    for method, threshold, warmed in ((METHOD, 0.3, True), (METHOD, 0.0, False), ("learned-p2p-ransac-icp", 0.3, True)):
         registrar = Registrar(Config(k=2, ransac_candidate_visibility=threshold))
         registrar.warm_up(source, method)
         # the source's FPFH: RANSAC's pose was computed on the warm-up's cap, before any real view
@@ -99,12 +101,23 @@ def test_free_space_ranks_the_ransac_pose_too() -> None:
 
 
 def test_ransac_pose_answers_when_p2p_has_no_candidate(case) -> None:
-    # No dual-softmax confidence reaches 1: every P2P candidate fails; the default raises, the hybrid has RANSAC
+    # No dual-softmax confidence reaches 1: every P2P candidate fails; without RANSAC's pose the method raises
     config = Config(k=2, confidence_threshold=1.0, ransac_candidate_visibility=1.0)
     with pytest.raises(RegistrationError, match="no candidate"):
-        _register(case, config, "learned-p2p-icp")
+        _register(case, config.replace(**WITHOUT))
     result = _register(case, config)
     assert result.candidates[result.chosen].name == "fpfh-ransac" and result.rms_tre_mm < 3.0
+
+
+def test_the_opt_in_name_is_the_default_bit_for_bit(case) -> None:
+    config = Config(k=2, ransac_candidate_visibility=1.0)
+    default, alias = _register(case, config), _register(case, config, "learned-p2p-ransac-icp")
+    assert alias.T_target_source.tobytes() == default.T_target_source.tobytes() and "ransac" in alias.runtime_ms
+    assert [c.name for c in alias.candidates] == [c.name for c in default.candidates]
+
+
+def test_the_default_screens_ransacs_pose_below_0_2_only() -> None:
+    assert Config().ransac_candidate_visibility == 0.2 and Config().method == METHOD
 
 
 @pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])

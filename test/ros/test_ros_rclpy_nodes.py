@@ -123,13 +123,12 @@ def test_register_node_publishes_pose_and_answers_service(ros_context):
 
 
 def test_register_node_runs_the_ransac_candidate_method(ros_context):
-    """learned-p2p-ransac-icp through register_node over DDS: RANSAC's pose is among the screened hypotheses."""
+    """The default's RANSAC candidate through register_node over DDS: RANSAC's pose is among the screened hypotheses."""
     from synthetic_cases import partial_case
 
     source_mm, target_mm, T_true, _, _ = partial_case(np.random.default_rng(7))
     overrides = [
-        Parameter("method", value="learned-p2p-ransac-icp"),
-        Parameter("ransac_candidate_visibility", value=1.0),  # this crop is larger than the default's 0.3
+        Parameter("ransac_candidate_visibility", value=1.0),  # this crop is larger than the default's 0.2
         Parameter("sensor_at_frame_origin", value=False),  # a synthetic crop: no camera at its frame's origin
     ]
     with pose_graph(overrides, "test_helper_ransac") as (node, helper, executor, poses):
@@ -146,7 +145,7 @@ def test_register_node_runs_the_ransac_candidate_method(ros_context):
         # the pose is published from inside the registration; its output is kept just after
         assert spin_until(executor, lambda: node.core.last_output is not None)
         result = node.core.last_output.result
-        assert result.method == "learned-p2p-ransac-icp" and "ransac" in result.runtime_ms
+        assert result.method == "learned-p2p-icp" and "ransac" in result.runtime_ms
         assert "fpfh-ransac" in [c.name for c in result.candidates]
 
 
@@ -168,7 +167,6 @@ def test_register_node_judges_small_views_contenders_on_the_preop_mesh(ros_conte
         surface[np.argsort(np.linalg.norm(surface - centre, axis=1))[: int(0.15 * len(surface))]],
     )
     overrides = [
-        Parameter("method", value="learned-p2p-ransac-icp"),
         Parameter("ransac_candidate_visibility", value=1.0),
         Parameter("contender_judge_ratio", value=100.0),  # every screened candidate a contender
         Parameter("deform_modes", value=12),

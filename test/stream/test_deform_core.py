@@ -281,7 +281,7 @@ def test_meshes_beyond_the_triangle_limit_are_refused() -> None:
         checked_mesh(vertices, many, "ct", 5)
 
 
-JUDGE = dict(method="learned-p2p-ransac-icp", ransac_candidate_visibility=1.0, contender_judge_ratio=100.0)
+JUDGE = dict(method="learned-p2p-icp", ransac_candidate_visibility=1.0, contender_judge_ratio=100.0)
 
 
 def test_the_contenders_judge_uses_the_one_elastic_model_of_the_mesh(case) -> None:
