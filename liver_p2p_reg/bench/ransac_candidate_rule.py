@@ -1,4 +1,10 @@
-"""The RANSAC-candidate rule of docs/benchmark_real/RULE_ransac_candidate.md, on the validation benchmarks."""
+"""The RANSAC-candidate rule of docs/benchmark_real/RULE_ransac_candidate.md, on the validation benchmarks.
+
+A record of choices made while `learned-p2p-icp` had no RANSAC candidate: since it became the default's (the
+switch; `ransac_candidate_visibility` 0 is the old default), REFERENCE and CANDIDATE name one method, so the kept
+rows are the record and a new run would compare the default with itself (the benchmark refuses to resume the kept
+folders, whose settings record the threshold 0.3).
+"""
 
 from __future__ import annotations
 
