@@ -118,8 +118,9 @@ def test_the_stages_residual_explains_a_deformation_and_refuses_what_it_would_no
 def test_only_a_method_screening_ransacs_pose_is_judged_and_has_its_surface_checked(view) -> None:
     source, tris, target, T = view
     bad = np.array([[0, 1, len(source) + 5]])  # indexes a vertex the model does not have
-    for method in ("fpfh-p2p-icp", "track"):  # no RANSAC candidate: no judge, no elastic model, no surface check
-        registrar = Registrar(Config(**{**JUDGE, "method": method}))
+    no_ransac = (("fpfh-p2p-icp", {}), ("track", {}), ("learned-p2p-icp", {"ransac_candidate_visibility": 0.0}))
+    for method, extra in no_ransac:  # no RANSAC candidate: no judge, no elastic model, no surface check
+        registrar = Registrar(Config(**{**JUDGE, "method": method, **extra}))
         result = registrar.register(source, target, initial_T_mm=T, source_triangles=bad)
         assert "judge" not in result.runtime_ms and all(np.isnan(c.judge_key_mm) for c in result.screened)
         assert not any(isinstance(k, str) and k.startswith("elastic:") for k in registrar.cache)

@@ -82,6 +82,12 @@ def test_every_registration_carries_its_bound(registered):
     assert not any("error bound" in w for w in result.warnings)  # told, not warned
 
 
+def test_the_defaults_other_name_is_covered_by_its_calibration(registered):
+    _, source, target, fid_s, _ = registered
+    result = Registrar(method="learned-p2p-ransac-icp").register(source, target)
+    assert np.isfinite(result.error_bound_mm) and result.error_calibration_note == ""
+
+
 def test_a_higher_coverage_gives_a_wider_bound(registered):
     registrar, source, target, fid_s, result = registered
     wide = Registrar(registrar.config.replace(error_coverage=0.95)).register(source, target, source_fiducials_mm=fid_s)

@@ -44,11 +44,11 @@ def test_ransac_pose_is_screened_beside_p2p_candidates(case) -> None:
     assert ransac.n_matches == 0 and np.isfinite(ransac.residual_mm) and ransac.ok
 
 
-@pytest.mark.parametrize("below", [0.0, -0.01])  # never, or just under this view's estimated visibility
+@pytest.mark.parametrize("below", [0.0, 0.01])  # the view's estimated visibility exactly (not below), or just over
 def test_above_the_visibility_threshold_it_is_the_default_bit_for_bit(case, below: float) -> None:
     default = _register(case, Config(k=2, **WITHOUT))
-    threshold = max(0.0, default.visibility + below) if below else 0.0
-    hybrid = _register(case, Config(k=2, ransac_candidate_visibility=threshold))
+    assert "ransac" not in default.runtime_ms and default.visibility > 0.02
+    hybrid = _register(case, Config(k=2, ransac_candidate_visibility=default.visibility - below))
     assert "ransac" not in hybrid.runtime_ms and len(hybrid.candidates) == len(default.candidates)
     assert hybrid.T_target_source.tobytes() == default.T_target_source.tobytes()
     assert [c.name for c in hybrid.screened] == [c.name for c in default.screened]
@@ -116,8 +116,19 @@ def test_the_opt_in_name_is_the_default_bit_for_bit(case) -> None:
     assert [c.name for c in alias.candidates] == [c.name for c in default.candidates]
 
 
-def test_the_default_screens_ransacs_pose_below_0_2_only() -> None:
+def test_the_default_screens_ransacs_pose_below_0_2_only(case) -> None:
     assert Config().ransac_candidate_visibility == 0.2 and Config().method == METHOD
+    small = partial_case(np.random.default_rng(7), share=0.15)
+    for view, below in ((small, True), (case, False)):
+        result = _register(view, Config(k=2))
+        assert (result.visibility < 0.2) is below and ("ransac" in result.runtime_ms) is below
+
+
+def test_the_opt_in_name_is_the_default_for_calibrations() -> None:
+    from liver_p2p_reg.registration.methods import canonical_method
+
+    assert canonical_method("learned-p2p-ransac-icp") == METHOD == canonical_method(METHOD)
+    assert canonical_method("fpfh-ransac-icp") == "fpfh-ransac-icp" and canonical_method("no-such") == "no-such"
 
 
 @pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])
