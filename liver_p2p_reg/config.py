@@ -122,8 +122,8 @@ class IcpSection:
     screen_icp_points: int = 400  # screening ICP: intraop points ...
     screen_icp_iterations: int = 15  # ... and iterations per candidate
     # learned-p2p-icp: the FPFH + RANSAC pose is screened beside P2P's candidates when the view's estimated
-    # visibility (intraop / preop voxels) is below this (0: never, the default before 0.2 was chosen by
-    # docs/benchmark_real/RULE_ransac_candidate_threshold.md; 1: always)
+    # visibility (intraop / preop voxels) is below this (0: never, the default before the switch bit for bit;
+    # 0.2 was chosen by docs/benchmark_real/RULE_ransac_candidate_threshold.md; 1: always)
     ransac_candidate_visibility: float = 0.2
     # learned-p2p-icp on those small views: the screened candidates whose short residual is within this factor
     # of the lowest are each refined by the full ICP and the one the elastic stage fits best wins (0: off; 1.5 chosen

@@ -7,6 +7,9 @@ Runs `liver-p2p benchmark` (resumable) with `learned-p2p-icp` and `learned-p2p-r
 real-val-v2-arap and real-val-camera-v2 (visibility [0.05, 0.3), clean + 2 mm noise on every case), reads the
 candidate's median time from the `SPEED-RANSAC` block that `scripts/bench_paths.py --block SPEED-RANSAC` wrote,
 then writes the rule's table and verdict.
+
+A record from before the RANSAC candidate joined the default: both names now run the same method, so a fresh run
+(a new `--out-root`) compares the default with itself; the kept rows (`--no-run`) are the record.
 """
 
 from __future__ import annotations
