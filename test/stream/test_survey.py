@@ -106,6 +106,17 @@ def test_frames_tracked_on_the_survey_get_the_survey_calibrations_bound(sweep) -
     assert "calibrated for learned-p2p-icp, not fpfh-ransac-icp" in note
 
 
+def test_a_first_frame_warned_for_its_error_bound_alone_does_not_start_a_survey(sweep) -> None:
+    # the same frame starts a survey under the default limit (the test above); at 0.5 mm its bound at depth warns
+    core = NodeCore(Config(mode="survey", structure_error_warn_mm=0.5))
+    assert core.set_preop(sweep["preop"]).level == OK
+    core.set_preop_fiducials(sweep["preop_fiducials"])
+    output, diag = feed(core, sweep, 0, 0.0)
+    assert diag.level == WARN and "error bound at depth" in diag.message
+    assert diag.values["survey_state"] == "idle" and "waits for a first frame" in diag.message
+    assert output.result.residual_mm <= core.config.residual_warn_mm and not output.result.ambiguous
+
+
 def test_a_tracking_failure_stops_fusion_with_a_diagnostic(sweep) -> None:
     core = survey_core(sweep)
     for i, k in enumerate((0, 3, 6)):
