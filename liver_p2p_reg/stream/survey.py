@@ -19,7 +19,7 @@ import numpy as np
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import transform_points
-from liver_p2p_reg.registration.confidence import result_warnings
+from liver_p2p_reg.registration.confidence import pose_warnings
 from liver_p2p_reg.registration.error_calibration import SURVEY_TRACKED_METHOD, use_survey_calibration
 from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.registration.preprocess import statistical_inliers, voxel_keys
@@ -230,9 +230,17 @@ class Survey:
         return ""
 
     def _warnings(self, result: RegistrationResult) -> dict[str, str]:
-        # The node's own verdict, its error bound at depth (the interior's) included: a first frame the node marks WARN must
-        # not start a survey, however well it fits the view
-        return result_warnings(result, self.config)
+        # The pose's warnings and its interior's error bound at depth, as the node's verdict has them: a pose the node
+        # marks WARN for its bound must not start a survey, however well it fits the view. Not a method's own notes
+        # (prepared weights of another liver): they would hold a survey forever.
+        return pose_warnings(
+            result.residual_mm,
+            result.ambiguous,
+            result.uncertainty_mm,
+            self.config,
+            result.free_space_violation,
+            result.error_bound_mm,
+        )
 
     def _meter_for(self, preop_mm: np.ndarray) -> VisibilityMeter:
         """M/N against this preop model, measured as the pipeline measures a target's visibility (one per model)."""

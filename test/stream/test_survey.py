@@ -113,6 +113,7 @@ def test_a_first_frame_warned_for_its_error_bound_alone_does_not_start_a_survey(
     core.set_preop_fiducials(sweep["preop_fiducials"])
     output, diag = feed(core, sweep, 0, 0.0)
     assert diag.level == WARN and "error bound at depth" in diag.message
+    assert diag.values["warn_reasons"] == "input,error_bound"  # the bound alone (input: the survey's own line)
     assert diag.values["survey_state"] == "idle" and "waits for a first frame" in diag.message
     assert output.result.residual_mm <= core.config.residual_warn_mm and not output.result.ambiguous
 
