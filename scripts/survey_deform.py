@@ -39,7 +39,7 @@ from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import rms_tre_mm
 from liver_p2p_reg.registration.baselines import kabsch_np
-from liver_p2p_reg.registration.confidence import pose_warnings
+from liver_p2p_reg.registration.confidence import pose_bound_warnings
 from liver_p2p_reg.registration.registrar import Registrar
 
 MARK, BAGS_MARK = "SURVEY-DEFORM", "SURVEY-BAGS"
@@ -81,15 +81,7 @@ def survey_start(registrar: Registrar, source: np.ndarray, cases: list[dict], fi
     config = registrar.config
     for case in cases:
         result = registrar.register(source, case["tgt_pcd"], sensor_origin_mm=sensor_origin_mm(case))
-        warned = pose_warnings(
-            result.residual_mm,
-            result.ambiguous,
-            result.uncertainty_mm,
-            config,
-            result.free_space_violation,
-            result.error_bound_mm,  # survey mode's gate: the pose's warnings and its error bound
-        )
-        if not warned:
+        if not pose_bound_warnings(result, config):  # survey mode's gate
             break
     # sensor i -> ct (the truth) -> sensor of the first view
     R_i, t_i, R_0, t_0 = (np.asarray(x, float) for x in (case["R_gt"], case["t_gt"], first["R_gt"], first["t_gt"]))

@@ -153,6 +153,14 @@ def pose_warnings(
     return out
 
 
+def pose_bound_warnings(result: Any, config: Config, error_bound_mm: float | None = None) -> dict[str, str]:
+    """`pose_warnings` of a RegistrationResult with its interior's error bound (or `error_bound_mm`): the verdict's
+    reasons without structures and without the method's own notes (survey mode's gate)."""
+    bound = getattr(result, "error_bound_mm", float("nan")) if error_bound_mm is None else error_bound_mm
+    violation = getattr(result, "free_space_violation", float("nan"))
+    return pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config, violation, bound)
+
+
 def result_warnings(
     result: Any, config: Config, structure_bounds_mm: Mapping[str, np.ndarray] | None = None
 ) -> dict[str, str]:
@@ -162,9 +170,7 @@ def result_warnings(
     With structures (label -> per-point bounds, mm) the verdict follows their bounds: any point
     above `structure_error_warn_mm` warns, naming the structure; without, the interior's bound.
     """
-    violation = getattr(result, "free_space_violation", float("nan"))
-    interior = getattr(result, "error_bound_mm", float("nan")) if not structure_bounds_mm else float("nan")
-    out = pose_warnings(result.residual_mm, result.ambiguous, result.uncertainty_mm, config, violation, interior)
+    out = pose_bound_warnings(result, config, float("nan") if structure_bounds_mm else None)
     limit = config.structure_error_warn_mm
     wide = {label: float(np.max(b)) for label, b in (structure_bounds_mm or {}).items() if len(b)}
     wide = {label: b for label, b in wide.items() if not b <= limit}

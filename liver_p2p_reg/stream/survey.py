@@ -19,7 +19,7 @@ import numpy as np
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import LiverP2PError
 from liver_p2p_reg.metrics import transform_points
-from liver_p2p_reg.registration.confidence import pose_warnings
+from liver_p2p_reg.registration.confidence import pose_bound_warnings
 from liver_p2p_reg.registration.error_calibration import SURVEY_TRACKED_METHOD, use_survey_calibration
 from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.registration.preprocess import statistical_inliers, voxel_keys
@@ -233,14 +233,7 @@ class Survey:
         # The pose's warnings and its interior's error bound at depth, as the node's verdict has them: a pose the node
         # marks WARN for its bound must not start a survey, however well it fits the view. Not a method's own notes
         # (prepared weights of another liver): they would hold a survey forever.
-        return pose_warnings(
-            result.residual_mm,
-            result.ambiguous,
-            result.uncertainty_mm,
-            self.config,
-            result.free_space_violation,
-            result.error_bound_mm,
-        )
+        return pose_bound_warnings(result, self.config)
 
     def _meter_for(self, preop_mm: np.ndarray) -> VisibilityMeter:
         """M/N against this preop model, measured as the pipeline measures a target's visibility (one per model)."""
