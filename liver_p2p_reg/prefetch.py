@@ -1,11 +1,13 @@
-"""Outward normals of a cloud computed in a child process, so a one-shot command imports torch meanwhile.
+"""Open3D's share of a one-shot registration computed in a child process, so the command imports torch meanwhile.
 
 A `liver-p2p register` process spends most of its time importing torch (for the matcher) and
-Open3D (for the ICP's source normals), one after the other on one core. The normals depend
-only on the source, so the command starts a child that imports Open3D and computes them with
-the very same function (`features.fpfh.outward_normals`) while this process imports torch;
-`outward_normals` then takes the child's result for exactly those points. Same function, same
-input bits: the same normals. If the child fails, the normals are computed here as before.
+Open3D (for the ICP's source normals and, on small views, FPFH + RANSAC's candidate pose), one
+after the other on one core. Both depend only on the inputs, so the command starts a child that
+imports Open3D and computes them with the very same functions (`features.fpfh.local_outward_normals`,
+`baselines.fpfh_ransac` after `preprocess.preprocess_pair`) while this process imports torch;
+`outward_normals` and `fpfh_ransac` then take the child's result for exactly those points and
+settings (compared bit for bit). Same functions, same input bits: the same results. Whatever the
+child did not deliver is computed here, as before.
 
 `normals_in_child` is the blocking form, for large clouds: Open3D's normal estimation holds the GIL
 (1.5 s for 300 k points), which would stall a node's signal handling and callbacks; waiting on a child's
@@ -14,63 +16,143 @@ pipe does not.
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
+import os
 import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from liver_p2p_reg.config import Config
+
 PACKAGE_PARENT = str(Path(__file__).resolve().parents[1])
-# The child: read the points (a file, or "-": stdin), compute the normals with the package's own function (in
-# this process: no grandchild), write them (a file, or "-": stdout). On Linux it dies with the thread that
-# started it, so a node stopped mid-warm-up leaves no orphan computing on.
-CHILD = """import ctypes, io, sys
+# The child runs `child_main` of this module (in its own process: no grandchild). On Linux it dies with the
+# thread that started it, so a node stopped mid-warm-up leaves no orphan computing on.
+CHILD = """import ctypes, sys
 try:
     ctypes.CDLL(None).prctl(1, 9)  # PR_SET_PDEATHSIG, SIGKILL
 except (OSError, AttributeError):
     pass
 sys.path.insert(0, sys.argv[1])
-import numpy as np
-from liver_p2p_reg.registration.features.fpfh import local_outward_normals
-src = io.BytesIO(sys.stdin.buffer.read()) if sys.argv[2] == "-" else sys.argv[2]
-normals = local_outward_normals(np.load(src), float(sys.argv[4]), int(sys.argv[5]))
-if sys.argv[3] == "-":
-    out = io.BytesIO()
-    np.save(out, normals)
-    sys.stdout.buffer.write(out.getvalue())
-else:
-    np.save(sys.argv[3], normals)
+from liver_p2p_reg.prefetch import child_main
+child_main(sys.argv[2:])
 """
-_PENDING: list[BackgroundNormals] = []
+POLL_S = 0.002  # how often a waiting lookup looks for the child's next file
+_PENDING: list[BackgroundOpen3D] = []
 
 
-def child_command(points_in: str | Path, normals_out: str | Path, radius: float, max_nn: int) -> list[str]:
-    """The command line of a CHILD reading `points_in` and writing `normals_out` ("-": stdin / stdout)."""
-    return [
-        sys.executable,
-        "-c",
-        CHILD,
-        PACKAGE_PARENT,
-        str(points_in),
-        str(normals_out),
-        repr(float(radius)),
-        str(int(max_nn)),
-    ]
+def child_command(*argv: str) -> list[str]:
+    """The command line of a CHILD running `child_main(argv)`."""
+    return [sys.executable, "-c", CHILD, PACKAGE_PARENT, *argv]
 
 
-class BackgroundNormals:
-    """`outward_normals(points, radius, max_nn)` being computed by a child process."""
+def child_main(argv: list[str]) -> None:
+    """The child's work: `normals IN OUT RADIUS MAX_NN` ("-": stdin / stdout) or `job FOLDER` (BackgroundOpen3D)."""
+    from liver_p2p_reg.registration.features.fpfh import local_outward_normals
 
-    def __init__(self, points: np.ndarray, radius: float, max_nn: int = 30) -> None:
+    if argv[0] == "job":
+        _run_job(Path(argv[1]))
+        return
+    points_in, normals_out, radius, max_nn = argv[1:5]
+    src = io.BytesIO(sys.stdin.buffer.read()) if points_in == "-" else points_in
+    normals = local_outward_normals(np.load(src), float(radius), int(max_nn))
+    if normals_out == "-":
+        out = io.BytesIO()
+        np.save(out, normals)
+        sys.stdout.buffer.write(out.getvalue())
+    else:
+        np.save(normals_out, normals)
+
+
+def digest(points: np.ndarray) -> str:
+    """A cloud's identity: its shape and float64 bits."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    return f"{points.shape}:{hashlib.sha256(points.tobytes()).hexdigest()}"
+
+
+def _save_whole(path: Path, **arrays: np.ndarray) -> None:
+    """Write an .npy (one array) or .npz under a temporary name, then rename: a reader never sees half a file."""
+    part = path.with_name(f"part_{path.name}")
+    if len(arrays) == 1 and path.suffix == ".npy":
+        np.save(part, next(iter(arrays.values())))
+    else:
+        np.savez(part, **arrays)
+    os.replace(part, path)
+
+
+def _run_job(folder: Path) -> None:
+    """The ICP's normals first (every `-icp` registration needs them), then RANSAC's pose of each small view."""
+    from liver_p2p_reg.registration.features.fpfh import local_outward_normals
+
+    job = json.loads((folder / "job.json").read_text())
+    points = np.load(folder / "points.npy")
+    _save_whole(folder / "normals.npy", normals=local_outward_normals(points, job["radius"], job["max_nn"]))
+    if not job["views"]:
+        return
+    from liver_p2p_reg.cloud_io import clean_points
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.errors import InputError, RegistrationError
+    from liver_p2p_reg.registration.baselines import fpfh_ransac
+    from liver_p2p_reg.registration.preprocess import preprocess_pair
+
+    config = Config.from_dict(job["config"])
+    cache: dict = {}
+    source = np.load(folder / "source.npy")
+    for i in range(job["views"]):
+        try:  # as the Registrar and the pipeline prepare them
+            clean = clean_points(source, "source", min_points=config.min_points)
+            target = clean_points(np.load(folder / f"view{i}.npy"), "target", min_points=config.min_points)
+            prep = preprocess_pair(clean, target, config, cache)
+        except InputError:
+            continue  # the registration reports it
+        if not prep.visibility < config.ransac_candidate_visibility:
+            continue  # no candidate is wanted for this view
+        keys = {"source": np.array(digest(prep.source)), "target": np.array(digest(prep.target))}
+        try:
+            _save_whole(folder / f"ransac{i}.npz", pose=fpfh_ransac(prep.source, prep.target, config, cache), **keys)
+        except RegistrationError as exc:
+            _save_whole(folder / f"ransac{i}.npz", error=np.array(str(exc)), **keys)
+
+
+class BackgroundOpen3D:
+    """`outward_normals(points, radius, max_nn)` and, for each view below `ransac_candidate_visibility`, RANSAC's
+    pose (`fpfh_ransac` on the prepared pair), being computed by a child process. `views`: none for the
+    normals alone."""
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        radius: float,
+        max_nn: int = 30,
+        *,
+        source_mm: np.ndarray | None = None,
+        views_mm: list[np.ndarray] = (),
+        config: Config | None = None,
+    ) -> None:
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.radius, self.max_nn = float(radius), int(max_nn)
-        self.folder = Path(tempfile.mkdtemp(prefix="liver_p2p_normals_"))
+        self.config = config if views_mm else None
+        self.poses: dict[tuple[str, str], np.ndarray | str] = {}  # RANSAC's records read so far
+        self.read: set[str] = set()
+        self.folder = Path(tempfile.mkdtemp(prefix="liver_p2p_open3d_"))
         np.save(self.folder / "points.npy", self.points)
+        for i, view in enumerate(views_mm):
+            np.save(self.folder / f"view{i}.npy", view)
+        if views_mm:
+            np.save(self.folder / "source.npy", source_mm)
+        job = {"radius": self.radius, "max_nn": self.max_nn, "views": len(views_mm)}
+        job["config"] = config.to_dict() if views_mm else None
+        (self.folder / "job.json").write_text(json.dumps(job))
         self.child = subprocess.Popen(
-            child_command(self.folder / "points.npy", self.folder / "normals.npy", self.radius, self.max_nn),
+            child_command("job", str(self.folder)),
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -86,17 +168,46 @@ class BackgroundNormals:
             and np.ascontiguousarray(points).tobytes() == self.points.tobytes()
         )
 
-    def result(self) -> np.ndarray | None:
-        """The child's normals (waits for it), or None when it failed."""
+    def _wait_for(self, found) -> bool:
+        """Wait until `found()` holds or the child has ended (then one last look); whether it holds."""
+        while not found():
+            if self.child.poll() is not None:
+                return bool(found())
+            time.sleep(POLL_S)
+        return True
+
+    def normals(self) -> np.ndarray | None:
+        """The child's normals (waits for them), or None when it failed."""
+        path = self.folder / "normals.npy"
+        if not self._wait_for(path.exists):
+            return None
         try:
-            if self.child.wait() != 0:
-                return None
-            normals = np.load(self.folder / "normals.npy")
+            normals = np.load(path)
         except (OSError, ValueError):
             return None
-        finally:
-            self.close()
         return normals if normals.shape == self.points.shape else None
+
+    def ransac(self, source: np.ndarray, target: np.ndarray) -> np.ndarray | str | None:
+        """The child's RANSAC pose for exactly this prepared pair (waits for it), its error message when
+        RANSAC found none, or None when the child did not compute it."""
+        key = (digest(source), digest(target))
+
+        def found() -> bool:
+            for path in sorted(self.folder.glob("ransac*.npz")):
+                if path.name in self.read:
+                    continue
+                try:
+                    with np.load(path) as record:
+                        value = record["pose"] if "pose" in record else str(record["error"])
+                        self.poses[(str(record["source"]), str(record["target"]))] = value
+                    self.read.add(path.name)
+                except (OSError, ValueError, KeyError):
+                    continue
+            return key in self.poses
+
+        if self.config is None or not self._wait_for(found):
+            return None
+        return self.poses[key]
 
     def close(self) -> None:
         """Stop the child if it still runs and remove its files (idempotent)."""
@@ -112,7 +223,18 @@ def take_prefetched(points: np.ndarray, radius: float, max_nn: int) -> np.ndarra
     """The normals a child computed for exactly these points and parameters, else None."""
     for job in list(_PENDING):
         if job.matches(points, radius, max_nn):
-            return job.result()
+            return job.normals()
+    return None
+
+
+def take_prefetched_ransac(source: np.ndarray, target: np.ndarray, config: Config) -> np.ndarray | str | None:
+    """`fpfh_ransac(source, target, config, ...)` as a child computed it for exactly this prepared pair and
+    these settings: the pose, or the message of its RegistrationError; None when no child did."""
+    for job in list(_PENDING):
+        if job.config is not None and job.config == config:
+            ready = job.ransac(source, target)
+            if ready is not None:
+                return ready
     return None
 
 
@@ -124,7 +246,10 @@ def normals_in_child(points: np.ndarray, radius: float, max_nn: int = 30) -> np.
     np.save(sent, points)
     try:
         done = subprocess.run(
-            child_command("-", "-", radius, max_nn), input=sent.getvalue(), capture_output=True, check=False
+            child_command("normals", "-", "-", repr(float(radius)), str(int(max_nn))),
+            input=sent.getvalue(),
+            capture_output=True,
+            check=False,
         )
         normals = np.load(io.BytesIO(done.stdout)) if done.returncode == 0 else None
     except (OSError, ValueError):

@@ -235,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
         from liver_p2p_reg.cli.slicer import connect_to_slicer
 
         slicer = connect_to_slicer(args.slicer)
-    prefetch = _prefetch_icp_normals(source, config)
+    prefetch = _prefetch_open3d(source, views, config)
     try:
         return _register_all(
             args,
@@ -255,16 +255,19 @@ def run(args: argparse.Namespace) -> int:
             slicer.endpoint.close()
 
 
-def _prefetch_icp_normals(source, config):
-    """Start computing the ICP's source normals in a child process (prefetch.py), which imports
-    Open3D there while this process imports torch: learned `-icp` methods only, the ones that need
-    both. The child works on exactly the points the pipeline will (the Registrar's finite points,
-    normalized as `preprocess.preprocess_pair` does); should they differ, the pipeline computes its own."""
+def _prefetch_open3d(source, views, config):
+    """Start Open3D's share of the registrations in a child process (prefetch.py), which imports Open3D there
+    while this process imports torch: the ICP's source normals, and RANSAC's pose of each view small enough
+    for the default's candidate; learned `-icp` methods only, the ones that need both libraries. The child
+    works on exactly the points the pipeline will (the Registrar's finite points, normalized as
+    `preprocess.preprocess_pair` does); should they differ, the pipeline computes its own."""
+    from liver_p2p_reg.registration.methods import METHODS
+
     if not (config.method.startswith("learned") and config.method.endswith("-icp")) or "open3d" in sys.modules:
         return None  # another method, or Open3D is here already (an STL/OBJ source): nothing to gain
     import numpy as np
 
-    from liver_p2p_reg.prefetch import BackgroundNormals
+    from liver_p2p_reg.prefetch import BackgroundOpen3D
     from liver_p2p_reg.registration.preprocess import source_normalization
 
     finite = source[np.isfinite(source).all(axis=1)]
@@ -272,7 +275,11 @@ def _prefetch_icp_normals(source, config):
         full = source_normalization(finite).apply(finite)
     except InputError:
         return None  # the registration reports it
-    return BackgroundNormals(full, config.normal_radius_norm)
+    row = METHODS.get(config.method)
+    candidate = row is not None and row.ransac_candidate and config.ransac_candidate_visibility > 0
+    return BackgroundOpen3D(
+        full, config.normal_radius_norm, source_mm=source, views_mm=views if candidate else [], config=config
+    )
 
 
 def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths, slicer=None) -> int:

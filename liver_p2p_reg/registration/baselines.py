@@ -117,8 +117,16 @@ def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: d
 
     The matches are computed here (k-d trees over the 33-D histograms) and handed to Open3D's
     correspondence RANSAC: the same hypotheses as its feature-matching variant, several
-    times faster on these cloud sizes.
+    times faster on these cloud sizes. A one-shot command's child process may have computed it already
+    (prefetch.py): the same function on the same bits, taken instead.
     """
+    from liver_p2p_reg.prefetch import take_prefetched_ransac
+
+    ready = take_prefetched_ransac(source, target, config)
+    if isinstance(ready, str):
+        raise RegistrationError(ready)
+    if ready is not None:
+        return ready
     o3d = o3d_module()
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(config.seed)  # Open3D's RANSAC draws from its own generator

@@ -114,15 +114,71 @@ def test_default_method_gets_the_icp_normals_from_a_child_and_the_same_pose(file
 
 def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
     from liver_p2p_reg.cloud_io import load_points
-    from liver_p2p_reg.prefetch import BackgroundNormals, take_prefetched
+    from liver_p2p_reg.prefetch import BackgroundOpen3D, take_prefetched
     from liver_p2p_reg.registration.features.fpfh import outward_normals
 
     points = load_points(files["source"]) / 100.0
-    job = BackgroundNormals(points, 0.1)
+    job = BackgroundOpen3D(points, 0.1)
     assert take_prefetched(points + 0.0, 0.2, 30) is None  # other parameters: not this job
     child = take_prefetched(points.copy(), 0.1, 30)
+    job.close()
     assert child is not None and child.tobytes() == outward_normals(points, 0.1).tobytes()
-    assert not job.folder.exists()  # cleaned up once taken
+    assert not job.folder.exists()  # cleaned up once closed
+
+
+@pytest.fixture(scope="module")
+def small_view(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A 15 % crop: below the default's `ransac_candidate_visibility`, so its registration wants RANSAC's pose."""
+    tmp = tmp_path_factory.mktemp("small_view")
+    source, target, *_ = partial_case(np.random.default_rng(5), share=0.15)
+    save_points(tmp / "source.ply", source)
+    save_points(tmp / "target.ply", target)
+    return {"dir": tmp, "source": str(tmp / "source.ply"), "target": str(tmp / "target.ply")}
+
+
+def test_prefetched_ransac_pose_is_the_in_process_one(small_view: dict) -> None:
+    """A child computes FPFH + RANSAC's pose of each small view from the raw clouds; `fpfh_ransac` takes it for
+    exactly that prepared pair and those settings (bit for bit its own), and for anything else computes its own."""
+    from liver_p2p_reg import Config
+    from liver_p2p_reg.cloud_io import load_points
+    from liver_p2p_reg.prefetch import BackgroundOpen3D, take_prefetched_ransac
+    from liver_p2p_reg.registration.baselines import fpfh_ransac
+    from liver_p2p_reg.registration.preprocess import preprocess_pair, source_normalization
+
+    config = Config()
+    source, target = load_points(small_view["source"]), load_points(small_view["target"])
+    prep = preprocess_pair(source, target, config, {})
+    assert prep.visibility < config.ransac_candidate_visibility
+    here = fpfh_ransac(prep.source, prep.target, config, {})
+    wider = preprocess_pair(source, target[: len(target) // 2], config, {})  # another view, not in the job
+    full = source_normalization(source).apply(source)
+    job = BackgroundOpen3D(full, config.normal_radius_norm, source_mm=source, views_mm=[target], config=config)
+    try:
+        assert take_prefetched_ransac(prep.source, prep.target, config.replace(seed=1)) is None  # other settings
+        child = take_prefetched_ransac(prep.source, prep.target, config)
+        assert isinstance(child, np.ndarray) and child.tobytes() == here.tobytes()
+        assert take_prefetched_ransac(wider.source, wider.target, config) is None  # waits for the child, then None
+        assert job.child.poll() == 0
+        assert fpfh_ransac(prep.source, prep.target, config, {}).tobytes() == here.tobytes()  # through the job
+    finally:
+        job.close()
+
+
+def test_default_method_on_a_small_view_needs_no_open3d_here_and_gives_the_same_pose(small_view: dict) -> None:
+    """The default on a view below `ransac_candidate_visibility`: FPFH + RANSAC's candidate pose comes from the
+    child that imports Open3D (with the ICP normals) while this process imports torch; this process never imports
+    Open3D, and the result is bit for bit the one computed in one process."""
+    out = small_view["dir"] / "default.json"
+    rc, heavy, _ = probe("-q", "register", small_view["source"], small_view["target"], "-o", str(out), "--force")
+    assert rc == 0 and "torch" in heavy and "open3d" not in heavy
+    from liver_p2p_reg import Config, Registrar
+    from liver_p2p_reg.cloud_io import load_points
+
+    alone = Registrar(Config()).register(load_points(small_view["source"]), load_points(small_view["target"]))
+    written = json.loads(out.read_text())
+    assert "ransac" in written["runtime_ms"] and "fpfh-ransac" in [c["name"] for c in written["candidates"]]
+    assert written["transform"] == alone.T_target_source.tolist()
+    assert written["screened"] == [c.to_json_dict() for c in alone.screened]
 
 
 def test_a_large_clouds_normals_come_from_a_child_and_leave_the_gil_free() -> None:
