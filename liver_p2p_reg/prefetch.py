@@ -5,9 +5,10 @@ Open3D (for the ICP's source normals and, on small views, FPFH + RANSAC's candid
 after the other on one core. Both depend only on the inputs, so the command starts a child that
 imports Open3D and computes them with the very same functions (`features.fpfh.local_outward_normals`,
 `baselines.fpfh_ransac` after `preprocess.preprocess_pair`) while this process imports torch;
-`outward_normals` and `fpfh_ransac` then take the child's result for exactly those points and
-settings (compared bit for bit). Same functions, same input bits: the same results. Whatever the
-child did not deliver is computed here, as before.
+`outward_normals` and `fpfh_ransac` then take the child's result for exactly those points (compared
+bit for bit) and settings (the same configuration values). Same functions, same input bits: the same
+results. Whatever the child did not deliver (it failed, was not started, took longer than
+WAIT_MAX_S) is computed here, as before.
 
 `normals_in_child` is the blocking form, for large clouds: Open3D's normal estimation holds the GIL
 (1.5 s for 300 k points), which would stall a node's signal handling and callbacks; waiting on a child's
@@ -25,6 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -34,8 +36,8 @@ if TYPE_CHECKING:
     from liver_p2p_reg.config import Config
 
 PACKAGE_PARENT = str(Path(__file__).resolve().parents[1])
-# The child runs `child_main` of this module (in its own process: no grandchild). On Linux it dies with the
-# thread that started it, so a node stopped mid-warm-up leaves no orphan computing on.
+# The child runs `child_main` of this module. On Linux it dies with the thread that started it, so a node
+# stopped mid-warm-up leaves no orphan computing on.
 CHILD = """import ctypes, sys
 try:
     ctypes.CDLL(None).prctl(1, 9)  # PR_SET_PDEATHSIG, SIGKILL
@@ -46,6 +48,9 @@ from liver_p2p_reg.prefetch import child_main
 child_main(sys.argv[2:])
 """
 POLL_S = 0.002  # how often a waiting lookup looks for the child's next file
+# A child slower than this (a hung one) is no longer waited for: the result is computed here. Generous: the
+# child's slowest share, RANSAC on a large view, takes seconds.
+WAIT_MAX_S = 60.0
 _PENDING: list[BackgroundOpen3D] = []
 
 
@@ -124,8 +129,9 @@ def _run_job(folder: Path) -> None:
 
 class BackgroundOpen3D:
     """`outward_normals(points, radius, max_nn)` and, for each view below `ransac_candidate_visibility`, RANSAC's
-    pose (`fpfh_ransac` on the prepared pair), being computed by a child process. `views`: none for the
-    normals alone."""
+    pose (`fpfh_ransac` on the prepared pair), being computed by a child process. `views_mm`: none for the
+    normals alone. Raises OSError when the job's files cannot be written or the child cannot start (its
+    folder removed): the caller goes on without it."""
 
     def __init__(
         self,
@@ -139,24 +145,27 @@ class BackgroundOpen3D:
     ) -> None:
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         self.radius, self.max_nn = float(radius), int(max_nn)
-        self.config = config if views_mm else None
+        self.settings = config.to_dict() if views_mm else None  # what the child rebuilds its Config from
         self.poses: dict[tuple[str, str], np.ndarray | str] = {}  # RANSAC's records read so far
         self.read: set[str] = set()
         self.folder = Path(tempfile.mkdtemp(prefix="liver_p2p_open3d_"))
-        np.save(self.folder / "points.npy", self.points)
-        for i, view in enumerate(views_mm):
-            np.save(self.folder / f"view{i}.npy", view)
-        if views_mm:
-            np.save(self.folder / "source.npy", source_mm)
-        job = {"radius": self.radius, "max_nn": self.max_nn, "views": len(views_mm)}
-        job["config"] = config.to_dict() if views_mm else None
-        (self.folder / "job.json").write_text(json.dumps(job))
-        self.child = subprocess.Popen(
-            child_command("job", str(self.folder)),
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        try:
+            np.save(self.folder / "points.npy", self.points)
+            for i, view in enumerate(views_mm):
+                np.save(self.folder / f"view{i}.npy", view)
+            if views_mm:
+                np.save(self.folder / "source.npy", source_mm)
+            job = {"radius": self.radius, "max_nn": self.max_nn, "views": len(views_mm), "config": self.settings}
+            (self.folder / "job.json").write_text(json.dumps(job))
+            self.child = subprocess.Popen(
+                child_command("job", str(self.folder)),
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        except OSError:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            raise
         _PENDING.append(self)
 
     def matches(self, points: np.ndarray, radius: float, max_nn: int) -> bool:
@@ -169,10 +178,14 @@ class BackgroundOpen3D:
         )
 
     def _wait_for(self, found) -> bool:
-        """Wait until `found()` holds or the child has ended (then one last look); whether it holds."""
+        """Wait until `found()` holds, the child has ended (then one last look) or WAIT_MAX_S have passed;
+        whether it holds."""
+        deadline = time.monotonic() + WAIT_MAX_S
         while not found():
             if self.child.poll() is not None:
                 return bool(found())
+            if time.monotonic() > deadline:
+                return False
             time.sleep(POLL_S)
         return True
 
@@ -201,13 +214,14 @@ class BackgroundOpen3D:
                         value = record["pose"] if "pose" in record else str(record["error"])
                         self.poses[(str(record["source"]), str(record["target"]))] = value
                     self.read.add(path.name)
-                except (OSError, ValueError, KeyError):
-                    continue
+                except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+                    continue  # not readable: as if the child had not computed it
             return key in self.poses
 
-        if self.config is None or not self._wait_for(found):
+        if self.settings is None or not self._wait_for(found):
             return None
-        return self.poses[key]
+        value = self.poses[key]
+        return value.copy() if isinstance(value, np.ndarray) else value
 
     def close(self) -> None:
         """Stop the child if it still runs and remove its files (idempotent)."""
@@ -230,8 +244,9 @@ def take_prefetched(points: np.ndarray, radius: float, max_nn: int) -> np.ndarra
 def take_prefetched_ransac(source: np.ndarray, target: np.ndarray, config: Config) -> np.ndarray | str | None:
     """`fpfh_ransac(source, target, config, ...)` as a child computed it for exactly this prepared pair and
     these settings: the pose, or the message of its RegistrationError; None when no child did."""
+    settings = config.to_dict() if _PENDING else None
     for job in list(_PENDING):
-        if job.config is not None and job.config == config:
+        if job.settings is not None and job.settings == settings:
             ready = job.ransac(source, target)
             if ready is not None:
                 return ready

@@ -277,9 +277,13 @@ def _prefetch_open3d(source, views, config):
         return None  # the registration reports it
     row = METHODS.get(config.method)
     candidate = row is not None and row.ransac_candidate and config.ransac_candidate_visibility > 0
-    return BackgroundOpen3D(
-        full, config.normal_radius_norm, source_mm=source, views_mm=views if candidate else [], config=config
-    )
+    try:
+        return BackgroundOpen3D(
+            full, config.normal_radius_norm, source_mm=source, views_mm=views if candidate else [], config=config
+        )
+    except OSError as exc:  # a speed-up only: without it this process computes everything itself
+        LOG.debug("no Open3D child process (%s)", exc)
+        return None
 
 
 def _register_all(args, config, source_path, source, views: list, fiducials, initial_T, paths, slicer=None) -> int:

@@ -19,6 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 PIXEL_VOXELS = 1.5  # pixel footprint at the view's median depth, in voxels: ~every pixel of a surface holds a point
@@ -96,8 +97,6 @@ def sensor_view(target: np.ndarray, origin: np.ndarray, voxel: float, band: floa
         return f"{hidden:.0%} of the observed points hide behind other observed points from the sensor origin"
     depth = depth.reshape(shape)
     observed = np.isfinite(depth)
-    from scipy import ndimage  # 0.3 s to import: only where a sensor origin is known, not with every registration
-
     footprint = ndimage.binary_fill_holes(ndimage.binary_closing(observed, iterations=1)) | observed
     tree = cKDTree(np.stack([u * z, v * z, z], axis=1))
     return SensorView(origin, axes, pixel, corner, depth, observed, footprint, band, tree)

@@ -150,16 +150,24 @@ def test_prefetched_ransac_pose_is_the_in_process_one(small_view: dict) -> None:
     prep = preprocess_pair(source, target, config, {})
     assert prep.visibility < config.ransac_candidate_visibility
     here = fpfh_ransac(prep.source, prep.target, config, {})
-    wider = preprocess_pair(source, target[: len(target) // 2], config, {})  # another view, not in the job
+    half = preprocess_pair(source, target[: len(target) // 2], config, {})  # another view, not in the job
     full = source_normalization(source).apply(source)
     job = BackgroundOpen3D(full, config.normal_radius_norm, source_mm=source, views_mm=[target], config=config)
     try:
         assert take_prefetched_ransac(prep.source, prep.target, config.replace(seed=1)) is None  # other settings
         child = take_prefetched_ransac(prep.source, prep.target, config)
         assert isinstance(child, np.ndarray) and child.tobytes() == here.tobytes()
-        assert take_prefetched_ransac(wider.source, wider.target, config) is None  # waits for the child, then None
+        assert take_prefetched_ransac(half.source, half.target, config) is None  # waits for the child, then None
         assert job.child.poll() == 0
-        assert fpfh_ransac(prep.source, prep.target, config, {}).tobytes() == here.tobytes()  # through the job
+    finally:
+        job.close()
+    # a child that died before it wrote anything: nothing is taken from it, nothing waits for it
+    job = BackgroundOpen3D(full, config.normal_radius_norm, source_mm=source, views_mm=[target], config=config)
+    try:
+        job.child.kill()
+        job.child.wait()
+        assert take_prefetched_ransac(prep.source, prep.target, config) is None
+        assert fpfh_ransac(prep.source, prep.target, config, {}).tobytes() == here.tobytes()  # computed here
     finally:
         job.close()
 
