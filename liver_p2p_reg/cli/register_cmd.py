@@ -256,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _prefetch_open3d(source, views, config):
-    """Start Open3D's share of the registrations in a child process (prefetch.py), which imports Open3D there
+    """Start Open3D's share of the registrations in a child process (registration/prefetch.py), which imports Open3D there
     while this process imports torch: the ICP's source normals, and RANSAC's pose of each view small enough
     for the default's candidate; learned `-icp` methods only, the ones that need both libraries. The child
     works on exactly the points the pipeline will (the Registrar's finite points, normalized as
@@ -267,7 +267,7 @@ def _prefetch_open3d(source, views, config):
         return None  # another method, or Open3D is here already (an STL/OBJ source): nothing to gain
     import numpy as np
 
-    from liver_p2p_reg.prefetch import BackgroundOpen3D
+    from liver_p2p_reg.registration.prefetch import BackgroundOpen3D
     from liver_p2p_reg.registration.preprocess import source_normalization
 
     finite = source[np.isfinite(source).all(axis=1)]

@@ -120,7 +120,7 @@ def fpfh_ransac(source: np.ndarray, target: np.ndarray, config: Config, cache: d
     times faster on these cloud sizes. A one-shot command's child process may have computed it already
     (prefetch.py): the same function on the same bits, taken instead.
     """
-    from liver_p2p_reg.prefetch import take_prefetched_ransac
+    from liver_p2p_reg.registration.prefetch import take_prefetched_ransac
 
     ready = take_prefetched_ransac(source, target, config)
     if isinstance(ready, str):

@@ -114,8 +114,8 @@ def test_default_method_gets_the_icp_normals_from_a_child_and_the_same_pose(file
 
 def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
     from liver_p2p_reg.cloud_io import load_points
-    from liver_p2p_reg.prefetch import BackgroundOpen3D, take_prefetched
     from liver_p2p_reg.registration.features.fpfh import outward_normals
+    from liver_p2p_reg.registration.prefetch import BackgroundOpen3D, take_prefetched
 
     points = load_points(files["source"]) / 100.0
     job = BackgroundOpen3D(points, 0.1)
@@ -141,8 +141,8 @@ def test_prefetched_ransac_pose_is_the_in_process_one(small_view: dict) -> None:
     exactly that prepared pair and those settings (bit for bit its own), and for anything else computes its own."""
     from liver_p2p_reg import Config
     from liver_p2p_reg.cloud_io import load_points
-    from liver_p2p_reg.prefetch import BackgroundOpen3D, take_prefetched_ransac
     from liver_p2p_reg.registration.baselines import fpfh_ransac
+    from liver_p2p_reg.registration.prefetch import BackgroundOpen3D, take_prefetched_ransac
     from liver_p2p_reg.registration.preprocess import preprocess_pair, source_normalization
 
     config = Config()

@@ -24,7 +24,7 @@ def outward_normals(points: np.ndarray, radius: float, max_nn: int = 30) -> np.n
     OFF_PROCESS_POINTS or more is handed to one (prefetch.py): the same function on the same points,
     the same normals; if the child fails they are computed here.
     """
-    from liver_p2p_reg.prefetch import normals_in_child, take_prefetched
+    from liver_p2p_reg.registration.prefetch import normals_in_child, take_prefetched
 
     ready = take_prefetched(points, radius, max_nn)
     if ready is None and len(points) >= OFF_PROCESS_POINTS:

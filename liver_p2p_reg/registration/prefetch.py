@@ -35,7 +35,7 @@ import numpy as np
 if TYPE_CHECKING:
     from liver_p2p_reg.config import Config
 
-PACKAGE_PARENT = str(Path(__file__).resolve().parents[1])
+PACKAGE_PARENT = str(Path(__file__).resolve().parents[2])  # the folder holding the package
 # The child runs `child_main` of this module. On Linux it dies with the thread that started it, so a node
 # stopped mid-warm-up leaves no orphan computing on.
 CHILD = """import ctypes, sys
@@ -44,7 +44,7 @@ try:
 except (OSError, AttributeError):
     pass
 sys.path.insert(0, sys.argv[1])
-from liver_p2p_reg.prefetch import child_main
+from liver_p2p_reg.registration.prefetch import child_main
 child_main(sys.argv[2:])
 """
 POLL_S = 0.002  # how often a waiting lookup looks for the child's next file
