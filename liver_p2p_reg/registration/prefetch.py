@@ -60,21 +60,18 @@ def child_command(*argv: str) -> list[str]:
 
 
 def child_main(argv: list[str]) -> None:
-    """The child's work: `normals IN OUT RADIUS MAX_NN` ("-": stdin / stdout) or `job FOLDER` (BackgroundOpen3D)."""
-    from liver_p2p_reg.registration.features.fpfh import local_outward_normals
-
+    """The child's work: `normals RADIUS MAX_NN` (points on stdin, normals on stdout) or `job FOLDER`
+    (BackgroundOpen3D)."""
     if argv[0] == "job":
         _run_job(Path(argv[1]))
         return
-    points_in, normals_out, radius, max_nn = argv[1:5]
-    src = io.BytesIO(sys.stdin.buffer.read()) if points_in == "-" else points_in
-    normals = local_outward_normals(np.load(src), float(radius), int(max_nn))
-    if normals_out == "-":
-        out = io.BytesIO()
-        np.save(out, normals)
-        sys.stdout.buffer.write(out.getvalue())
-    else:
-        np.save(normals_out, normals)
+    from liver_p2p_reg.registration.features.fpfh import local_outward_normals
+
+    radius, max_nn = argv[1:3]
+    normals = local_outward_normals(np.load(io.BytesIO(sys.stdin.buffer.read())), float(radius), int(max_nn))
+    out = io.BytesIO()
+    np.save(out, normals)
+    sys.stdout.buffer.write(out.getvalue())
 
 
 def digest(points: np.ndarray) -> str:
@@ -110,12 +107,14 @@ def _run_job(folder: Path) -> None:
 
     config = Config.from_dict(job["config"])
     cache: dict = {}
-    source = np.load(folder / "source.npy")
+    try:  # as the Registrar and the pipeline prepare them
+        source = clean_points(np.load(folder / "source.npy"), "source", min_points=config.min_points)
+    except InputError:
+        return  # the registrations report it
     for i in range(job["views"]):
-        try:  # as the Registrar and the pipeline prepare them
-            clean = clean_points(source, "source", min_points=config.min_points)
+        try:
             target = clean_points(np.load(folder / f"view{i}.npy"), "target", min_points=config.min_points)
-            prep = preprocess_pair(clean, target, config, cache)
+            prep = preprocess_pair(source, target, config, cache)
         except InputError:
             continue  # the registration reports it
         if not prep.visibility < config.ransac_candidate_visibility:
@@ -261,7 +260,7 @@ def normals_in_child(points: np.ndarray, radius: float, max_nn: int = 30) -> np.
     np.save(sent, points)
     try:
         done = subprocess.run(
-            child_command("normals", "-", "-", repr(float(radius)), str(int(max_nn))),
+            child_command("normals", repr(float(radius)), str(int(max_nn))),
             input=sent.getvalue(),
             capture_output=True,
             check=False,
