@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -87,7 +88,7 @@ def ransac_hypothesis(
 
     Why: on small views the learned matcher and FPFH fail on different cases (validation: the better of the two
     poses after ICP is right more often than either), and the screening ICP tells the two apart by their fit.
-    Its time is recorded as the "ransac" stage.
+    Its time is recorded as the "ransac" stage (run beside the matcher, `RansacBeside`: as "ransac_beside").
     """
     if not prep.visibility < config.ransac_candidate_visibility:
         return None
@@ -108,6 +109,43 @@ def ransac_hypothesis(
         n_matches=0,
     )
     return T_norm, candidate
+
+
+class RansacBeside:
+    """`ransac_hypothesis` computed on a thread of its own while the calling thread runs the matcher.
+
+    Why: on two cores the network and the matching do not keep both busy, and RANSAC's pose depends on the
+    prepared pair only, so its time can hide behind theirs. The same function on the same inputs: the same
+    pose (Open3D's generator is seeded in the call, its RANSAC pinned to `open3d_threads`, and OpenMP keeps
+    thread counts per calling thread, so torch's count in the calling thread is untouched). `result` waits for
+    it and records the wait as the "ransac" stage (the time the registration spent on it) and the thread's own
+    time as "ransac_beside".
+    """
+
+    def __init__(self, prep: PreprocessedPair, config: Config, ctx: MethodContext) -> None:
+        self.times: dict[str, float] = {}
+        self.value: tuple[np.ndarray, Candidate] | None = None
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, args=(prep, config, ctx), name="ransac-candidate")
+        self.thread.daemon = True  # a registration that raised before waiting leaves nothing to join at exit
+        self.thread.start()
+
+    def _run(self, prep: PreprocessedPair, config: Config, ctx: MethodContext) -> None:
+        try:
+            self.value = ransac_hypothesis(prep, config, ctx, self.times)
+        except BaseException as exc:  # handed to the calling thread in `result`
+            self.error = exc
+
+    def result(self, times: dict[str, float]) -> tuple[np.ndarray, Candidate] | None:
+        """`ransac_hypothesis`'s value (or its exception), once the thread is done."""
+        t = time.perf_counter()
+        self.thread.join()
+        times["ransac"] = lap_ms(t)
+        if "ransac" in self.times:
+            times["ransac_beside"] = self.times["ransac"]
+        if self.error is not None:
+            raise self.error
+        return self.value
 
 
 def free_space_scorer(prep: PreprocessedPair, config: Config, ctx: MethodContext) -> Scorer | None:

@@ -21,6 +21,7 @@ from liver_p2p_reg.registration.contenders import judge_contenders
 from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.freespace import penalized
 from liver_p2p_reg.registration.hypotheses import (
+    RansacBeside,
     final_free_space,
     free_space_choice,
     free_space_scorer,
@@ -40,6 +41,10 @@ from liver_p2p_reg.registration.refine import refine_pose
 from liver_p2p_reg.result import Candidate, RegistrationResult
 
 LOG = logging.getLogger("liver_p2p_reg")
+
+# The candidate's RANSAC runs on a thread beside the matcher (hypotheses.RansacBeside); False runs it after the
+# matcher, in line: the same results bit for bit (a test holds both to that), only slower on two cores.
+RANSAC_BESIDE = True
 
 if TYPE_CHECKING:  # torch and the P2P module are imported where used: the Open3D baselines need neither
     from liver_p2p_reg.registration.features.base import FeatureProvider
@@ -118,6 +123,9 @@ def run_feature_pipeline(
     from liver_p2p_reg.registration.p2p import p2p_register
 
     require_device(config.device)
+    # RANSAC's candidate pose beside the matcher, started once torch is imported (no two first imports at once)
+    wanted = ransac_candidate and prep.visibility < config.ransac_candidate_visibility
+    beside = RansacBeside(prep, config, ctx) if wanted and RANSAC_BESIDE else None
     if callable(provider):  # first call in a process: the model's loading counts in "total" only
         provider = provider()
     t = time.perf_counter()
@@ -149,7 +157,10 @@ def run_feature_pipeline(
             )
         )
     chosen, n_p2p = out.chosen, len(candidates)
-    extra = ransac_hypothesis(prep, config, ctx, times) if ransac_candidate else None
+    if beside is not None:
+        extra = beside.result(times)
+    else:
+        extra = ransac_hypothesis(prep, config, ctx, times) if ransac_candidate else None
     if extra is not None:
         poses_norm.append(extra[0])
         candidates.append(extra[1])

@@ -191,3 +191,42 @@ def test_median_time_is_read_from_its_own_block_only(tmp_path: Path) -> None:
     )
     assert median_ms(speed) == 131.5
     assert np.isnan(median_ms(tmp_path / "missing.md"))
+
+
+@pytest.mark.parametrize("share", [0.08, 0.15])
+def test_ransac_beside_the_matcher_is_the_sequential_result_bit_for_bit(share: float) -> None:
+    """The candidate's RANSAC runs on a thread of its own while the matcher runs (hypotheses.RansacBeside): the pose,
+    the candidates and the screened poses are those of running it after the matcher, bit for bit."""
+    from liver_p2p_reg.registration import pipeline
+
+    small = partial_case(np.random.default_rng(11), share=share)
+    results = {}
+    try:
+        for beside in (False, True):
+            pipeline.RANSAC_BESIDE = beside
+            results[beside] = _register(small, Config(k=2))
+    finally:
+        pipeline.RANSAC_BESIDE = True
+    after, beside = results[False], results[True]
+    assert "ransac_beside" in beside.runtime_ms and "ransac_beside" not in after.runtime_ms
+    assert beside.T_target_source.tobytes() == after.T_target_source.tobytes()
+    assert [c.to_json_dict() for c in beside.candidates] == [c.to_json_dict() for c in after.candidates]
+    assert [c.to_json_dict() for c in beside.screened] == [c.to_json_dict() for c in after.screened]
+    assert "fpfh-ransac" in [c.name for c in beside.candidates]
+
+
+def test_an_error_in_ransac_beside_reaches_the_caller() -> None:
+    """Whatever RANSAC's thread raises is raised where its result is taken, as it would be in line."""
+    from liver_p2p_reg.registration.context import MethodContext
+    from liver_p2p_reg.registration.hypotheses import RansacBeside, ransac_hypothesis
+    from liver_p2p_reg.registration.preprocess import preprocess_pair
+
+    source, target, *_ = partial_case(np.random.default_rng(11), share=0.15)
+    config = Config(k=2)
+    prep = preprocess_pair(source, target, config, {})
+    broken = MethodContext(None, None, (), None, None)  # a cache that is no dict: FPFH's memo cannot be kept
+    with pytest.raises(TypeError) as in_line:
+        ransac_hypothesis(prep, config, broken, {})
+    with pytest.raises(TypeError) as beside:
+        RansacBeside(prep, config, broken).result({})
+    assert str(beside.value) == str(in_line.value)
