@@ -34,8 +34,13 @@ def remember_latest(
     """
     digest = hashlib.blake2b(np.ascontiguousarray(points).tobytes(), digest_size=16).hexdigest()
     key = f"{kind}:{digest}:{params!r}"
-    if key not in cache:
-        for old in [k for k in cache if isinstance(k, str) and k.startswith(f"{kind}:")]:
-            del cache[old]
-        cache[key] = compute()
-    return cache[key]
+    try:
+        return cache[key]
+    except KeyError:
+        pass
+    # list(cache) is one step: the candidate's RANSAC thread (hypotheses.RansacBeside) may add its own kinds meanwhile
+    for old in [k for k in list(cache) if isinstance(k, str) and k.startswith(f"{kind}:")]:
+        cache.pop(old, None)
+    value = compute()
+    cache[key] = value
+    return value

@@ -118,16 +118,31 @@ def run_feature_pipeline(
     t = time.perf_counter()
     prep = preprocess_pair(source_mm, target_mm, config, ctx.cache)
     prepare_ms = lap_ms(t)
+    require_device(config.device)
+    if callable(provider):  # first call in a process: the model's loading counts in "total" only
+        provider = provider()
+    # RANSAC's candidate pose beside the matcher, started once torch and the model are loaded (no two first
+    # imports at once); joined on every way out, so no thread of this registration outlives it
+    wanted = ransac_candidate and prep.visibility < config.ransac_candidate_visibility
+    beside = RansacBeside(prep, config, ctx) if wanted and RANSAC_BESIDE else None
+    try:
+        return _matched_and_screened(
+            prep, prepare_ms, config, ctx, provider, use_p2p, refine, ransac_candidate, beside, times, warnings
+        )
+    finally:
+        if beside is not None:
+            beside.thread.join()
+
+
+def _matched_and_screened(
+    prep, prepare_ms, config, ctx, provider, use_p2p, refine, ransac_candidate, beside, times, warnings
+) -> RegistrationResult:
+    """`run_feature_pipeline` from the prepared pair on: features, matching, P2P, the candidates' screening,
+    ICP, the result."""
     import torch
 
     from liver_p2p_reg.registration.p2p import p2p_register
 
-    require_device(config.device)
-    # RANSAC's candidate pose beside the matcher, started once torch is imported (no two first imports at once)
-    wanted = ransac_candidate and prep.visibility < config.ransac_candidate_visibility
-    beside = RansacBeside(prep, config, ctx) if wanted and RANSAC_BESIDE else None
-    if callable(provider):  # first call in a process: the model's loading counts in "total" only
-        provider = provider()
     t = time.perf_counter()
     device = torch.device(config.device)
     src = torch.as_tensor(prep.source, dtype=torch.float32, device=device)

@@ -3,6 +3,7 @@ that judged it (when it was the opt-in `learned-p2p-ransac-icp`)."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -213,6 +214,7 @@ def test_ransac_beside_the_matcher_is_the_sequential_result_bit_for_bit(share: f
     assert [c.to_json_dict() for c in beside.candidates] == [c.to_json_dict() for c in after.candidates]
     assert [c.to_json_dict() for c in beside.screened] == [c.to_json_dict() for c in after.screened]
     assert "fpfh-ransac" in [c.name for c in beside.candidates]
+    assert not [t for t in threading.enumerate() if t.name == "ransac-candidate"]  # none outlives its registration
 
 
 def test_an_error_in_ransac_beside_reaches_the_caller() -> None:
