@@ -83,6 +83,7 @@ class RegisterWiring(RegisterOutputs):
         self.declared = declare_from(self, Config, lambda f: f"{f.name} ({f.type}); see msg_docs/")
         self.core: NodeCore | None = None
         self._live: list[Any] = []  # what _go_live made and _go_quiet destroys
+        self._intraop_sub: Any = None  # /intraop/points' subscription while live (its publishers are counted)
         self._kept: list[Any] = []  # what _bring_up made and _tear_down destroys
         self.active = False
         self._worker: Worker | None = None
@@ -151,9 +152,11 @@ class RegisterWiring(RegisterOutputs):
 
     def _go_live(self: Any) -> None:
         # fiducials before points: when both are waiting, a cloud's own fiducials are taken first
+        fiducials = self._subscribe(TOPIC_INTRAOP_FIDUCIALS, self._on_intraop_fiducials)
+        self._intraop_sub = self._subscribe(TOPIC_INTRAOP, self._on_intraop)
         self._live = [
-            self._subscribe(TOPIC_INTRAOP_FIDUCIALS, self._on_intraop_fiducials),
-            self._subscribe(TOPIC_INTRAOP, self._on_intraop),
+            fiducials,
+            self._intraop_sub,
             # on the steady clock: with use_sim_time a ROS-time timer stops while a looped bag's /clock runs
             # back over time it has already passed
             self.create_timer(
@@ -170,7 +173,7 @@ class RegisterWiring(RegisterOutputs):
         self.active = False
         for entity in self._live:
             self._destroy(entity)
-        self._live = []
+        self._live, self._intraop_sub = [], None
 
     def _tear_down(self: Any) -> None:
         self._go_quiet()

@@ -74,7 +74,9 @@ class RegisterOutputs:
             return
         status = self._effective_status(now_s)
         self._status_level = status.level
-        stream = self.health.status(now_s, core.config.stale_after_s)
+        # the publishers the middleware matched on the subscription's own (remapped) topic
+        publishers = self.count_publishers(self._intraop_sub.topic_name) if self._intraop_sub else None
+        stream = self.health.status(now_s, core.config.stale_after_s, publishers)
         self.diag_pub.publish(diagnostic_array([status, stream], self._now_ns(), RCLPY_TYPES))
 
     def _publish_status_on_change(self: Any) -> None:

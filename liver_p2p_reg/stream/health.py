@@ -36,9 +36,15 @@ class StreamHealth:
         with self._lock:
             return None if self._last_s is None else now_s - self._last_s
 
-    def status(self, now_s: float, stale_after_s: float) -> Diagnostic:
+    def status(self, now_s: float, stale_after_s: float, publishers: int | None = None) -> Diagnostic:
         """The stream's status: STALE before the first cloud and after `stale_after_s` of silence; WARN when
-        clouds arrive older than MAX_DELAY_WARN_MS (a clock or a transport problem); else OK."""
+        clouds arrive older than MAX_DELAY_WARN_MS (a clock or a transport problem); else OK.
+
+        `publishers`: how many publishers of the topic the node's middleware has matched, where known. A silence
+        with one matched is a publisher that sends nothing or data that do not arrive (a publisher that ran before
+        this node was killed and started again: docs/limitations.md), not a camera that is gone; the message
+        says which.
+        """
         with self._lock:
             self._forget(now_s)
             times = [t for t, _ in self._arrivals]
@@ -51,12 +57,17 @@ class StreamHealth:
         )
         if len(delays):
             values["delay_ms_mean"], values["delay_ms_max"] = f"{delays.mean():.1f}", f"{delays.max():.1f}"
+        matched = ""
+        if publishers is not None:
+            values["publishers"] = str(publishers)
+            if publishers > 0:
+                matched = f"; {publishers} publisher{'s' if publishers > 1 else ''} matched, nothing arrives"
         if last_s is None:
-            return Diagnostic(STALE, STREAM_DIAG_NAME, "no intraop data yet (/intraop/points)", values)
+            return Diagnostic(STALE, STREAM_DIAG_NAME, f"no intraop data yet (/intraop/points){matched}", values)
         silent_s = now_s - last_s
         values["silent_s"] = f"{silent_s:.1f}"
         if silent_s > stale_after_s:
-            return Diagnostic(STALE, STREAM_DIAG_NAME, f"no intraop data for {silent_s:.1f} s", values)
+            return Diagnostic(STALE, STREAM_DIAG_NAME, f"no intraop data for {silent_s:.1f} s{matched}", values)
         if len(delays) and delays.max() > MAX_DELAY_WARN_MS:
             message = f"intraop clouds arrive up to {delays.max():.0f} ms after their stamp"
             return Diagnostic(WARN, STREAM_DIAG_NAME, message, values)

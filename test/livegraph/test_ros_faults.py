@@ -127,6 +127,9 @@ def test_status_goes_stale_without_clouds_and_a_level_change_is_published_at_onc
         assert stale and stale.message.startswith("no intraop data for"), "no STALE status after 1 s without clouds"
         stream = [s for s, _ in g.probe.diagnostics(since, STREAM_DIAG_NAME)]
         assert stream and level_of(stream[-1]) == STALE and "frequency_hz" in values_of(stream[-1])
+        # the probe's /intraop/points publisher is matched and silent: the stream's status counts it and says so
+        assert values_of(stream[-1])["publishers"] == "1", values_of(stream[-1])
+        assert stream[-1].message.endswith("1 publisher matched, nothing arrives"), stream[-1].message
         # the next cloud ends the silence: the status leaves STALE when the cloud arrives, not a period later
         since = g.mark()
         sent_s = g.send_frame(BAG_A, 1)
