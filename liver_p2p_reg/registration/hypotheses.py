@@ -127,7 +127,7 @@ class RansacBeside:
         self.value: tuple[np.ndarray, Candidate] | None = None
         self.error: BaseException | None = None
         self.thread = threading.Thread(target=self._run, args=(prep, config, ctx), name="ransac-candidate")
-        self.thread.daemon = True  # a registration that raised before waiting leaves nothing to join at exit
+        self.thread.daemon = True  # never holds the interpreter open (run_feature_pipeline joins it on every way out)
         self.thread.start()
 
     def _run(self, prep: PreprocessedPair, config: Config, ctx: MethodContext) -> None:

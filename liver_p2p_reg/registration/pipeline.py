@@ -121,8 +121,9 @@ def run_feature_pipeline(
     require_device(config.device)
     if callable(provider):  # first call in a process: the model's loading counts in "total" only
         provider = provider()
-    # RANSAC's candidate pose beside the matcher, started once torch and the model are loaded (no two first
-    # imports at once); joined on every way out, so no thread of this registration outlives it
+    # RANSAC's candidate pose beside the matcher, started once torch and the model are loaded (not beside their
+    # first imports); joined on every way out, so no thread of this registration outlives it (an error in the
+    # matcher then comes out after RANSAC's end)
     wanted = ransac_candidate and prep.visibility < config.ransac_candidate_visibility
     beside = RansacBeside(prep, config, ctx) if wanted and RANSAC_BESIDE else None
     try:

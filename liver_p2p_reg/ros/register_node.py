@@ -83,7 +83,7 @@ class RegisterWiring(RegisterOutputs):
         self.declared = declare_from(self, Config, lambda f: f"{f.name} ({f.type}); see msg_docs/")
         self.core: NodeCore | None = None
         self._live: list[Any] = []  # what _go_live made and _go_quiet destroys
-        self._intraop_sub: Any = None  # /intraop/points' subscription while live (its publishers are counted)
+        self._intraop_sub: Any = None  # /intraop/points' subscription while live (its matched publishers are counted)
         self._kept: list[Any] = []  # what _bring_up made and _tear_down destroys
         self.active = False
         self._worker: Worker | None = None

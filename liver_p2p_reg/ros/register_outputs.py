@@ -74,10 +74,18 @@ class RegisterOutputs:
             return
         status = self._effective_status(now_s)
         self._status_level = status.level
-        # the publishers the middleware matched on the subscription's own (remapped) topic
-        publishers = self.count_publishers(self._intraop_sub.topic_name) if self._intraop_sub else None
-        stream = self.health.status(now_s, core.config.stale_after_s, publishers)
+        stream = self.health.status(now_s, core.config.stale_after_s, self._matched_intraop_publishers())
         self.diag_pub.publish(diagnostic_array([status, stream], self._now_ns(), RCLPY_TYPES))
+
+    def _matched_intraop_publishers(self: Any) -> int | None:
+        """How many publishers the middleware has matched to /intraop/points' subscription; None without one."""
+        sub = self._intraop_sub  # one read: a deactivation on the executor's thread may destroy it meanwhile
+        if sub is None:
+            return None
+        try:
+            return sub.get_publisher_count()
+        except Exception:  # destroyed between the read and the call (the worker publishes a status too)
+            return None
 
     def _publish_status_on_change(self: Any) -> None:
         """A level change is published at once, not at the next period (diagnostic_updater's force_update):

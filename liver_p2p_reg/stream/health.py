@@ -40,10 +40,10 @@ class StreamHealth:
         """The stream's status: STALE before the first cloud and after `stale_after_s` of silence; WARN when
         clouds arrive older than MAX_DELAY_WARN_MS (a clock or a transport problem); else OK.
 
-        `publishers`: how many publishers of the topic the node's middleware has matched, where known. A silence
-        with one matched is a publisher that sends nothing or data that do not arrive (a publisher that ran before
-        this node was killed and started again: docs/limitations.md), not a camera that is gone; the message
-        says which.
+        `publishers`: how many publishers the node's subscription has matched, where known. A silence with one
+        matched is a publisher that sends nothing or data that do not arrive (a publisher that ran before this
+        node was killed and started again: docs/limitations.md), not a camera that is gone (a killed one stays
+        matched until its discovery lease ends); the message says so.
         """
         with self._lock:
             self._forget(now_s)
