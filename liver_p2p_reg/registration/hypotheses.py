@@ -80,6 +80,11 @@ def screen_candidates(
     return screened[best][0], [(i, T_s, res, float(v)) for (i, T_s, res), v in zip(screened, violation, strict=True)]
 
 
+def ransac_candidate_wanted(prep: PreprocessedPair, config: Config) -> bool:
+    """Whether this view is small enough for RANSAC's candidate (its estimated visibility below the threshold)."""
+    return prep.visibility < config.ransac_candidate_visibility
+
+
 def ransac_hypothesis(
     prep: PreprocessedPair, config: Config, ctx: MethodContext, times: dict[str, float]
 ) -> tuple[np.ndarray, Candidate] | None:
@@ -90,7 +95,7 @@ def ransac_hypothesis(
     poses after ICP is right more often than either), and the screening ICP tells the two apart by their fit.
     Its time is recorded as the "ransac" stage (run beside the matcher, `RansacBeside`: as "ransac_beside").
     """
-    if not prep.visibility < config.ransac_candidate_visibility:
+    if not ransac_candidate_wanted(prep, config):
         return None
     from liver_p2p_reg.registration.baselines import fpfh_ransac  # Open3D: only where the candidate is wanted
 

@@ -26,6 +26,7 @@ from liver_p2p_reg.registration.hypotheses import (
     free_space_choice,
     free_space_scorer,
     lap_ms,
+    ransac_candidate_wanted,
     ransac_hypothesis,
     screen_candidates,
     single_result,
@@ -124,8 +125,8 @@ def run_feature_pipeline(
     # RANSAC's candidate pose beside the matcher, started once torch and the model are loaded (not beside their
     # first imports); joined on every way out, so no thread of this registration outlives it (an error in the
     # matcher then comes out after RANSAC's end)
-    wanted = ransac_candidate and prep.visibility < config.ransac_candidate_visibility
-    beside = RansacBeside(prep, config, ctx) if wanted and RANSAC_BESIDE else None
+    wanted = ransac_candidate and RANSAC_BESIDE and ransac_candidate_wanted(prep, config)
+    beside = RansacBeside(prep, config, ctx) if wanted else None
     try:
         return _matched_and_screened(
             prep, prepare_ms, config, ctx, provider, use_p2p, refine, ransac_candidate, beside, times, warnings
