@@ -52,6 +52,10 @@ POLL_S = 0.002  # how often a waiting lookup looks for the child's next file
 # child's slowest share, RANSAC on a large view, takes seconds.
 WAIT_MAX_S = 60.0
 _PENDING: list[BackgroundOpen3D] = []
+# A job's files live in a temporary folder named for the process that made it; a process killed outright (SIGKILL,
+# the OOM killer) cannot remove its own, so the next job removes those whose process is gone. (A process in another
+# PID namespace sharing /tmp looks gone: its registration then computes Open3D's share itself, the same result.)
+FOLDER_PREFIX = "liver_p2p_open3d_"
 
 
 def child_command(*argv: str) -> list[str]:
@@ -126,6 +130,29 @@ def _run_job(folder: Path) -> None:
             _save_whole(folder / f"ransac{i}.npz", error=np.array(str(exc)), **keys)
 
 
+def _alive(pid: int) -> bool:
+    """Whether a process with this id exists (one of another user's counts as alive)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def remove_orphaned_folders(parent: Path | None = None) -> list[Path]:
+    """Remove the job folders in `parent` (the temporary directory) whose process no longer exists; those
+    removed. Folders of another naming, or whose owner is alive, are left alone."""
+    removed = []
+    for folder in Path(parent or tempfile.gettempdir()).glob(f"{FOLDER_PREFIX}*_*"):
+        pid = folder.name[len(FOLDER_PREFIX) :].split("_", 1)[0]
+        if folder.is_dir() and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    return removed
+
+
 class BackgroundOpen3D:
     """`outward_normals(points, radius, max_nn)` and, for each view below `ransac_candidate_visibility`, RANSAC's
     pose (`fpfh_ransac` on the prepared pair), being computed by a child process. `views_mm`: none for the
@@ -147,7 +174,8 @@ class BackgroundOpen3D:
         self.settings = config.to_dict() if views_mm else None  # what the child rebuilds its Config from
         self.poses: dict[tuple[str, str], np.ndarray | str] = {}  # RANSAC's records read so far
         self.read: set[str] = set()
-        self.folder = Path(tempfile.mkdtemp(prefix="liver_p2p_open3d_"))
+        remove_orphaned_folders()
+        self.folder = Path(tempfile.mkdtemp(prefix=f"{FOLDER_PREFIX}{os.getpid()}_"))
         try:
             np.save(self.folder / "points.npy", self.points)
             for i, view in enumerate(views_mm):

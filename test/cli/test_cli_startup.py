@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 import time
@@ -124,6 +125,36 @@ def test_prefetched_normals_are_the_in_process_ones(files: dict) -> None:
     job.close()
     assert child is not None and child.tobytes() == outward_normals(points, 0.1).tobytes()
     assert not job.folder.exists()  # cleaned up once closed
+
+
+def test_a_job_folder_left_by_a_killed_process_is_removed_by_the_next_job(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SIGKILL leaves a job's temporary folder behind; the next job removes those whose process is gone, and only
+    those (a live process's folder, another program's folder stay)."""
+    import tempfile
+
+    from liver_p2p_reg.registration.prefetch import FOLDER_PREFIX, BackgroundOpen3D, remove_orphaned_folders
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(gone.stdout)  # a process that has ended
+    orphan = tmp_path / f"{FOLDER_PREFIX}{dead_pid}_abc"
+    live = tmp_path / f"{FOLDER_PREFIX}{os.getppid()}_abc"
+    other = tmp_path / f"{FOLDER_PREFIX}abc"
+    for folder in (orphan, live, other):
+        folder.mkdir()
+        (folder / "points.npy").write_bytes(b"x")
+    assert remove_orphaned_folders(tmp_path) == [orphan]
+    assert not orphan.exists() and live.exists() and other.exists()
+    # a job sweeps the temporary directory before it names its own folder for this process
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    orphan.mkdir()
+    job = BackgroundOpen3D(np.zeros((40, 3)), 0.1)
+    try:
+        assert not orphan.exists() and live.exists()
+        assert job.folder.parent == tmp_path and job.folder.name.startswith(f"{FOLDER_PREFIX}{os.getpid()}_")
+    finally:
+        job.close()
 
 
 @pytest.fixture(scope="module")
