@@ -15,6 +15,7 @@ from liver_p2p_reg.stream.record_hooks import RegistrationRecord
 
 if TYPE_CHECKING:
     from liver_p2p_reg.stream.deformation import PreopMesh
+    from liver_p2p_reg.structures_io import Structure
 
 
 def open_command_recording(
@@ -62,9 +63,11 @@ def record_command_registration(
     result: Any,
     config: Config,
     source_mm: np.ndarray,
+    structures: list[Structure] | None = None,
 ) -> None:
     """One registration of `liver-p2p register` (reason `register`; `result` a RegistrationResult or the
-    LiverP2PError it raised); rotates beyond record_max_mb like the node's recordings."""
+    LiverP2PError it raised); rotates beyond record_max_mb like the node's recordings. `structures`: the
+    command's --structures, placed as the command places them (`place_structures(result, structures)`)."""
     from liver_p2p_reg.stream.outputs import (
         DIAG_NAME,
         ERROR,
@@ -74,6 +77,7 @@ def record_command_registration(
         registered_diagnostic,
         result_values,
     )
+    from liver_p2p_reg.structures_io import place_structures
 
     if isinstance(result, Exception):
         output = CoreOutput([Diagnostic(ERROR, DIAG_NAME, f"registration failed: {result}")], reason="register")
@@ -81,13 +85,17 @@ def record_command_registration(
         values, deformed = result_values(result), None
         if result.deformation is not None:  # deform on: its values, and the deformed surface the re-run must match
             values, deformed = command_deformation(result, recorder.command_mesh, source_mm, values)
-        diag = registered_diagnostic(result, values, [], config)
+        placed = place_structures(result, structures or [])
+        diag = registered_diagnostic(result, values, [], config, placed)  # the verdict follows their bounds
         pose = PoseOutput(index, target, "ct", np.asarray(result.T_target_source, dtype=np.float64))
-        output = CoreOutput([diag], pose, result=result, reason="register", deformed_preop_mm=deformed)
+        output = CoreOutput(
+            [diag], pose, result=result, reason="register", structures=placed, deformed_preop_mm=deformed
+        )
     fid_s, fid_t = fiducials
     pair = None if fid_s is None or fid_t is None else (np.asarray(fid_s), np.asarray(fid_t))
     points = np.asarray(target_mm, dtype=np.float64).reshape(-1, 3)
-    record = RegistrationRecord("register", target, index, points, len(points), "", pair, output, extras)
+    moved = None if isinstance(result, Exception) else list(structures or [])
+    record = RegistrationRecord("register", target, index, points, len(points), "", pair, output, extras, moved)
     recorder.registration(record)
     if recorder.rotate_due():
         recorder.rotate()

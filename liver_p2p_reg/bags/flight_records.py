@@ -10,7 +10,14 @@ from typing import Any
 from liver_p2p_reg.bags.io import MARKER, POINTCLOUD2
 from liver_p2p_reg.bags.recorder import STRING, TOPIC_CONFIG, TOPIC_EVENT, TOPIC_META, TOPIC_REGISTRATION
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.ros.topics import INPUT_TOPICS, TOPIC_DEFORMED_PREOP, TOPIC_PREOP_MESH
+from liver_p2p_reg.ros.topics import (
+    INPUT_TOPICS,
+    TOPIC_DEFORMED_PREOP,
+    TOPIC_PREOP_MESH,
+    TOPIC_PREOP_STRUCTURES,
+    TOPIC_STRUCTURE_LABELS,
+    TOPIC_STRUCTURES,
+)
 
 # the JSON records' keys this version reads, and their JSON types (bool is refused where an int is wanted)
 _NONE = type(None)
@@ -37,6 +44,9 @@ _MESSAGE_TYPES = {
     **dict.fromkeys(INPUT_TOPICS, POINTCLOUD2),
     TOPIC_DEFORMED_PREOP: POINTCLOUD2,
     TOPIC_PREOP_MESH: MARKER,
+    TOPIC_PREOP_STRUCTURES: POINTCLOUD2,
+    TOPIC_STRUCTURE_LABELS: STRING,
+    TOPIC_STRUCTURES: POINTCLOUD2,
     **dict.fromkeys(_RECORD_KEYS, STRING),
 }
 

@@ -5,7 +5,9 @@ recorded order and registers exactly the recorded clouds with their recorded rea
 no rate limit, no drop), with the fiducial pair each one used; `liver-p2p register` recordings
 (reason `register`) go through the Registrar as the command did. Every pose is compared bit for
 bit with the recorded one, and where the non-rigid stage was applied the deformed preop surface (by its
-recorded digest); a recorded /preop/mesh is given to the core as register_node gets it.
+recorded digest); a recorded /preop/mesh is given to the core as register_node gets it. The subsurface
+structures each registration moved are given back before it, and where it placed some, their positions and
+bounds are compared with the recorded ones (digest, then the published cloud for round-off).
 """
 
 from __future__ import annotations
@@ -26,11 +28,13 @@ from liver_p2p_reg.bags.recorder import (
     TOPIC_META,
     TOPIC_REGISTRATION,
     message_points_mm,
+    message_structures,
+    placed_sha256,
     points_sha256,
     recorder_factory,
     run_environment,
 )
-from liver_p2p_reg.bags.rerun_report import Rerun, deformed_within_roundoff, within_roundoff
+from liver_p2p_reg.bags.rerun_report import Rerun, deformed_within_roundoff, structures_within_roundoff, within_roundoff
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError, LiverP2PError
 from liver_p2p_reg.registration.weights_id import weights_sha256
@@ -43,10 +47,14 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
     TOPIC_PREOP_MESH,
+    TOPIC_PREOP_STRUCTURES,
+    TOPIC_STRUCTURE_LABELS,
+    TOPIC_STRUCTURES,
 )
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.deformation import PreopMesh
 from liver_p2p_reg.stream.record_hooks import restore_tracker
+from liver_p2p_reg.structures_io import PlacedStructure, Structure, place_structures
 
 # what a pose's bits depend on besides its inputs: a difference is said before the comparison
 ENVIRONMENT_KEYS = ("package_version", "code_version", "numpy", "torch", "open3d", "usable_cores", "omp_num_threads")
@@ -69,6 +77,9 @@ class _Rerunner:
         self.preop_fiducials: np.ndarray | None = None  # the last /preop/fiducials: a pair's preop side
         self.intraop_fiducials: np.ndarray | None = None  # the registration's own
         self.deformed: np.ndarray | None = None  # the registration's deformed surface as recorded (float32 metres)
+        self.structure_points: RecordedMessage | None = None  # /preop/structures, until its names follow
+        self.structures: list[Structure] = []  # the set the next registration moves (`register` places them)
+        self.placed: Any = None  # the registration's /registration/structures as recorded (float32 metres)
         self.report = Rerun([])
 
     def config(self, values: dict[str, Any]) -> None:
@@ -110,6 +121,16 @@ class _Rerunner:
             self.intraop_fiducials = _decoded(item, message_points_mm)
         elif topic == TOPIC_DEFORMED_PREOP:
             self.deformed = _decoded(item, message_points_mm)
+        elif topic == TOPIC_PREOP_STRUCTURES:
+            self.structure_points = item
+        elif topic == TOPIC_STRUCTURE_LABELS:  # written right after its /preop/structures
+            points, self.structure_points = self.structure_points, None
+            if points is None:
+                raise Damaged(item.file, f"{item.where} follows no {TOPIC_PREOP_STRUCTURES} record")
+            self.structures = _decoded(points, lambda msg: message_structures(msg, item.msg.data))
+            core.structures.set_structures(self.structures)
+        elif topic == TOPIC_STRUCTURES:
+            self.placed = item.msg
         elif topic == TOPIC_EVENT and values["event"] == "tracker":
             restore_tracker(core, values)
         elif topic == TOPIC_EVENT and values["event"] == "reset_survey":
@@ -130,11 +151,12 @@ class _Rerunner:
             raise InputError(f"flight recording: registration {values['seq']} lacks its fiducials")
         if values["decoded"] and points is None:
             raise InputError(f"flight recording: registration {values['seq']} lacks its {TOPIC_INTRAOP} cloud")
-        T, deformed = self._run(values, points, fiducials)
+        T, deformed, placed = self._run(values, points, fiducials)
         report, recorded = self.report, values["pose"]
         report.registrations += 1
         where = f"registration {values['seq']} (stamp {values['stamp_ns']}, {values['reason']})"
         self._compare_deformed(values, deformed, where)
+        self._compare_structures(values, placed, where)
         if recorded is None:
             if T is None:
                 report.no_pose += 1
@@ -173,11 +195,30 @@ class _Rerunner:
             )
             self.report.differences.append(f"{where}: deformed preop surface differs ({detail})")
 
+    def _compare_structures(self, values: dict[str, Any], placed: list[PlacedStructure], where: str) -> None:
+        """The re-run's placed structures against the recorded digest (recordings that keep one), and where the
+        digests differ, against the recorded /registration/structures cloud (round-off, or a difference)."""
+        recorded, self.placed = self.placed, None
+        if "structures_sha256" not in values:  # recorded before structures were kept
+            return
+        want, got = values["structures_sha256"], placed_sha256(placed)
+        if want is not None:
+            self.report.structures += 1
+            self.report.structures_identical += got == want
+        if got != want and want and got and recorded is not None and structures_within_roundoff(placed, recorded):
+            self.report.structures_roundoff += 1
+        elif got != want:
+            shown = {True: "some", False: "none"}
+            detail = f"recorded {shown[bool(want)]}, re-run {shown[bool(got)]}"
+            detail = "not bitwise the same" if want and got else detail
+            self.report.differences.append(f"{where}: placed structures differ ({detail})")
+
     def _run_command(
         self, values: dict[str, Any], points: np.ndarray | None, fid_s: Any, fid_t: Any
-    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    ) -> tuple[np.ndarray | None, np.ndarray | None, list[PlacedStructure]]:
         """`liver-p2p register`'s Registrar call again, on the recorded mesh with `deform`: its pose (mm) or None,
-        and the deformed surface as the command's recording computed it (None when the stage was not applied)."""
+        the deformed surface as the command's recording computed it (None when the stage was not applied) and
+        the recorded structures placed as the command placed them."""
         core, extras = self._core(), values["extras"]
         mesh = {} if self.mesh is None else self.mesh.stage_kwargs
         try:
@@ -192,22 +233,23 @@ class _Rerunner:
                 **mesh,  # the recorded mesh: the contenders' judge's surface, as the command's (read only by a judge)
             )
         except LiverP2PError:
-            return None, None
+            return None, None, []
         ok = result.ok and np.isfinite(result.T_target_source).all()
         T = result.T_target_source if ok else None
         if not core.config.deform or T is None:
-            return T, None
+            return T, None, place_structures(result, self.structures)
         if not values.get("deformation"):  # written before `register` recordings kept the stage
             self.note("recorded without the non-rigid stage's values: its deformed surface is not checked")
-            return T, None
+            return T, None, place_structures(result, self.structures)
         # the core's registrar is rigid only (the node runs the stage itself): the stage as the command ran it
         core.registrar.deform(result, self.source, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, **mesh)
-        return T, command_deformation(result, self.mesh, self.source, {})[1]
+        return T, command_deformation(result, self.mesh, self.source, {})[1], place_structures(result, self.structures)
 
     def _run(
         self, values: dict[str, Any], points: np.ndarray | None, fiducials: tuple | None
-    ) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The re-run registration's pose, T_sensor_ct (mm), or None, and its deformed preop surface (mm) or None."""
+    ) -> tuple[np.ndarray | None, np.ndarray | None, list[PlacedStructure]]:
+        """The re-run registration's pose, T_sensor_ct (mm), or None, its deformed preop surface (mm) or None, and
+        the structures it placed."""
         core = self._core()
         fid_s, fid_t = fiducials or (None, None)
         if values["reason"] == "register":  # `liver-p2p register`: the Registrar call the command made
@@ -224,8 +266,8 @@ class _Rerunner:
 
         output = core.register_now(values["frame_id"], values["stamp_ns"], decode, values["reason"])
         if output.pose is None:
-            return None, None
-        return output.pose.T_sensor_ct_mm, output.deformed_preop_mm
+            return None, None, []
+        return output.pose.T_sensor_ct_mm, output.deformed_preop_mm, output.structures
 
 
 def _decoded(item: RecordedMessage, decode: Callable[[Any], Any]) -> Any:

@@ -16,7 +16,7 @@ import shutil
 import sys
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,7 +36,13 @@ from liver_p2p_reg.bags.mcap_check import starts_as_mcap
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.weights_id import weights_sha256
-from liver_p2p_reg.ros.messages import diagnostic_array, pose_stamped, triangle_list_marker
+from liver_p2p_reg.ros.messages import (
+    diagnostic_array,
+    pose_stamped,
+    registered_structures_cloud,
+    structure_labels_json,
+    triangle_list_marker,
+)
 from liver_p2p_reg.ros.pointcloud2 import FLOAT64, M_PER_MM, MM_PER_M, cloud_to_points_mm, points_to_cloud
 from liver_p2p_reg.ros.topics import (
     TOPIC_DEFORMED_PREOP,
@@ -47,12 +53,16 @@ from liver_p2p_reg.ros.topics import (
     TOPIC_PREOP,
     TOPIC_PREOP_FIDUCIALS,
     TOPIC_PREOP_MESH,
+    TOPIC_PREOP_STRUCTURES,
+    TOPIC_STRUCTURE_LABELS,
+    TOPIC_STRUCTURES,
     qos_of,
 )
 from liver_p2p_reg.stream.record_hooks import Recorder, RegistrationRecord
 
 if TYPE_CHECKING:
     from liver_p2p_reg.stream.deformation import PreopMesh
+    from liver_p2p_reg.structures_io import PlacedStructure, Structure
 
 FORMAT = "liver_p2p_reg.flight_recorder/1"
 STRING = "std_msgs/msg/String"
@@ -67,18 +77,55 @@ EXISTING = ("refuse", "overwrite", "new")  # an existing file: InputError, repla
 
 
 # ---------------------------------------------------------------- points, exactly
-def points_message(points_mm: np.ndarray, frame_id: str, stamp_ns: int) -> Any:
+def points_message(
+    points_mm: np.ndarray, frame_id: str, stamp_ns: int, extra_fields: dict[str, np.ndarray] | None = None
+) -> Any:
     """A PointCloud2 in metres (float32, as the bags) that decodes back to exactly these millimetres; when
-    float32 metres cannot (points not from a float32 cloud), float64 x_mm/y_mm/z_mm fields carry them exactly."""
+    float32 metres cannot (points not from a float32 cloud), float64 x_mm/y_mm/z_mm fields carry them exactly.
+    `extra_fields`: more per-point fields (a structures cloud's label_id)."""
     points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
     types = rosbags_output_types().cloud
     metres = (points * M_PER_MM).astype(np.float32)
     with np.errstate(over="ignore", invalid="ignore"):
         exact = bool(np.isfinite(points).all()) and np.array_equal(metres.astype(np.float64) * 1e3, points)
-    if exact:
-        return points_to_cloud(metres, types, frame_id=frame_id, stamp_ns=stamp_ns)
-    extra = {name: points[:, i].copy() for i, name in enumerate(MM_FIELDS)}
-    return points_to_cloud(metres, types, frame_id=frame_id, stamp_ns=stamp_ns, extra_fields=extra)
+    extra = dict(extra_fields or {})
+    if not exact:
+        extra.update({name: points[:, i].copy() for i, name in enumerate(MM_FIELDS)})
+    return points_to_cloud(metres, types, frame_id=frame_id, stamp_ns=stamp_ns, extra_fields=extra or None)
+
+
+def structures_message(structures: Sequence[Structure], stamp_ns: int) -> Any:
+    """/preop/structures as the recording keeps it: every structure's points (ct frame), exactly, with its label_id."""
+    points = np.concatenate([s.points_mm for s in structures]) if structures else np.zeros((0, 3))
+    ids = np.concatenate([np.full(len(s.points_mm), s.label_id) for s in structures]) if structures else []
+    return points_message(points, "ct", stamp_ns, {"label_id": np.asarray(ids, dtype=np.uint32)})
+
+
+def message_structures(msg: Any, labels_text: str) -> list[Structure]:
+    """The structures `structures_message` and /preop/structure_labels stored, bit for bit, named as recorded."""
+    from liver_p2p_reg.ros.messages import parse_structure_labels
+    from liver_p2p_reg.ros.pointcloud2 import cloud_fields
+    from liver_p2p_reg.stream.structures import fallback_label
+    from liver_p2p_reg.structures_io import Structure
+
+    points, ids = message_points_mm(msg), cloud_fields(msg, ["label_id"])["label_id"].astype(np.int64)
+    names, _ = parse_structure_labels(labels_text)
+    label = dict(enumerate(names))
+    _, first = np.unique(ids, return_index=True)  # in the order they were written
+    return [Structure(label.get(int(i), fallback_label(i)), points[ids == i], int(i)) for i in ids[np.sort(first)]]
+
+
+def placed_sha256(placed: Sequence[PlacedStructure]) -> str | None:
+    """The digest a recording keeps of a registration's placed structures (label ids, positions and bounds as
+    published, float64 mm), to compare re-runs bit for bit; None when it placed none."""
+    if not placed:
+        return None
+    digest = hashlib.sha256()
+    for s in placed:
+        digest.update(np.int64(s.label_id).tobytes())
+        digest.update(np.ascontiguousarray(s.current_position_mm, dtype="<f8").tobytes())
+        digest.update(np.ascontiguousarray(s.current_error_bound_mm, dtype="<f8").tobytes())
+    return digest.hexdigest()
 
 
 def message_points_mm(msg: Any) -> np.ndarray:
@@ -117,6 +164,15 @@ def points_sha256(points_mm: np.ndarray | None) -> str | None:
     if points_mm is None:
         return None
     return hashlib.sha256(np.ascontiguousarray(points_mm, dtype="<f8").tobytes()).hexdigest()
+
+
+def _structures_key(structures: Sequence[Structure]) -> bytes:
+    """What tells one set of structures from another: labels, ids and points' bits."""
+    digest = hashlib.sha256()
+    for s in structures:
+        points = np.ascontiguousarray(s.points_mm, dtype="<f8")
+        digest.update(f"{s.label}\0{s.label_id}\0{points.shape}\0".encode() + points.tobytes())
+    return digest.digest()
 
 
 def _exact(array: np.ndarray | None) -> list | None:
@@ -218,6 +274,7 @@ class McapRecorder(Recorder):
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._model_stamp_ns, self._fiducials_key = 0, b""  # the last model and preop fiducials in this file
+        self._structures_key: bytes | None = None  # the last structures written in this file (None: none yet)
         previous = continuation(self.base, index - 1).name if index else ""
         meta = {"format": FORMAT, "session": self.session, "file_index": index, "previous_file": previous}
         meta.update(started_unix_ns=time.time_ns(), **self._environment, weights_sha256=weights_sha256(self._config))
@@ -269,6 +326,13 @@ class McapRecorder(Recorder):
         self._write(TOPIC_PREOP_MESH, MARKER, marker)
         self._writer.flush()
 
+    def preop_structures(self, structures: Sequence[Structure], stamp_ns: int) -> None:
+        """The structures a registration moved (/preop/structures exactly, /preop/structure_labels their names)."""
+        self._write(TOPIC_PREOP_STRUCTURES, POINTCLOUD2, structures_message(structures, stamp_ns))
+        labels = structure_labels_json(structures, stamp_ns)
+        self._write(TOPIC_STRUCTURE_LABELS, STRING, typestore().types[STRING](data=labels))
+        self._structures_key = _structures_key(structures)
+
     def event(self, name: str, values: dict[str, Any] | None = None) -> None:
         self._json(TOPIC_EVENT, {"event": name, **(values or {})})
         self._writer.flush()
@@ -283,8 +347,14 @@ class McapRecorder(Recorder):
             if fid_s.tobytes() != self._fiducials_key or not len(fid_s):
                 self.preop_fiducials(fid_s, self._model_stamp_ns)
             self._write(TOPIC_INTRAOP_FIDUCIALS, POINTCLOUD2, points_message(fid_t, record.frame_id, record.stamp_ns))
+        if record.structures is not None and _structures_key(record.structures) != self._structures_key:
+            self.preop_structures(record.structures, self._model_stamp_ns)  # the set it moved, when not the last
         if out.pose is not None:
             self._write(TOPIC_POSE, POSE_STAMPED, pose_stamped(out.pose, types))
+        placed = out.structures if out.pose is not None else []
+        if placed:  # as published: sensor frame, float32 metres, with their bounds; the exact digest in the record
+            cloud = registered_structures_cloud(placed, types.cloud, out.pose.frame_id, out.pose.stamp_ns)
+            self._write(TOPIC_STRUCTURES, POINTCLOUD2, cloud)
         deformed = out.deformed_preop_mm if out.pose is not None else None
         if deformed is not None:  # as published (float32 metres); its exact digest goes in the record
             metres = np.asarray(deformed, dtype=np.float64) * M_PER_MM
@@ -318,6 +388,7 @@ class McapRecorder(Recorder):
             if out.diagnostics
             else {},
             "deformed_preop_sha256": points_sha256(deformed),
+            "structures_sha256": placed_sha256(placed),
         }
         self._json(TOPIC_REGISTRATION, values)
         self.registrations += 1

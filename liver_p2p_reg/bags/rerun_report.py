@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +27,23 @@ def within_roundoff(T: np.ndarray, want: np.ndarray) -> bool:
     )
 
 
+def structures_within_roundoff(placed: Any, recorded_msg: Any) -> bool:
+    """Whether a re-run's placed structures equal the recorded /registration/structures cloud (float32 metres)
+    up to round-off: the same label ids, positions and bounds within ROUNDOFF_DEFORMED_MM (a NaN bound: NaN)."""
+    from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_structures
+
+    points_m, ids, bounds_m = cloud_to_structures(recorded_msg)
+    got_ids = np.concatenate([np.full(len(s.position_mm), s.label_id) for s in placed])
+    got = np.concatenate([s.current_position_mm for s in placed])
+    got_bounds = np.concatenate([s.current_error_bound_mm for s in placed])
+    if bounds_m is None or got.shape != points_m.shape or not np.array_equal(got_ids, ids):
+        return False
+    near = np.abs(got - points_m * MM_PER_M) <= ROUNDOFF_DEFORMED_MM
+    bounds_mm = bounds_m * MM_PER_M
+    both_nan = np.isnan(got_bounds) & np.isnan(bounds_mm)
+    return bool(near.all() and (both_nan | (np.abs(got_bounds - bounds_mm) <= ROUNDOFF_DEFORMED_MM)).all())
+
+
 def deformed_within_roundoff(got_mm: np.ndarray, recorded_mm: np.ndarray) -> bool:
     """Whether a re-run's deformed surface (mm) equals the recorded float32 one up to round-off."""
     got, recorded = np.asarray(got_mm, dtype=np.float64), np.asarray(recorded_mm, dtype=np.float64)
@@ -45,6 +63,9 @@ class Rerun:
     deformed: int = 0  # registrations with a recorded deformed surface (the non-rigid stage applied) ...
     deformed_identical: int = 0  # ... re-run to bitwise the same surface
     deformed_roundoff: int = 0  # ... and those within round-off of the recorded surface (ROUNDOFF_DEFORMED_MM)
+    structures: int = 0  # registrations that placed subsurface structures ...
+    structures_identical: int = 0  # ... re-run to bitwise the same positions and bounds
+    structures_roundoff: int = 0  # ... and those within round-off of the recorded ones (ROUNDOFF_DEFORMED_MM)
     differences: list[str] = field(default_factory=list)  # one line per registration that differs
     truncated: bool = False  # the last file ends without its footer (its writer was killed)
     notes: list[str] = field(default_factory=list)  # how this run's environment differs from the recording's
@@ -67,6 +88,10 @@ class Rerun:
             line += f"; {self.deformed_identical} of {self.deformed} deformed preop surfaces bitwise identical"
             if self.deformed_roundoff:
                 line += f", {self.deformed_roundoff} more within round-off ({ROUNDOFF_DEFORMED_MM:g} mm)"
+        if self.structures:
+            line += f"; {self.structures_identical} of {self.structures} placements of structures bitwise identical"
+            if self.structures_roundoff:
+                line += f", {self.structures_roundoff} more within round-off ({ROUNDOFF_DEFORMED_MM:g} mm)"
         if self.truncated:
             line += "; the recording ends without its footer (writer killed): read up to its last complete registration"
         return line

@@ -372,7 +372,9 @@ def _record(recorder, i, target_path, target, fiducials, initial_T, args, result
     extras = {"sensor_origin_mm": args.sensor_origin_mm, "initial_T_mm": None}
     if initial_T is not None:
         extras["initial_T_mm"] = [[float(v) for v in row] for row in initial_T]
-    record_command_registration(recorder, i, str(target_path), target, fiducials, extras, result, config, source)
+    record_command_registration(
+        recorder, i, str(target_path), target, fiducials, extras, result, config, source, args.structure_list
+    )
 
 
 def _warnings(result, config, placed) -> list[str]:

@@ -351,6 +351,7 @@ class NodeCore:
             return CoreOutput([Diagnostic(ERROR, DIAG_NAME, message, values)], result=result, reason=reason)
         T = np.asarray(result.T_target_source, dtype=np.float64)
         structures = self.structures.current()
+        self._recording.moved(structures)
         placed = place_structures(result, structures, T)
         diag = registered_diagnostic(result, values, warnings, self.config, placed)
         pose = PoseOutput(cloud.stamp_ns, cloud.frame_id, preop_frame, T)

@@ -3,8 +3,8 @@
 NodeCore holds one `Recording`: it opens a recorder from the factory when `config.record_path` is
 set ("" = off), closes it when the path changes, writes a snapshot of the core's state at the head of
 every file (the config, the current model, its mesh and fiducials, the tracking prior) and hands every
-model, mesh, fiducial set, parameter change, survey reset and registration over in the order they took
-effect. A recorder that fails (disk full, ...) is dropped with one ERROR: registrations go on.
+model, mesh, fiducial set, parameter change, survey reset and registration (with the structures it moved) over
+in the order they took effect. A recorder that fails (disk full, ...) is dropped with one ERROR: registrations go on.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from liver_p2p_reg.stream.outputs import CoreOutput
 if TYPE_CHECKING:
     from liver_p2p_reg.stream.core import NodeCore
     from liver_p2p_reg.stream.deformation import PreopMesh
+    from liver_p2p_reg.structures_io import Structure
 
 LOG = logging.getLogger("liver_p2p_reg.node")
 
@@ -42,6 +43,8 @@ class RegistrationRecord:
     fiducials_mm: tuple[np.ndarray, np.ndarray] | None  # the (preop, intraop) pair the registration used
     output: CoreOutput  # its deformed_preop_mm and `deform_*` diagnostic values: the non-rigid stage's, when it ran
     extras: dict[str, Any] = field(default_factory=dict)  # the CLI's: sensor_origin_mm, initial_T_mm
+    # the subsurface structures (preop frame) it moved, as named then; None: it placed none (no pose, nothing given)
+    structures: list[Structure] | None = None
 
 
 class Recorder(Protocol):
@@ -102,6 +105,7 @@ class Recording:
         self._failure = ""
         self._tap: _Tap | None = None
         self._pair: tuple[np.ndarray, np.ndarray] | None = None
+        self._structures: list[Structure] | None = None
 
     def follow(self, config: Config) -> None:
         """A new config: recorded, or the recording closed / opened when record_path changed.
@@ -169,7 +173,7 @@ class Recording:
     # ---------------------------------------------------------------- one registration (under the core's lock)
     def begin(self, cloud: IntraopCloud) -> IntraopCloud:
         """The cloud to register: with a decoder that keeps its points while recording."""
-        self._tap, self._pair = None, None
+        self._tap, self._pair, self._structures = None, None, None
         if self._recorder is None:
             return cloud
         self._tap = _Tap(cloud.decode)
@@ -179,13 +183,18 @@ class Recording:
         """The fiducial pair the registration uses (None, None: no TRE)."""
         self._pair = None if fid_s is None or fid_t is None else (fid_s, fid_t)
 
+    def moved(self, structures: list[Structure]) -> None:
+        """The structures the registration moves with its pose (a set that came meanwhile waits for the next)."""
+        self._structures = list(structures)
+
     def registration(self, cloud: IntraopCloud, reason: str, output: CoreOutput) -> None:
         tap = self._tap
         if tap is None:
             return
         record = RegistrationRecord(
-            reason, cloud.frame_id, cloud.stamp_ns, tap.points, tap.n_raw, tap.error, self._pair, output
-        )
+            reason, cloud.frame_id, cloud.stamp_ns, tap.points, tap.n_raw, tap.error, self._pair, output,
+            structures=self._structures,
+        )  # fmt: skip
         with self._lock:
             self._call(lambda r: r.registration(record))
             self._call(lambda r: r.rotate_due() and (r.rotate(), self._snapshot(r, self._core.config)))

@@ -1,6 +1,7 @@
 """The flight recorder: real MCAP recordings of replays, the CLI and the live node, re-run pose for pose bit for bit."""
 
 import io
+import json
 import re
 import shutil
 import signal
@@ -180,9 +181,10 @@ def test_a_truncated_recording_is_read_up_to_its_last_complete_registration(bag_
     assert sum(1 for _ in read_recording(bag_recording, state)) > 0 and not state.truncated
 
 
-def drive(core, bag, change_after=None, changes=None, frames=None, reset_after=None):
+def drive(core, bag, change_after=None, changes=None, frames=None, reset_after=None, after=None):
     """Feed a bag's messages to a core as replay does, registering every cloud (1 s apart, at most `frames`);
-    reconfigure after `change_after` registrations, reset the survey after `reset_after`. Returns the poses."""
+    reconfigure after `change_after` registrations, reset the survey after `reset_after`, call `after(n)` after
+    the n-th. Returns the poses."""
     poses, t = [], 0.0
     for item in read_messages(bag):
         if item.topic == TOPIC_PREOP:
@@ -200,6 +202,8 @@ def drive(core, bag, change_after=None, changes=None, frames=None, reset_after=N
                 core.reconfigure(changes)
             if len(poses) == reset_after:
                 core.reset_survey()
+            if after is not None:
+                after(len(poses))
             if len(poses) == frames:
                 break
     core.close_recording()
@@ -257,6 +261,76 @@ def test_rotation_starts_numbered_files_that_re_run_as_one_and_alone(tmp_path):
     head = recorded(files[1])
     assert head[TOPIC_META][0]["file_index"] == 1 and head[TOPIC_CONFIG][0]["snapshot"] and head[TOPIC_PREOP]
     assert is_recording(files[1]) and not is_recording(BAG_A / f"{BAG_A.name}.mcap")
+
+
+def structures_of(preop_mm, *shares):
+    """Subsurface structures for a test: preop points pulled halfway to the centroid, a slice of them each."""
+    from liver_p2p_reg.structures_io import Structure
+
+    inner = preop_mm.mean(axis=0) + 0.5 * (preop_mm - preop_mm.mean(axis=0)) + 0.123  # not float32 metres
+    return [Structure(f"s{i}", inner[i * 40 : i * 40 + n], i) for i, n in enumerate(shares)]
+
+
+def test_structures_are_recorded_with_each_registration_and_re_placed_bit_for_bit(tmp_path):
+    """The set each registration moved is kept (when it changed) and given back before it; its placement
+    (positions and bounds) is compared with the recorded one. A set that changes mid-stream, and one cleared."""
+    import dataclasses
+
+    from liver_p2p_reg.bags.recorder import message_structures
+    from liver_p2p_reg.bags.rerun_report import structures_within_roundoff
+    from liver_p2p_reg.ros.topics import TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS, TOPIC_STRUCTURES
+    from liver_p2p_reg.stream.core import NodeCore
+
+    preop_mm = bag_frames_m(BAG_A)[0] * 1e3
+    first, second = structures_of(preop_mm, 12, 7), structures_of(preop_mm + 2.0, 5)
+    path = tmp_path / "structures.mcap"
+    core = NodeCore(CONFIG.replace(record_path=str(path)), recorder_factory=recorder_factory("refuse"))
+    core.structures.set_structures(first)
+    sets, placed = {2: second, 4: []}, []  # a new set after two registrations, none after four
+
+    def after(n):
+        placed.append(core.last_output.structures)
+        if n in sets:
+            core.structures.set_structures(sets[n])
+
+    assert len(drive(core, BAG_A, after=after)) == 5
+    topics = recorded(path)
+    pairs = zip(topics[TOPIC_PREOP_STRUCTURES], topics[TOPIC_STRUCTURE_LABELS], strict=True)
+    kept = [message_structures(cloud, json.dumps(labels)) for cloud, labels in pairs]  # names: JSON
+    assert [[(s.label, s.label_id, len(s.points_mm)) for s in k] for k in kept] == [
+        [("s0", 0, 12), ("s1", 1, 7)],
+        [("s0", 0, 5)],
+        [],
+    ]
+    assert kept[0][1].points_mm.tobytes() == first[1].points_mm.tobytes()  # exact millimetres
+    regs = topics[TOPIC_REGISTRATION]
+    assert [r["structures_sha256"] is not None for r in regs] == [True] * 4 + [False]
+    assert len(topics[TOPIC_STRUCTURES]) == 4
+    report = rerun_recording(path)
+    assert report.ok and (report.structures, report.structures_identical + report.structures_roundoff) == (4, 4), report
+    assert "placements of structures bitwise identical" in report.summary()
+    # round-off is told from a difference against the published cloud (float32 metres)
+    cloud = topics[TOPIC_STRUCTURES][0]
+    assert structures_within_roundoff(placed[0], cloud)
+    moved = [dataclasses.replace(s, position_mm=s.position_mm + 0.01) for s in placed[0]]
+    assert not structures_within_roundoff(moved, cloud)
+    assert not structures_within_roundoff(placed[0][:1], cloud)
+
+
+def test_register_cli_record_keeps_its_structures_and_re_places_them(tmp_path):
+    preop_m, frames_m = bag_frames_m(BAG_A)
+    np.save(tmp_path / "source.npy", preop_m * 1e3)
+    np.save(tmp_path / "view.npy", frames_m[0] * 1e3)
+    np.save(tmp_path / "tumour.npy", structures_of(preop_m * 1e3, 9)[0].points_mm)
+    rec = tmp_path / "register.mcap"
+    code, out, err = cli("register", tmp_path / "source.npy", tmp_path / "view.npy", "--structures",
+                         f"{tmp_path / 'tumour.npy'}:tumour", "--record", rec, "--sensor-origin", "0,0,0")  # fmt: skip
+    assert code == 0, err
+    placed = json.loads(out)["structures"][0]
+    regs = recorded(rec)[TOPIC_REGISTRATION]
+    assert regs[0]["structures_sha256"] and placed["label"] == "tumour"
+    report = rerun_recording(rec)
+    assert report.ok and report.structures == 1 and report.registrations == reproduced(report) == 1, report
 
 
 def test_register_cli_record_is_re_run_bit_for_bit(tmp_path):

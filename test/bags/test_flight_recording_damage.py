@@ -204,6 +204,7 @@ def test_bag_play_plays_the_inputs_only_unless_all_topics(bag_recording):
 
     topics = bag_topics(bag_recording)
     played, skipped = split_topics(topics)
-    assert played == ["/intraop/fiducials", "/intraop/points", "/preop/fiducials", "/preop/mesh", "/preop/points"]
+    inputs = ["/intraop/fiducials", "/intraop/points", "/preop/fiducials", "/preop/mesh", "/preop/points"]
+    assert played == [*inputs, "/preop/structure_labels", "/preop/structures"]  # the set each registration moved
     assert "/registration/pose" in skipped and "/diagnostics" in skipped and TOPIC_REGISTRATION in skipped
     assert split_topics(topics, all_topics=True) == (sorted(topics), [])
