@@ -79,7 +79,7 @@ class _Rerunner:
         self.deformed: np.ndarray | None = None  # the registration's deformed surface as recorded (float32 metres)
         self.structure_points: RecordedMessage | None = None  # /preop/structures, until its names follow
         self.structures: list[Structure] = []  # the set the next registration moves (`register` places them)
-        self.placed: Any = None  # the registration's /registration/structures as recorded (float32 metres)
+        self.placed: RecordedMessage | None = None  # the registration's /registration/structures (float32 metres)
         self.report = Rerun([])
 
     def config(self, values: dict[str, Any]) -> None:
@@ -130,7 +130,7 @@ class _Rerunner:
             self.structures = _decoded(points, lambda msg: message_structures(msg, item.msg.data))
             core.structures.set_structures(self.structures)
         elif topic == TOPIC_STRUCTURES:
-            self.placed = item.msg
+            self.placed = item
         elif topic == TOPIC_EVENT and values["event"] == "tracker":
             restore_tracker(core, values)
         elif topic == TOPIC_EVENT and values["event"] == "reset_survey":
@@ -205,7 +205,8 @@ class _Rerunner:
         if want is not None:
             self.report.structures += 1
             self.report.structures_identical += got == want
-        if got != want and want and got and recorded is not None and structures_within_roundoff(placed, recorded):
+        near = got != want and want and got and recorded is not None
+        if near and _decoded(recorded, lambda msg: structures_within_roundoff(placed, msg)):
             self.report.structures_roundoff += 1
         elif got != want:
             shown = {True: "some", False: "none"}

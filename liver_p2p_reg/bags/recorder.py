@@ -73,6 +73,7 @@ TOPIC_CONFIG = "/flight_recorder/config"  # the full parameter set, at the head 
 TOPIC_EVENT = "/flight_recorder/event"  # reset_survey; in a file's head: tracker (the prior), snapshot_end
 TOPIC_REGISTRATION = "/flight_recorder/registration"  # one per registration, its last record (the commit)
 MM_FIELDS = ("x_mm", "y_mm", "z_mm")  # exact float64 millimetres, beside x/y/z, when float32 metres lose bits
+LABEL_LIST_MAX = 4096  # label ids from here up are named in the labels record's `names` only
 EXISTING = ("refuse", "overwrite", "new")  # an existing file: InputError, replaced, or a new timestamped name
 
 
@@ -101,6 +102,17 @@ def structures_message(structures: Sequence[Structure], stamp_ns: int) -> Any:
     return points_message(points, "ct", stamp_ns, {"label_id": np.asarray(ids, dtype=np.uint32)})
 
 
+def structure_labels(structures: Sequence[Structure], stamp_ns: int) -> str:
+    """/preop/structure_labels as the recording keeps it: the loader's list of names by label id (`bag play`
+    publishes it) where the ids are small, and always `names`, {label id: name}, which any id fits (a publisher
+    of label ids near 2**31 would otherwise make a list of 2**31 names)."""
+    values = {"labels": [], "stamp_ns": int(stamp_ns)}
+    if max((s.label_id for s in structures), default=-1) < LABEL_LIST_MAX:
+        values = json.loads(structure_labels_json(structures, stamp_ns))
+    values["names"] = {str(s.label_id): s.label for s in structures}
+    return json.dumps(values)
+
+
 def message_structures(msg: Any, labels_text: str) -> list[Structure]:
     """The structures `structures_message` and /preop/structure_labels stored, bit for bit, named as recorded."""
     from liver_p2p_reg.ros.messages import parse_structure_labels
@@ -111,6 +123,9 @@ def message_structures(msg: Any, labels_text: str) -> list[Structure]:
     points, ids = message_points_mm(msg), cloud_fields(msg, ["label_id"])["label_id"].astype(np.int64)
     names, _ = parse_structure_labels(labels_text)
     label = dict(enumerate(names))
+    sparse = json.loads(labels_text).get("names")  # by label id: what `structure_labels` wrote for any id
+    if isinstance(sparse, dict):
+        label = {int(k): str(v) for k, v in sparse.items() if str(k).isascii() and str(k).isdigit()}
     _, first = np.unique(ids, return_index=True)  # in the order they were written
     return [Structure(label.get(int(i), fallback_label(i)), points[ids == i], int(i)) for i in ids[np.sort(first)]]
 
@@ -329,8 +344,8 @@ class McapRecorder(Recorder):
     def preop_structures(self, structures: Sequence[Structure], stamp_ns: int) -> None:
         """The structures a registration moved (/preop/structures exactly, /preop/structure_labels their names)."""
         self._write(TOPIC_PREOP_STRUCTURES, POINTCLOUD2, structures_message(structures, stamp_ns))
-        labels = structure_labels_json(structures, stamp_ns)
-        self._write(TOPIC_STRUCTURE_LABELS, STRING, typestore().types[STRING](data=labels))
+        labels = typestore().types[STRING](data=structure_labels(structures, stamp_ns))
+        self._write(TOPIC_STRUCTURE_LABELS, STRING, labels)
         self._structures_key = _structures_key(structures)
 
     def event(self, name: str, values: dict[str, Any] | None = None) -> None:

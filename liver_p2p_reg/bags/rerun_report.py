@@ -29,7 +29,8 @@ def within_roundoff(T: np.ndarray, want: np.ndarray) -> bool:
 
 def structures_within_roundoff(placed: Any, recorded_msg: Any) -> bool:
     """Whether a re-run's placed structures equal the recorded /registration/structures cloud (float32 metres)
-    up to round-off: the same label ids, positions and bounds within ROUNDOFF_DEFORMED_MM (a NaN bound: NaN)."""
+    up to round-off: the same label ids, positions and bounds within ROUNDOFF_DEFORMED_MM (inf and NaN bounds:
+    the same). InputError (or ValueError, ...) for a recorded cloud that does not decode."""
     from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_structures
 
     points_m, ids, bounds_m = cloud_to_structures(recorded_msg)
@@ -40,8 +41,9 @@ def structures_within_roundoff(placed: Any, recorded_msg: Any) -> bool:
         return False
     near = np.abs(got - points_m * MM_PER_M) <= ROUNDOFF_DEFORMED_MM
     bounds_mm = bounds_m * MM_PER_M
-    both_nan = np.isnan(got_bounds) & np.isnan(bounds_mm)
-    return bool(near.all() and (both_nan | (np.abs(got_bounds - bounds_mm) <= ROUNDOFF_DEFORMED_MM)).all())
+    same = (got_bounds == bounds_mm) | (np.isnan(got_bounds) & np.isnan(bounds_mm))  # inf: unbounded, NaN: no model
+    with np.errstate(invalid="ignore"):
+        return bool(near.all() and (same | (np.abs(got_bounds - bounds_mm) <= ROUNDOFF_DEFORMED_MM)).all())
 
 
 def deformed_within_roundoff(got_mm: np.ndarray, recorded_mm: np.ndarray) -> bool:

@@ -56,6 +56,7 @@ _PENDING: list[BackgroundOpen3D] = []
 # the OOM killer) cannot remove its own, so the next job removes those whose process is gone. (A process in another
 # PID namespace sharing /tmp looks gone: its registration then computes Open3D's share itself, the same result.)
 FOLDER_PREFIX = "liver_p2p_open3d_"
+MKDTEMP_CHARS = 8  # the random part tempfile.mkdtemp appends to a prefix
 
 
 def child_command(*argv: str) -> list[str]:
@@ -143,13 +144,19 @@ def _alive(pid: int) -> bool:
 
 def remove_orphaned_folders(parent: Path | None = None) -> list[Path]:
     """Remove the job folders in `parent` (the temporary directory) whose process no longer exists; those
-    removed. Folders of another naming, or whose owner is alive, are left alone."""
+    removed. Best effort: folders of another naming (an older version's `liver_p2p_open3d_XXXXXXXX`), whose
+    owner is alive or that cannot be removed are left alone, and nothing here stops a registration."""
     removed = []
-    for folder in Path(parent or tempfile.gettempdir()).glob(f"{FOLDER_PREFIX}*_*"):
-        pid = folder.name[len(FOLDER_PREFIX) :].split("_", 1)[0]
-        if folder.is_dir() and pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(folder, ignore_errors=True)
-            removed.append(folder)
+    try:
+        for folder in Path(parent or tempfile.gettempdir()).glob(f"{FOLDER_PREFIX}*_*"):
+            pid, _, rest = folder.name[len(FOLDER_PREFIX) :].partition("_")
+            ours = pid.isascii() and pid.isdigit() and len(pid) <= 9 and len(rest) == MKDTEMP_CHARS
+            if ours and folder.is_dir() and not _alive(int(pid)):
+                shutil.rmtree(folder, ignore_errors=True)
+                if not folder.exists():
+                    removed.append(folder)
+    except Exception:  # a folder that vanished, a name no process has: never worth a failed registration
+        pass
     return removed
 
 

@@ -72,9 +72,18 @@ def test_decimation_is_deterministic_and_leaves_a_small_mesh_as_it_is():
 
 @pytest.fixture(scope="module")
 def deform_replay(tmp_path_factory):
-    """A bundled bag replayed (2 frames) with the stage on, into an output bag and a flight recording."""
+    """A bundled bag replayed (2 frames) with the stage on and a structure, into an output bag and a flight
+    recording."""
+    from liver_p2p_reg.bags.io import model_and_clouds
+    from liver_p2p_reg.structures_io import Structure
+
     out = tmp_path_factory.mktemp("deform")
-    row = replay_bag(DEFORM_BAG, Config(deform=True), out_path=out / "out", record_path=out / "rec.mcap", max_frames=2)
+    preop_mm = model_and_clouds(DEFORM_BAG, metres=True)[0] * 1e3
+    tumour = Structure("tumour", 0.5 * (preop_mm[:30] + preop_mm.mean(axis=0)), 0)  # halfway to the centre
+    row = replay_bag(
+        DEFORM_BAG, Config(deform=True), out_path=out / "out", record_path=out / "rec.mcap", max_frames=2,
+        structures=[tumour],
+    )  # fmt: skip
     return row, out
 
 
@@ -121,6 +130,8 @@ def test_the_flight_recorder_keeps_the_mesh_and_the_deformed_surface_and_re_runs
     assert report.ok and report.identical + report.roundoff == 2 and report.deformed == 2
     assert report.deformed_identical + report.deformed_roundoff == 2, report  # round-off: another summation order
     assert "deformed preop surfaces bitwise identical" in report.summary()
+    # the structure's deformed positions and their bounds, placed again as the node placed them
+    assert report.structures == 2 and report.structures_identical + report.structures_roundoff == 2, report
 
 
 def test_a_re_run_whose_deformed_surface_differs_is_reported(deform_replay, tmp_path):

@@ -250,14 +250,17 @@ def test_survey_mode_and_its_resets_re_run_bit_for_bit(tmp_path):
 
 def test_rotation_starts_numbered_files_that_re_run_as_one_and_alone(tmp_path):
     path = tmp_path / "rot.mcap"
-    replay_bag(BAG_A, CONFIG.replace(record_max_mb=0.6), record_path=path)
+    structures = structures_of(bag_frames_m(BAG_A)[0] * 1e3, 10)
+    replay_bag(BAG_A, CONFIG.replace(record_max_mb=0.6), record_path=path, structures=structures)
     files = [continuation(path, i) for i in range(3)]
     assert files[1].is_file(), sorted(tmp_path.iterdir())
     report = rerun_recording(path)
     assert len(report.files) >= 2 and (report.registrations, reproduced(report)) == (5, 5) and report.ok, report
-    # a later file alone: its head repeats the model, the parameters and the tracking prior
+    assert report.structures == 5, report
+    # a later file alone: its head repeats the model, the parameters and the tracking prior; its first
+    # registration, the structures
     alone = rerun_recording(files[1])
-    assert alone.ok and alone.registrations == reproduced(alone) >= 1, alone
+    assert alone.ok and alone.registrations == reproduced(alone) == alone.structures >= 1, alone
     head = recorded(files[1])
     assert head[TOPIC_META][0]["file_index"] == 1 and head[TOPIC_CONFIG][0]["snapshot"] and head[TOPIC_PREOP]
     assert is_recording(files[1]) and not is_recording(BAG_A / f"{BAG_A.name}.mcap")
@@ -282,7 +285,8 @@ def test_structures_are_recorded_with_each_registration_and_re_placed_bit_for_bi
     from liver_p2p_reg.stream.core import NodeCore
 
     preop_mm = bag_frames_m(BAG_A)[0] * 1e3
-    first, second = structures_of(preop_mm, 12, 7), structures_of(preop_mm + 2.0, 5)
+    first = structures_of(preop_mm, 12, 7)
+    second = [dataclasses.replace(structures_of(preop_mm + 2.0, 5)[0], label_id=2**31 - 2)]  # any id a loader sends
     path = tmp_path / "structures.mcap"
     core = NodeCore(CONFIG.replace(record_path=str(path)), recorder_factory=recorder_factory("refuse"))
     core.structures.set_structures(first)
@@ -299,7 +303,7 @@ def test_structures_are_recorded_with_each_registration_and_re_placed_bit_for_bi
     kept = [message_structures(cloud, json.dumps(labels)) for cloud, labels in pairs]  # names: JSON
     assert [[(s.label, s.label_id, len(s.points_mm)) for s in k] for k in kept] == [
         [("s0", 0, 12), ("s1", 1, 7)],
-        [("s0", 0, 5)],
+        [("s0", 2**31 - 2, 5)],
         [],
     ]
     assert kept[0][1].points_mm.tobytes() == first[1].points_mm.tobytes()  # exact millimetres

@@ -115,9 +115,15 @@ def test_an_npz_mesh_gives_the_stage_its_triangles(case: dict, tmp_path: Path) -
 def test_a_register_deform_recording_rechecks_the_deformed_surface(case: dict, tmp_path: Path, capsys) -> None:
     d = case["dir"]
     record = tmp_path / "deform.mcap"
+    src = case["case"]["src_pcd"]
+    np.save(tmp_path / "tumour.npy", 0.5 * (src[:25] + src.mean(axis=0)))  # inside the liver
     args = [str(d / "preop.ply"), str(d / "view.ply"), "--deform", "--config", str(d / "small.yaml")]
+    args += ["--structures", f"{tmp_path / 'tumour.npy'}:tumour"]
     assert main(["register", *args, "--output", str(tmp_path / "out.json"), "--record", str(record), "-q"]) == 0
-    assert json.loads((tmp_path / "out.json").read_text())["deformation"]["applied"]
+    written = json.loads((tmp_path / "out.json").read_text())
+    assert written["deformation"]["applied"] and written["structures"][0]["deformed_position_mm"]
     capsys.readouterr()
     assert main(["replay", str(record)]) == 0  # on the recorded mesh, as the command ran the stage
-    assert "1 of 1 deformed preop surfaces bitwise identical" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "1 of 1 deformed preop surfaces bitwise identical" in out
+    assert "1 of 1 placements of structures bitwise identical" in out  # its deformed positions, placed again

@@ -138,14 +138,15 @@ def test_a_job_folder_left_by_a_killed_process_is_removed_by_the_next_job(
 
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     dead_pid = int(gone.stdout)  # a process that has ended
-    orphan = tmp_path / f"{FOLDER_PREFIX}{dead_pid}_abc"
-    live = tmp_path / f"{FOLDER_PREFIX}{os.getppid()}_abc"
-    other = tmp_path / f"{FOLDER_PREFIX}abc"
-    for folder in (orphan, live, other):
+    orphan = tmp_path / f"{FOLDER_PREFIX}{dead_pid}_abcdefgh"
+    live = tmp_path / f"{FOLDER_PREFIX}{os.getppid()}_abcdefgh"
+    # an older version's names (8 random characters, some looking like a pid), names no process can have
+    others = [f"{FOLDER_PREFIX}{n}" for n in ("abcdefgh", "42_k3j9a", "99999999999_abcdefgh", "\u00b2_abcdefgh")]
+    for folder in (orphan, live, *(tmp_path / n for n in others)):
         folder.mkdir()
         (folder / "points.npy").write_bytes(b"x")
     assert remove_orphaned_folders(tmp_path) == [orphan]
-    assert not orphan.exists() and live.exists() and other.exists()
+    assert not orphan.exists() and live.exists() and all((tmp_path / n).exists() for n in others)
     # a job sweeps the temporary directory before it names its own folder for this process
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     orphan.mkdir()
