@@ -59,6 +59,8 @@ from liver_p2p_reg.structures_io import PlacedStructure, Structure, place_struct
 # what a pose's bits depend on besides its inputs: a difference is said before the comparison
 ENVIRONMENT_KEYS = ("package_version", "code_version", "numpy", "torch", "open3d", "usable_cores", "omp_num_threads")
 
+MISSING = object()  # a digest a recording from before it was kept does not have
+
 # the reading lives in flight_read; these names are read from here too (replay_cmd, the tests)
 __all__ = ["ReadState", "is_recording", "read_recording", "rerun_recording"]
 
@@ -180,39 +182,45 @@ class _Rerunner:
         """The re-run's deformed preop surface against the recorded digest (recordings that keep one), and where
         the digests differ, against the recorded surface itself (round-off, or a difference)."""
         recorded, self.deformed = self.deformed, None
-        if "deformed_preop_sha256" not in values:  # recorded before the digest existed
-            return
-        want, got = values["deformed_preop_sha256"], points_sha256(deformed)
-        if want is not None:
-            self.report.deformed += 1
-            self.report.deformed_identical += got == want
-        if got != want and want and got and recorded is not None and deformed_within_roundoff(deformed, recorded):
-            self.report.deformed_roundoff += 1
-        elif got != want:
-            shown = {True: "one", False: "none"}
-            detail = (
-                "not bitwise the same" if want and got else f"recorded {shown[bool(want)]}, re-run {shown[bool(got)]}"
-            )
-            self.report.differences.append(f"{where}: deformed preop surface differs ({detail})")
+        counts = self._compare_digest(
+            values.get("deformed_preop_sha256", MISSING), points_sha256(deformed),
+            lambda: recorded is not None and deformed_within_roundoff(deformed, recorded),
+            f"{where}: deformed preop surface", "one",
+        )  # fmt: skip
+        self._count("deformed", counts)
 
     def _compare_structures(self, values: dict[str, Any], placed: list[PlacedStructure], where: str) -> None:
         """The re-run's placed structures against the recorded digest (recordings that keep one), and where the
         digests differ, against the recorded /registration/structures cloud (round-off, or a difference)."""
         recorded, self.placed = self.placed, None
-        if "structures_sha256" not in values:  # recorded before structures were kept
-            return
-        want, got = values["structures_sha256"], placed_sha256(placed)
-        if want is not None:
-            self.report.structures += 1
-            self.report.structures_identical += got == want
-        near = got != want and want and got and recorded is not None
-        if near and _decoded(recorded, lambda msg: structures_within_roundoff(placed, msg)):
-            self.report.structures_roundoff += 1
-        elif got != want:
-            shown = {True: "some", False: "none"}
-            detail = f"recorded {shown[bool(want)]}, re-run {shown[bool(got)]}"
-            detail = "not bitwise the same" if want and got else detail
-            self.report.differences.append(f"{where}: placed structures differ ({detail})")
+        counts = self._compare_digest(
+            values.get("structures_sha256", MISSING), placed_sha256(placed),
+            lambda: recorded is not None and _decoded(recorded, lambda msg: structures_within_roundoff(placed, msg)),
+            f"{where}: placed structures", "some",
+        )  # fmt: skip
+        self._count("structures", counts)
+
+    def _count(self, kind: str, counts: tuple[int, int, int]) -> None:
+        """Add (recorded, identical, within round-off) to the report's `kind`, `kind`_identical, `kind`_roundoff."""
+        for name, n in zip((kind, f"{kind}_identical", f"{kind}_roundoff"), counts, strict=True):
+            setattr(self.report, name, getattr(self.report, name) + n)
+
+    def _compare_digest(
+        self, want: Any, got: str | None, near: Callable[[], bool], what: str, one: str
+    ) -> tuple[int, int, int]:
+        """A re-run's digest against the recorded one (MISSING: a recording from before it was kept): (recorded,
+        bitwise the same, within round-off by `near()`), each 0 or 1; a difference goes into the report."""
+        if want is MISSING:
+            return 0, 0, 0
+        kept = int(want is not None)
+        if got == want:
+            return kept, kept, 0
+        if want and got and near():
+            return kept, 0, 1
+        shown = {True: one, False: "none"}
+        detail = "not bitwise the same" if want and got else f"recorded {shown[bool(want)]}, re-run {shown[bool(got)]}"
+        self.report.differences.append(f"{what} differs ({detail})")
+        return kept, 0, 0
 
     def _run_command(
         self, values: dict[str, Any], points: np.ndarray | None, fid_s: Any, fid_t: Any
