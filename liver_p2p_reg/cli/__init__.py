@@ -7,10 +7,14 @@ argument errors answer at once; each subcommand imports what it needs when it ru
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import re
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 
 from liver_p2p_reg import __version__
 from liver_p2p_reg.errors import LiverP2PError
@@ -82,6 +86,26 @@ def attach_signed_values(argv: list[str]) -> list[str]:
     return out
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    """SIGTERM handler: raise KeyboardInterrupt."""
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """Within it, SIGTERM (a supervisor's, `timeout`'s, `kill`'s) ends the command as Ctrl-C does, so its cleanup
+    runs: the nodes a soak or the demo started are stopped, a recording gets its footer, a training run's workers
+    and temporary weights go. Killed by the default action instead, the command would leave its node processes
+    answering on their domain. Only in the main thread (where Python delivers signals)."""
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    try:
+        yield
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit status (0 ok, 1 internal error, 2 bad input)."""
     parser = build_parser()
@@ -94,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        with terminate_as_interrupt():
+            return int(args.func(args) or 0)
     except LiverP2PError as exc:
         print(f"liver-p2p: error: {exc}", file=sys.stderr)
         return 2

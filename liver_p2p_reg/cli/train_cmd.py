@@ -5,10 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import signal
-import threading
 from pathlib import Path
 
+from liver_p2p_reg.cli import terminate_as_interrupt
 from liver_p2p_reg.cli.output_paths import given_paths, output_file, output_folder
 from liver_p2p_reg.errors import InputError
 
@@ -55,11 +54,6 @@ def export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _interrupt(signum: int, frame: object) -> None:
-    """SIGTERM handler: raise KeyboardInterrupt."""
-    raise KeyboardInterrupt
-
-
 def run(args: argparse.Namespace) -> int:
     """Train; print where the best weights are."""
     if args.export:
@@ -82,16 +76,11 @@ def run(args: argparse.Namespace) -> int:
     if args.device == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: torch sees no CUDA device")
     # A kill (SIGTERM: a scheduler's, a time limit's) ends the run as Ctrl-C does, so its cleanup runs: the
-    # validation workers and the temporary folder of weights they read.
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
-    try:
+    # validation workers and the temporary folder of weights they read (also when called without `main`).
+    with terminate_as_interrupt():
         state = train(
             cfg, args.out, device=args.device, resume=args.resume, progress=not args.no_progress, force=args.force
         )
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
     print(
         f"trained {state['step']} steps in {state['elapsed_s'] / 60:.1f} min; best weights: {args.out}/best.safetensors"
     )

@@ -69,3 +69,49 @@ def test_a_short_soak_through_the_live_graph_writes_csv_png_and_md(tmp_path):
     assert "](../soak/soak.png)" in page.read_text() and (tmp_path / "docs" / "soak" / "soak.png").is_file()
     block = readme.read_text()
     assert "old" not in block and "**Soak**" in block and "](docs/results/soak.md)" in block
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is `pid`."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            continue  # ended meanwhile
+    return found
+
+
+def test_a_soak_ended_by_sigterm_stops_its_node(tmp_path):
+    """SIGTERM (a supervisor's, `timeout`'s) ends a command as Ctrl-C does: the soak stops the register_node it
+    started instead of leaving it running on its domain."""
+    import signal
+    import time
+
+    require_rclpy()
+    cmd = [sys.executable, "-m", "liver_p2p_reg", "soak", "--minutes", "1", "--minute-s", "60",
+           "--bags", str(BAG), "--out", str(tmp_path / "out")]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
+    nodes: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        log = tmp_path / "out" / "logs" / "register_node.stderr"
+        while not (log.is_file() and children(proc.pid)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        nodes = children(proc.pid)
+        assert nodes, "the soak started no node"
+        time.sleep(3.0)  # the node is up (or coming up); the soak is waiting or publishing
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode != -signal.SIGTERM, err  # not killed on the spot: it ran its cleanup
+        assert not any(Path(f"/proc/{pid}").exists() for pid in nodes), err  # its node is gone too
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for pid in nodes:  # a failed run must not leave its node answering on the domain
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
