@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from liver_p2p_reg.bags.io import rosbags_marker_types
-from liver_p2p_reg.bags.recorder import McapRecorder, exact_metres
+from liver_p2p_reg.bags.recorded_points import exact_metres
+from liver_p2p_reg.bags.recorder import McapRecorder
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.ros.messages import mesh_marker_mm, triangle_list_marker
 from liver_p2p_reg.stream.record_hooks import RegistrationRecord

@@ -22,15 +22,12 @@ from liver_p2p_reg.bags.command_recording import command_deformation
 from liver_p2p_reg.bags.flight_read import ReadState, is_recording, read_recording
 from liver_p2p_reg.bags.flight_records import Damaged, RecordedMessage, checked_values
 from liver_p2p_reg.bags.io import bag_error_reason
+from liver_p2p_reg.bags.recorded_points import message_points_mm, message_structures, placed_sha256, points_sha256
 from liver_p2p_reg.bags.recorder import (
     TOPIC_CONFIG,
     TOPIC_EVENT,
     TOPIC_META,
     TOPIC_REGISTRATION,
-    message_points_mm,
-    message_structures,
-    placed_sha256,
-    points_sha256,
     recorder_factory,
     run_environment,
 )

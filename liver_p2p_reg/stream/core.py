@@ -350,8 +350,7 @@ class NodeCore:
             message = f"registration failed: {result.message or 'no valid transform'}"
             return CoreOutput([Diagnostic(ERROR, DIAG_NAME, message, values)], result=result, reason=reason)
         T = np.asarray(result.T_target_source, dtype=np.float64)
-        structures = self.structures.current()
-        self._recording.moved(structures)
+        structures = self._recording.moved(self.structures.current())  # the set it places, recorded with it
         placed = place_structures(result, structures, T)
         diag = registered_diagnostic(result, values, warnings, self.config, placed)
         pose = PoseOutput(cloud.stamp_ns, cloud.frame_id, preop_frame, T)

@@ -183,9 +183,11 @@ class Recording:
         """The fiducial pair the registration uses (None, None: no TRE)."""
         self._pair = None if fid_s is None or fid_t is None else (fid_s, fid_t)
 
-    def moved(self, structures: list[Structure]) -> None:
-        """The structures the registration moves with its pose (a set that came meanwhile waits for the next)."""
+    def moved(self, structures: list[Structure]) -> list[Structure]:
+        """The structures the registration moves with its pose (a set that came meanwhile waits for the next);
+        returns them."""
         self._structures = list(structures)
+        return structures
 
     def registration(self, cloud: IntraopCloud, reason: str, output: CoreOutput) -> None:
         tap = self._tap

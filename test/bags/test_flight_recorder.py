@@ -16,15 +16,8 @@ from ros_support import BAG_A, BAGS, bag_frames_m
 
 from liver_p2p_reg.bags.flight_replay import ReadState, is_recording, read_recording, rerun_recording
 from liver_p2p_reg.bags.io import read_messages
-from liver_p2p_reg.bags.recorder import (
-    TOPIC_CONFIG,
-    TOPIC_META,
-    TOPIC_REGISTRATION,
-    continuation,
-    message_points_mm,
-    points_message,
-    recorder_factory,
-)
+from liver_p2p_reg.bags.recorded_points import message_points_mm, points_message
+from liver_p2p_reg.bags.recorder import TOPIC_CONFIG, TOPIC_META, TOPIC_REGISTRATION, continuation, recorder_factory
 from liver_p2p_reg.bags.replay import replay_bag
 from liver_p2p_reg.bags.rerun_report import ROUNDOFF_TRANSLATION_MM, Rerun, deformed_within_roundoff, within_roundoff
 from liver_p2p_reg.config import Config
@@ -279,7 +272,7 @@ def test_structures_are_recorded_with_each_registration_and_re_placed_bit_for_bi
     (positions and bounds) is compared with the recorded one. A set that changes mid-stream, and one cleared."""
     import dataclasses
 
-    from liver_p2p_reg.bags.recorder import message_structures
+    from liver_p2p_reg.bags.recorded_points import message_structures
     from liver_p2p_reg.bags.rerun_report import structures_within_roundoff
     from liver_p2p_reg.ros.topics import TOPIC_PREOP_STRUCTURES, TOPIC_STRUCTURE_LABELS, TOPIC_STRUCTURES
     from liver_p2p_reg.stream.core import NodeCore
