@@ -211,6 +211,23 @@ def place_structures(
     ]
 
 
+def stacked_points(structures: Sequence[Structure]) -> tuple[np.ndarray, np.ndarray]:
+    """Every structure's points one after the other (N x 3, mm) and each point's label id (N,): a structures cloud."""
+    points = np.concatenate([s.points_mm for s in structures]) if structures else np.zeros((0, 3))
+    ids = np.concatenate([np.full(len(s.points_mm), s.label_id) for s in structures]) if structures else np.zeros(0)
+    return points, ids.astype(np.int64)
+
+
+def stacked_placement(placed: Sequence[PlacedStructure]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where a pose put every structure, one after the other: each point's label id (N,), its current position
+    (N x 3, mm; deformed where the stage was applied) and that position's bound (N,, mm)."""
+    if not placed:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+    ids = np.concatenate([np.full(len(s.position_mm), s.label_id, dtype=np.int64) for s in placed])
+    points = np.concatenate([s.current_position_mm for s in placed])
+    return ids, points, np.concatenate([s.current_error_bound_mm for s in placed])
+
+
 def structure_bounds(placed: Sequence[PlacedStructure]) -> dict[str, np.ndarray]:
     """label -> per-point bounds (mm): what `confidence.result_warnings(..., structure_bounds_mm=)` takes."""
     return {p.label: p.error_bound_mm for p in placed}

@@ -7,17 +7,16 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from liver_p2p_reg.bags.io import rosbags_output_types
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.ros.messages import structure_labels_json
-from liver_p2p_reg.ros.pointcloud2 import FLOAT64, M_PER_MM, MM_PER_M, cloud_to_points_mm, points_to_cloud
-
-if TYPE_CHECKING:
-    from liver_p2p_reg.structures_io import PlacedStructure, Structure
+from liver_p2p_reg.ros.messages import parse_structure_labels, structure_labels_json
+from liver_p2p_reg.ros.pointcloud2 import FLOAT64, M_PER_MM, MM_PER_M, cloud_fields, cloud_to_points_mm, points_to_cloud
+from liver_p2p_reg.stream.structures import fallback_label
+from liver_p2p_reg.structures_io import PlacedStructure, Structure, stacked_points
 
 MM_FIELDS = ("x_mm", "y_mm", "z_mm")  # exact float64 millimetres, beside x/y/z, when float32 metres lose bits
 LABEL_LIST_MAX = 4096  # label ids from here up are named in the labels record's `names` only
@@ -42,9 +41,8 @@ def points_message(
 
 def structures_message(structures: Sequence[Structure], stamp_ns: int) -> Any:
     """/preop/structures as the recording keeps it: every structure's points (ct frame), exactly, with its label_id."""
-    points = np.concatenate([s.points_mm for s in structures]) if structures else np.zeros((0, 3))
-    ids = np.concatenate([np.full(len(s.points_mm), s.label_id) for s in structures]) if structures else []
-    return points_message(points, "ct", stamp_ns, {"label_id": np.asarray(ids, dtype=np.uint32)})
+    points, ids = stacked_points(structures)
+    return points_message(points, "ct", stamp_ns, {"label_id": ids.astype(np.uint32)})
 
 
 def structure_labels(structures: Sequence[Structure], stamp_ns: int) -> str:
@@ -60,11 +58,6 @@ def structure_labels(structures: Sequence[Structure], stamp_ns: int) -> str:
 
 def message_structures(msg: Any, labels_text: str) -> list[Structure]:
     """The structures `structures_message` and /preop/structure_labels stored, bit for bit, named as recorded."""
-    from liver_p2p_reg.ros.messages import parse_structure_labels
-    from liver_p2p_reg.ros.pointcloud2 import cloud_fields
-    from liver_p2p_reg.stream.structures import fallback_label
-    from liver_p2p_reg.structures_io import Structure
-
     points, ids = message_points_mm(msg), cloud_fields(msg, ["label_id"])["label_id"].astype(np.int64)
     names, _ = parse_structure_labels(labels_text)
     label = dict(enumerate(names))

@@ -32,11 +32,10 @@ def structures_within_roundoff(placed: Any, recorded_msg: Any) -> bool:
     up to round-off: the same label ids, positions and bounds within ROUNDOFF_DEFORMED_MM (inf and NaN bounds:
     the same). InputError (or ValueError, ...) for a recorded cloud that does not decode."""
     from liver_p2p_reg.ros.pointcloud2 import MM_PER_M, cloud_to_structures
+    from liver_p2p_reg.structures_io import stacked_placement
 
     points_m, ids, bounds_m = cloud_to_structures(recorded_msg)
-    got_ids = np.concatenate([np.full(len(s.position_mm), s.label_id) for s in placed])
-    got = np.concatenate([s.current_position_mm for s in placed])
-    got_bounds = np.concatenate([s.current_error_bound_mm for s in placed])
+    got_ids, got, got_bounds = stacked_placement(placed)
     if bounds_m is None or got.shape != points_m.shape or not np.array_equal(got_ids, ids):
         return False
     near = np.abs(got - points_m * MM_PER_M) <= ROUNDOFF_DEFORMED_MM

@@ -24,7 +24,7 @@ from liver_p2p_reg.ros.topics import TOPIC_PREOP_MESH, TOPIC_PREOP_STRUCTURES, T
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.deformation import MAX_MESH_TRIANGLES
 from liver_p2p_reg.stream.outputs import DIAG_NAME, ERROR, PREOP_DIAG_NAME, WARN, Diagnostic, PoseOutput
-from liver_p2p_reg.structures_io import PlacedStructure, Structure
+from liver_p2p_reg.structures_io import PlacedStructure, Structure, stacked_placement, stacked_points
 
 MARKER_TRIANGLE_LIST = 11  # visualization_msgs/Marker.TRIANGLE_LIST
 
@@ -187,9 +187,8 @@ def parse_structure_labels(text: str) -> tuple[list[str], int | None]:
 
 def preop_structures_cloud(structures: Sequence[Structure], types: MessageTypes, frame_id: str, stamp_ns: int) -> Any:
     """/preop/structures: every structure's points (preop frame, metres) with its label_id (empty: none)."""
-    points = np.concatenate([s.points_mm for s in structures]) if structures else np.zeros((0, 3))
-    ids = np.concatenate([np.full(len(s.points_mm), s.label_id) for s in structures]) if structures else []
-    return structures_to_cloud(points * M_PER_MM, np.asarray(ids), types, frame_id=frame_id, stamp_ns=stamp_ns)
+    points, ids = stacked_points(structures)
+    return structures_to_cloud(points * M_PER_MM, ids, types, frame_id=frame_id, stamp_ns=stamp_ns)
 
 
 def registered_structures_cloud(
@@ -197,11 +196,9 @@ def registered_structures_cloud(
 ) -> Any:
     """/registration/structures: the structures moved into the sensor frame (metres; their deformed positions
     when the non-rigid stage was applied), label_id and error_bound (m; of the positions given)."""
-    points = np.concatenate([s.current_position_mm for s in structures]) if structures else np.zeros((0, 3))
-    ids = np.concatenate([np.full(len(s.position_mm), s.label_id) for s in structures]) if structures else []
-    bounds = np.concatenate([s.current_error_bound_mm for s in structures]) if structures else np.zeros(0)
+    ids, points, bounds = stacked_placement(structures)
     return structures_to_cloud(
-        points * M_PER_MM, np.asarray(ids), types, frame_id=frame_id, stamp_ns=stamp_ns, error_bound_m=bounds * M_PER_MM
+        points * M_PER_MM, ids, types, frame_id=frame_id, stamp_ns=stamp_ns, error_bound_m=bounds * M_PER_MM
     )
 
 
