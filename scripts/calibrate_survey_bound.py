@@ -93,6 +93,7 @@ def survey_poses(sweep: dict, sweep_id: int, positions: str = DEFORMED) -> list[
                 "deform_applied": positions == DEFORMED,
                 "errors": err,
                 "features": result.error_model.evidence.features(sweep["fiducials"]),
+                "interior_features": bound_data.interior_features(result.error_model.evidence),
                 "rms_mm": float(np.sqrt(np.mean(err**2))),
             }
         )

@@ -25,9 +25,20 @@ log = logging.getLogger(__name__)
 
 # Verdict reasons recorded per pose besides the bound itself (which the calibration decides afterwards).
 OTHER_REASONS = ("residual", "ambiguous", "uncertainty", "free_space")
-# Per-pose arrays of a collection besides the per-marker `errors` and `features` (stack_rows).
+# Per-pose arrays of a collection besides the per-marker `errors` and `features` and the per-point
+# `interior_features` of the interior's stand-in where the pose-level bound is taken (stack_rows).
 POSE_KEYS = ("liver_id", "visibility", "method_visibility", "rms_mm", "ok", "reasons", "bound_ms", "deform_applied")
-CACHE_KEYS = ("set", "case_id", "noise_mm", "count", "errors", "features", *POSE_KEYS)
+CACHE_KEYS = (
+    "set",
+    "case_id",
+    "noise_mm",
+    "count",
+    "errors",
+    "features",
+    "interior_count",
+    "interior_features",
+    *POSE_KEYS,
+)
 
 
 def collect_set(folder: Path, noise_mm: float, config: Config, workers: int, progress: bool = True) -> dict:
@@ -96,6 +107,7 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
             "bound_ms": np.nan,
             "errors": err,
             "features": np.full((len(src), len(FEATURES)), np.nan),
+            "interior_features": np.zeros((0, len(FEATURES))),
             "rms_mm": _rms(err),
         }
     deformation = result.deformation
@@ -115,8 +127,14 @@ def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
         "bound_ms": float(result.runtime_ms.get("error_bound", np.nan)),
         "errors": err,
         "features": result.error_model.evidence.features(src),
+        "interior_features": interior_features(result.error_model.evidence),
         "rms_mm": _rms(err),
     }
+
+
+def interior_features(evidence: Any) -> np.ndarray:
+    """The bound's features at the interior's stand-in of a pose (where its pose-level bound is taken)."""
+    return evidence.features(evidence.interior_mm)
 
 
 def _rms(err: np.ndarray) -> float:
@@ -124,15 +142,18 @@ def _rms(err: np.ndarray) -> float:
 
 
 def stack_rows(rows: list[dict[str, Any]], name: str, noise_mm: float) -> dict[str, np.ndarray]:
-    """Per-pose arrays plus the markers' features and errors, flattened in pose order (`count` per pose)."""
-    counts = [len(r["errors"]) for r in rows]
+    """Per-pose arrays plus the markers' features and errors, flattened in pose order (`count` per pose), and the
+    interior stand-in's features, flattened likewise (`interior_count` per pose)."""
+    empty = np.zeros((0, len(FEATURES)))
     out: dict[str, np.ndarray] = {
         "set": np.array([name] * len(rows)),
         "case_id": np.array([r["case_id"] for r in rows]),
         "noise_mm": np.full(len(rows), float(noise_mm)),
-        "count": np.asarray(counts, np.int64),
+        "count": np.asarray([len(r["errors"]) for r in rows], np.int64),
         "errors": np.concatenate([r["errors"] for r in rows]) if rows else np.zeros(0),
-        "features": np.concatenate([r["features"] for r in rows]) if rows else np.zeros((0, len(FEATURES))),
+        "features": np.concatenate([r["features"] for r in rows]) if rows else empty,
+        "interior_count": np.asarray([len(r["interior_features"]) for r in rows], np.int64),
+        "interior_features": np.concatenate([r["interior_features"] for r in rows]) if rows else empty,
     }
     for key in POSE_KEYS:
         out[key] = np.array([r[key] for r in rows])
@@ -145,15 +166,16 @@ def concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {k: np.concatenate([p[k] for p in parts]) for k in keys}
 
 
-def pose_index(data: dict[str, np.ndarray]) -> np.ndarray:
-    """Per marker, the index of its pose."""
-    return np.repeat(np.arange(len(data["count"])), data["count"])
+def pose_index(data: dict[str, np.ndarray], count: str = "count") -> np.ndarray:
+    """Per marker (`count`; `interior_count`: per interior stand-in point), the index of its pose."""
+    return np.repeat(np.arange(len(data[count])), data[count])
 
 
 def subset(data: dict[str, np.ndarray], poses: np.ndarray) -> dict[str, np.ndarray]:
     """The collection restricted to the poses where `poses` (a boolean mask) is true."""
-    marker = poses[pose_index(data)]
-    return {k: (v[marker] if k in ("errors", "features") else v[poses]) for k, v in data.items() if k != "start"}
+    marker, interior = poses[pose_index(data)], poses[pose_index(data, "interior_count")]
+    per_point = {"errors": marker, "features": marker, "interior_features": interior}
+    return {k: v[per_point.get(k, poses)] for k, v in data.items() if k != "start"}
 
 
 def save(path: Path, data: dict[str, np.ndarray]) -> Path:

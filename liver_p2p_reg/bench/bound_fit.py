@@ -9,8 +9,8 @@ import numpy as np
 
 from liver_p2p_reg.bench.bound_data import pose_index
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.registration.error_bound import FEATURES
-from liver_p2p_reg.registration.error_calibration import FORMAT
+from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN
+from liver_p2p_reg.registration.error_calibration import FORMAT, error_scale_mm
 
 COVERAGES = (0.8, 0.9, 0.95)
 VISIBILITY_EDGES = (0.1, 0.15, 0.2, 0.3)  # the protocol's bins, on the voxelized M/N known at run time
@@ -53,17 +53,20 @@ def fit_scale(data: dict[str, np.ndarray], poses: np.ndarray) -> np.ndarray:
 
 
 def scores(data: dict[str, np.ndarray], coef: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per marker error / scale, and per pose interior RMS error / RMS scale (0 where the scale is inf)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        scale = np.exp(data["features"] @ coef)
-    scale = np.where(np.isfinite(scale), scale, np.inf)
+    """Per marker error / scale, and per pose the markers' RMS error / the RMS scale over the interior's stand-in
+    (where the product takes the pose-level bound; 0 where a scale is inf)."""
+    scale = error_scale_mm(data["features"], coef)
     point = np.where(np.isfinite(scale), data["errors"] / scale, 0.0)
-    per = pose_index(data)
-    sum_e2 = np.bincount(per, data["errors"] ** 2, minlength=len(data["count"]))
-    sum_s2 = np.bincount(per, np.where(np.isfinite(scale), scale**2, np.inf), minlength=len(data["count"]))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        pose = np.where(np.isfinite(sum_s2), np.sqrt(sum_e2 / sum_s2), 0.0)
+    interior = rms_interior_scale(data, coef)
+    pose = np.where(np.isfinite(interior), data["rms_mm"] / np.where(np.isfinite(interior), interior, 1.0), 0.0)
     return point, pose
+
+
+def rms_interior_scale(data: dict[str, np.ndarray], coef: np.ndarray) -> np.ndarray:
+    """Per pose the RMS scale (mm) over its interior's stand-in: inf where a scale is inf or the pose has none."""
+    per = pose_index(data, "interior_count")
+    s2 = np.bincount(per, error_scale_mm(data["interior_features"], coef) ** 2, minlength=len(data["count"]))
+    return np.where(data["interior_count"] > 0, np.sqrt(s2 / np.maximum(data["interior_count"], 1)), np.inf)
 
 
 def conformal_quantile(values: np.ndarray, weights: np.ndarray, coverage: float, n_poses: int) -> float:
@@ -115,6 +118,7 @@ def calibrate(data: dict[str, np.ndarray], seed: int, coverages: tuple[float, ..
         "coverages": list(coverages),
         "point_quantiles": point_q,
         "pose_quantiles": pose_q,
+        "pose_interior": INTERIOR_STAND_IN,
         "calibration_poses_per_group": counts,
         "fit_livers": fit_livers,
         "calibration_livers": cal_livers,
@@ -126,11 +130,9 @@ def coverage_at(data: dict[str, np.ndarray], calibration: Any, coverage: float) 
     """Per marker its bound (mm) and per pose its interior bound (mm) under a BoundCalibration."""
     groups = group_of(data["method_visibility"], calibration.visibility_edges)
     j = calibration.column(coverage)
-    scale = calibration.scale_mm(data["features"])
     per = pose_index(data)
-    point_bound = calibration.point_quantiles[groups[per], j] * scale
-    rms_scale = np.sqrt(np.bincount(per, scale**2, minlength=len(groups)) / np.maximum(data["count"], 1))
-    pose_bound = calibration.pose_quantiles[groups, j] * rms_scale
+    point_bound = calibration.point_quantiles[groups[per], j] * calibration.scale_mm(data["features"])
+    pose_bound = calibration.pose_quantiles[groups, j] * rms_interior_scale(data, calibration.coefficients)
     failed = ~data["ok"].astype(bool)
     pose_bound[failed] = math.inf
     point_bound[failed[per]] = math.inf

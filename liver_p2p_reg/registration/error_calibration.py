@@ -12,7 +12,7 @@ import numpy as np
 
 from liver_p2p_reg.config import FeatureSection, FreeSpaceSection, IcpSection, P2PSection, PreprocessSection
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.registration.error_bound import FEATURES, PoseEvidence
+from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN, PoseEvidence
 from liver_p2p_reg.registration.methods import canonical_method
 from liver_p2p_reg.registration.weights_id import weights_sha256
 
@@ -31,6 +31,13 @@ FRAME, SURVEY = "frame", "survey"  # what the non-rigid stage fitted: one frame,
 FORMAT = "liver_p2p_reg error-bound calibration"
 
 
+def error_scale_mm(features: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """The scale model exp(features . coefficients) (mm) of each row; inf where it is not finite."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        scale = np.exp(np.asarray(features, float) @ coefficients)
+    return np.where(np.isfinite(scale), scale, np.inf)
+
+
 @dataclass(frozen=True)
 class BoundCalibration:
     """Scale model exp(features . coefficients) and, per visibility group and coverage, conformal quantiles."""
@@ -47,12 +54,12 @@ class BoundCalibration:
     deform: dict[str, Any] | None = None  # the non-rigid stage's settings a DEFORMED calibration ran with
     view: str = FRAME  # the poses or fits it was made of: of single frames, or survey mode's (fused surveys)
     pose: dict[str, Any] | None = None  # the pose's settings it ran with (pose_settings); None: not recorded
+    # where its pose quantiles' scale was taken: INTERIOR_STAND_IN, as the product does; older files: the fiducials
+    pose_interior: str = "fiducials"
 
     def scale_mm(self, features: np.ndarray) -> np.ndarray:
         """Predicted error scale (mm) of each row of features; inf where a feature is not finite."""
-        with np.errstate(over="ignore", invalid="ignore"):
-            scale = np.exp(np.asarray(features, float) @ self.coefficients)
-        return np.where(np.isfinite(scale), scale, np.inf)
+        return error_scale_mm(features, self.coefficients)
 
     def group(self, visibility: float) -> int:
         """Index of the visibility group a pose belongs to (its voxelized M/N, known at run time)."""
@@ -83,7 +90,8 @@ class ErrorModel:
         return q * cal.scale_mm(self.evidence.features(points_mm))
 
     def pose_bound_mm(self) -> float:
-        """The bound of the interior's RMS error (fiducials, or the shrunk preop surface)."""
+        """The bound of the interior's RMS error, from the scale over the interior's stand-in (the shrunk preop
+        surface: error_bound.interior_stand_in), calibrated against the true interior's RMS error."""
         cal = self.calibration
         scale = cal.scale_mm(self.evidence.features(self.evidence.interior_mm))
         q = cal.pose_quantiles[cal.group(self.evidence.visibility), cal.column(self.coverage)]
@@ -129,15 +137,14 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
             positions=str(raw.get("positions", RIGID)),
             deform=dict(raw["deform"]) if raw.get("deform") is not None else None,
             view=str(raw.get("view", FRAME)),
+            pose_interior=str(raw.get("pose_interior", "fiducials")),
             pose=dict(raw["pose"]) if raw.get("pose") is not None else None,
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
 
 
-def attach_error_model(
-    result: Any, source_mm: np.ndarray, target_mm: np.ndarray, interior_mm: np.ndarray | None, config: Any
-) -> None:
+def attach_error_model(result: Any, source_mm: np.ndarray, target_mm: np.ndarray, config: Any) -> None:
     """Give a registered pose its error model and interior bound (`result.error_bound_mm`); ~5 ms.
 
     The bound is calibrated for one method and its weights: another method, or other weights, is
@@ -156,7 +163,6 @@ def attach_error_model(
         residual_mm=result.residual_mm,
         visibility=result.visibility,
         trim_ratio=config.icp_trim_ratio,
-        interior_mm=interior_mm,
         hypotheses=[(c.T_target_source, c.residual_mm) for c in (result.screened or result.candidates) if c.ok],
     )
     model = ErrorModel(evidence, calibration, config.error_coverage)
@@ -215,6 +221,11 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
         if differ:
             shown = ", ".join(differ[:3]) + (f" and {len(differ) - 3} more" if len(differ) > 3 else "")
             return f"error bound calibrated with other {shown}: its coverage is not known"
+    if calibration.pose_interior != INTERIOR_STAND_IN:
+        return (
+            "interior error bound calibrated at the fiducials, not where it is taken: its coverage is not known "
+            "(recalibrate: liver-p2p calibrate-bound)"
+        )
     return ""
 
 

@@ -109,7 +109,7 @@ class Registrar:
             hypotheses, source, cfg.ambiguity_residual_ratio, cfg.ambiguity_pose_mm, cfg.free_space_weight
         )
         t_bound = time.perf_counter()
-        attach_error_model(result, source, target, fid_s, cfg)
+        attach_error_model(result, source, target, cfg)  # the fiducials only measure the error
         result.runtime_ms["error_bound"] = (time.perf_counter() - t_bound) * 1e3
         if fid_s is not None and fid_t is not None:
             result.rms_tre_mm = rms_tre_mm(result.T_target_source, fid_s, fid_t)

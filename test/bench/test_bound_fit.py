@@ -14,8 +14,9 @@ from liver_p2p_reg.registration.error_bound import FEATURES
 from liver_p2p_reg.registration.error_calibration import FORMAT, read_calibration
 
 
-def synthetic_collection(seed: int, poses: int = 400, markers: int = 40) -> dict[str, np.ndarray]:
-    """Poses whose marker errors are |N(0, s^2 I)| with s = exp(features . w): a law the fit can find."""
+def synthetic_collection(seed: int, poses: int = 400, markers: int = 40, interior: int = 10) -> dict[str, np.ndarray]:
+    """Poses whose marker errors are |N(0, s^2 I)| with s = exp(features . w): a law the fit can find; the first
+    `interior` markers of each pose stand in for its interior (where the pose-level bound is taken)."""
     rng = np.random.default_rng(seed)
     w = np.array([0.3, 0.8, 0.4, 0.2, -0.3, 0.3, -0.5])
     vis = rng.uniform(0.05, 0.4, poses)
@@ -38,6 +39,8 @@ def synthetic_collection(seed: int, poses: int = 400, markers: int = 40) -> dict
         "count": np.full(poses, markers),
         "errors": errors,
         "features": feats,
+        "interior_count": np.full(poses, interior),
+        "interior_features": feats.reshape(poses, markers, -1)[:, :interior].reshape(-1, len(FEATURES)),
         "liver_id": rng.integers(0, 8, poses),
         "visibility": vis,
         "method_visibility": vis,
