@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from liver_p2p_reg.bench.cases import CaseInfo, add_target_noise, case_info, case_seed, list_case_paths, read_case
+from liver_p2p_reg.bench.cases import CaseInfo, case_info, list_case_paths
 from liver_p2p_reg.bench.cases import sensor_origin_mm as case_origin
 from liver_p2p_reg.bench.harness import omp_threads
 from liver_p2p_reg.config import Config
@@ -75,20 +75,22 @@ def _noisy(info: CaseInfo, noise_mm: float) -> CaseInfo:
 def collect_case(info: CaseInfo, config_dict: dict[str, Any]) -> dict[str, Any]:
     """One case: the pose, its verdict reasons, and per marker the bound's features and the true error; with
     `deform` on, the error of the positions the non-rigid stage gives (the pose's where it was not applied)."""
+    from liver_p2p_reg.bench.case_runs import case_registrar
     from liver_p2p_reg.phantom.casefile import source_triangles
     from liver_p2p_reg.registration.confidence import result_warnings
-    from liver_p2p_reg.registration.registrar import Registrar
 
-    data = read_case(info.path)
+    # the benchmark's registrar: the worker's cache shared across cases, so a liver's model (and the non-rigid stage's
+    # elastic model) is built once, not once per case
+    data, target, registrar = case_registrar(info, config_dict)
+    config = registrar.config
     src, tgt = np.asarray(data["src_marker"], float), np.asarray(data["tgt_marker"], float)
-    config = Config.from_dict({**config_dict, "seed": case_seed(int(config_dict.get("seed", 0)), info)})
     row: dict[str, Any] = {"case_id": info.case_id, "liver_id": int(data.get("liver_id", -1))}
     row["visibility"] = info.visibility
     row["deform_applied"] = False
     try:
-        result = Registrar(config).register(
+        result = registrar.register(
             data["src_pcd"],
-            add_target_noise(np.asarray(data["tgt_pcd"], float), info),
+            target,
             source_fiducials_mm=src,
             target_fiducials_mm=tgt,
             sensor_origin_mm=case_origin(data),
