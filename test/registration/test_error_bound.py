@@ -12,7 +12,7 @@ from liver_p2p_reg import Config, Registrar
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.confidence import result_warnings
-from liver_p2p_reg.registration.error_bound import pose_evidence
+from liver_p2p_reg.registration.error_bound import interior_stand_in, pose_evidence
 from liver_p2p_reg.registration.error_calibration import (
     BUNDLED_CALIBRATION,
     ErrorModel,
@@ -80,6 +80,27 @@ def test_every_registration_carries_its_bound(registered):
     # The calibration is for the default method: another one is told its coverage is unknown.
     assert "error bound calibrated for learned-p2p-icp, not fpfh-ransac-icp" in result.error_calibration_note
     assert not any("error bound" in w for w in result.warnings)  # told, not warned
+
+
+def test_the_interior_bound_is_the_products_whether_or_not_the_ground_truth_is_given(registered):
+    # The fiducials measure the error; the bound is taken where the product takes it (it has none): the preop
+    # surface shrunk halfway. Before, given fiducials became the interior, and benchmarks judged another bound.
+    registrar, source, target, _, with_truth = registered
+    without = registrar.register(source, target)
+    assert np.array_equal(without.T_target_source, with_truth.T_target_source)
+    assert without.error_bound_mm == with_truth.error_bound_mm
+    assert np.array_equal(without.error_model.evidence.interior_mm, interior_stand_in(source))
+
+
+def test_a_calibration_whose_interior_was_the_fiducials_is_told(tmp_path, registered):
+    _, source, target, _, _ = registered
+    raw = json.loads(BUNDLED_CALIBRATION.read_text())
+    raw.pop("pose_interior", None)
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(raw))
+    result = Registrar(error_calibration_path=str(path)).register(source, target)
+    assert result.error_calibration_note.startswith("interior error bound calibrated at the fiducials")
+    assert "error_bound" not in result_warnings(result, Config(structure_error_warn_mm=1e6))  # told, not warned
 
 
 def test_the_defaults_other_name_is_covered_by_its_calibration(registered):

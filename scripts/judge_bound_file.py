@@ -1,0 +1,70 @@
+"""Judge error-bound calibration files on the poses `liver-p2p calibrate-bound` collected (its --cache).
+
+    .venv/bin/python scripts/judge_bound_file.py --calibration FILE [--calibration FILE2 ...] \
+        out/bound/real-test-v2-noise2mm-*.npz ... [--deformed] [--page docs/results/error_bound_interior.md]
+
+One row per file, as the headline of the results page `calibrate-bound --judge` writes for the file it makes
+(coverage per bin, pooled, bad poses with an OK verdict, good poses warned, bound / error, cost), on the same poses:
+e.g. a calibration of an earlier version beside today's. The collections must be of the settings and weights the
+files were made for (not checked: it judges what it is given). `--page` writes the rows and this command to a page.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from liver_p2p_reg.bench import bound_data
+from liver_p2p_reg.bench.bound_markdown import results_page
+from liver_p2p_reg.bench.bound_report import TRUE_BINS, judge
+from liver_p2p_reg.config import Config
+from liver_p2p_reg.files import write_text_atomic
+from liver_p2p_reg.registration.error_calibration import read_calibration
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--calibration", action="append", required=True, help="a calibration file (JSON); repeatable")
+    ap.add_argument("collections", nargs="+", help="collections calibrate-bound cached (.npz)")
+    ap.add_argument("--deformed", action="store_true", help="the deformed positions' bound: poses the stage applied")
+    ap.add_argument("--page", help="write the table and the command to this markdown page")
+    args = ap.parse_args()
+    data = bound_data.concat([bound_data.load(Path(p)) for p in args.collections])
+    if args.deformed:
+        data = bound_data.subset(data, data["deform_applied"].astype(bool))
+    config = Config()
+    lo, hi = TRUE_BINS[0][0], TRUE_BINS[-1][1]
+    shown = bound_data.subset(data, (data["visibility"] >= lo) & (data["visibility"] < hi))  # the page's poses
+    rows = []
+    for path in args.calibration:
+        calibration = read_calibration(path)
+        _, block = results_page(
+            data, calibration, config.error_coverage, config.structure_error_warn_mm, 0, "", deformed=args.deformed
+        )
+        header, rule, row = block.splitlines()[2:5]
+        judged = judge(shown, calibration, config.error_coverage, config.structure_error_warn_mm)
+        interior = float(np.mean(judged["pose_covered"]))
+        rows.append(f"| `{path}` | {calibration.pose_interior} | {interior:.1%} {row}")
+    sets = ", ".join(sorted(set(str(s) for s in data["set"])))
+    lines = [
+        f"Judged on {sets}, {len(shown['count'])} poses at visibility {lo:g}-{hi:g}; interior coverage: the share of "
+        "poses whose interior RMS error lies below their `error_bound_mm` (the bound the verdict reads without "
+        "structures); the other columns as on the results page.",
+        "",
+        "| calibration file | interior quantiles made over | interior coverage " + header,
+        "|---|---|---" + rule,
+        *rows,
+    ]
+    print("\n".join(lines))
+    if args.page:
+        command = " ".join(["scripts/judge_bound_file.py", *sys.argv[1:]])
+        title = "# The interior error bound where the product takes it"
+        write_text_atomic(Path(args.page), "\n".join([title, "", f"Command: `{command}`", "", *lines]) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
