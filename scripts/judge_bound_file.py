@@ -1,6 +1,6 @@
 """Judge error-bound calibration files on the poses `liver-p2p calibrate-bound` collected (its --cache).
 
-    .venv/bin/python scripts/judge_bound_file.py --calibration FILE [--calibration FILE2 ...] \
+    .venv/bin/python scripts/judge_bound_file.py --calibration FILE|REV:PATH [--calibration ...] \
         out/bound/real-test-v2-noise2mm-*.npz ... [--deformed] [--page docs/results/error_bound_interior.md]
 
 One row per file, as the headline of the results page `calibrate-bound --judge` writes for the file it makes
@@ -12,8 +12,11 @@ files were made for (not checked: it judges what it is given). `--page` writes t
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,6 +26,19 @@ from liver_p2p_reg.bench.bound_report import TRUE_BINS, judge
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.files import write_text_atomic
 from liver_p2p_reg.registration.error_calibration import read_calibration
+
+
+def _calibration(path: str) -> Any:
+    """A calibration file, or `REV:PATH` (a file as a git revision holds it, e.g. an earlier version's bundled one)."""
+    if Path(path).exists() or ":" not in path:
+        return read_calibration(path)
+    text = subprocess.run(["git", "show", path], capture_output=True, text=True)
+    if text.returncode != 0:
+        raise SystemExit(f"{path}: neither a file nor a git revision's file ({text.stderr.strip()})")
+    with tempfile.TemporaryDirectory() as folder:
+        copy = Path(folder) / "calibration.json"
+        copy.write_text(text.stdout)
+        return read_calibration(copy)
 
 
 def main() -> int:
@@ -40,7 +56,7 @@ def main() -> int:
     shown = bound_data.subset(data, (data["visibility"] >= lo) & (data["visibility"] < hi))  # the page's poses
     rows = []
     for path in args.calibration:
-        calibration = read_calibration(path)
+        calibration = _calibration(path)
         _, block = results_page(
             data, calibration, config.error_coverage, config.structure_error_warn_mm, 0, "", deformed=args.deformed
         )
@@ -61,7 +77,7 @@ def main() -> int:
     print("\n".join(lines))
     if args.page:
         command = " ".join(["scripts/judge_bound_file.py", *sys.argv[1:]])
-        title = "# The interior error bound where the product takes it"
+        title = "# Error-bound calibrations side by side on the same poses"
         write_text_atomic(Path(args.page), "\n".join([title, "", f"Command: `{command}`", "", *lines]) + "\n")
     return 0
 
