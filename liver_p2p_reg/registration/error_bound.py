@@ -17,7 +17,7 @@ MIN_PAIRS = 6
 MAX_PAIRS = 600  # trimmed pairs the Hessian is built from (a stride sample: normals dominate the cost)
 # The interior a pose-level bound is taken over: the preop surface sample pulled halfway to its centroid. Always this
 # stand-in, never the fiducials a benchmark case carries: the product has none, and a bound calibrated or judged at
-# the fiducials is not the bound the product computes (docs/results/error_bound.md, "The interior").
+# the fiducials is not the bound the product computes (docs/results/error_bound_interior.md).
 INTERIOR_SHRINK = 0.5
 INTERIOR_POINTS = 300  # stride sample of the preop surface the interior stand-in is made of
 # What a calibration records as the interior its pose quantiles were made over (files without it: the fiducials).
