@@ -1,12 +1,14 @@
 """Judge error-bound calibration files on the poses `liver-p2p calibrate-bound` collected (its --cache).
 
     .venv/bin/python scripts/judge_bound_file.py --calibration FILE|REV:PATH [--calibration ...] \
-        out/bound/real-test-v2-noise2mm-*.npz ... [--deformed] [--page docs/results/error_bound_interior.md]
+        out/bound/real-test-v2-noise2mm-*.npz ... [--deformed] [--readme docs/results/error_bound_interior.md \
+        --block INTERIOR-RIGID]
 
 One row per file, as the headline of the results page `calibrate-bound --judge` writes for the file it makes
 (coverage per bin, pooled, bad poses with an OK verdict, good poses warned, bound / error, cost), on the same poses:
 e.g. a calibration of an earlier version beside today's. The collections must be of the settings and weights the
-files were made for (not checked: it judges what it is given). `--page` writes the rows and this command to a page.
+files were made for (not checked: it judges what it is given). `--readme` writes the rows and this command into the
+page's `--block`.
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ import numpy as np
 from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_markdown import results_page
 from liver_p2p_reg.bench.bound_report import TRUE_BINS, judge
+from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.files import write_text_atomic
 from liver_p2p_reg.registration.error_calibration import read_calibration
 
 
@@ -46,7 +48,8 @@ def main() -> int:
     ap.add_argument("--calibration", action="append", required=True, help="a calibration file (JSON); repeatable")
     ap.add_argument("collections", nargs="+", help="collections calibrate-bound cached (.npz)")
     ap.add_argument("--deformed", action="store_true", help="the deformed positions' bound: poses the stage applied")
-    ap.add_argument("--page", help="write the table and the command to this markdown page")
+    ap.add_argument("--readme", help="write the table and the command into this page's --block")
+    ap.add_argument("--block", default="INTERIOR-RIGID", help="the page's block (default: INTERIOR-RIGID)")
     args = ap.parse_args()
     data = bound_data.concat([bound_data.load(Path(p)) for p in args.collections])
     if args.deformed:
@@ -74,11 +77,8 @@ def main() -> int:
         "|---|---|---" + rule,
         *rows,
     ]
-    print("\n".join(lines))
-    if args.page:
-        command = " ".join(["scripts/judge_bound_file.py", *sys.argv[1:]])
-        title = "# Error-bound calibrations side by side on the same poses"
-        write_text_atomic(Path(args.page), "\n".join([title, "", f"Command: `{command}`", "", *lines]) + "\n")
+    command = " ".join([".venv/bin/python scripts/judge_bound_file.py", *sys.argv[1:]])
+    write_headline(f"Command: `{command}`", lines, args.readme, args.block)
     return 0
 
 
