@@ -68,10 +68,14 @@ def main() -> int:
         interior = float(np.mean(judged["pose_covered"]))
         rows.append(f"| `{path}` | {calibration.pose_interior} | {interior:.1%} {row}")
     sets = ", ".join(sorted(set(str(s) for s in data["set"])))
+    bound_name = (
+        "`deformed_error_bound_mm` (of the deformed positions)"
+        if args.deformed
+        else "`error_bound_mm` (the bound the verdict reads without structures)"
+    )
     lines = [
         f"Judged on {sets}, {len(shown['count'])} poses at visibility {lo:g}-{hi:g}; interior coverage: the share of "
-        "poses whose interior RMS error lies below their `error_bound_mm` (the bound the verdict reads without "
-        "structures); the other columns as on the results page.",
+        f"poses whose interior RMS error lies below their {bound_name}; the other columns as on the results page.",
         "",
         "| calibration file | interior quantiles made over | interior coverage " + header,
         "|---|---|---" + rule,
