@@ -68,8 +68,8 @@ class RegistrationResult:
     warnings: list[str] = field(default_factory=list)
     rms_tre_mm: float | None = None  # filled when ground-truth fiducials are given
     max_tre_mm: float | None = None
-    # the interior's RMS error lies below this with `error_coverage` (registration/error_bound.py; the
-    # interior is the fiducials when given, else the preop surface shrunk halfway to its centroid)
+    # the interior's RMS error lies below this with `error_coverage` (registration/error_bound.py; its scale is
+    # taken over the interior's stand-in, the preop surface shrunk halfway to its centroid, fiducials given or not)
     error_bound_mm: float = float("nan")
     error_coverage: float = float("nan")
     error_model: Any = None  # evaluates per-point bounds (registration/error_calibration.ErrorModel)

@@ -41,6 +41,7 @@ from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.phantom.real import load_real_liver, real_split
+from liver_p2p_reg.registration.error_bound import INTERIOR_STAND_IN
 from liver_p2p_reg.registration.error_calibration import (
     BUNDLED_CALIBRATION,
     BUNDLED_DEFORMED_CALIBRATION,
@@ -103,7 +104,9 @@ def survey_poses(sweep: dict, sweep_id: int, positions: str = DEFORMED) -> list[
 def collect(path: Path, livers: list[int], family: str, n_deformations: int, n_frames: int, positions: str) -> dict:
     """The survey poses of every sweep over `livers` (cached at `path`), with `sweep` (its index) per pose."""
     if path.exists():
-        return bound_data.load(path)
+        cached = bound_data.load_cached(path)  # one made before a key was added is collected again
+        if cached is not None and "sweep" in cached:
+            return cached
     rows, sweep_of, n_sweeps = [], [], 0
     for liver_id in tqdm(livers, desc=f"{path.stem}", unit="liver"):
         for sweep in liver_sweeps(liver_id, family, n_deformations, n_frames):
@@ -145,6 +148,7 @@ def fit(data: dict, single: dict) -> dict:
             "calibration_poses_per_group": [n],
             "calibration_livers": sorted({int(v) for v in data["liver_id"]}),
             "view": SURVEY,
+            "pose_interior": INTERIOR_STAND_IN,  # its pose scores are over the stand-in (bound_fit.scores)
         }
     )
     out.pop("fit_livers", None)

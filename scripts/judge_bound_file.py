@@ -51,9 +51,17 @@ def main() -> int:
     ap.add_argument("--readme", help="write the table and the command into this page's --block")
     ap.add_argument("--block", default="INTERIOR-RIGID", help="the page's block (default: INTERIOR-RIGID)")
     args = ap.parse_args()
-    data = bound_data.concat([bound_data.load(Path(p)) for p in args.collections])
+    parts = []
+    for path in args.collections:
+        part = bound_data.load_cached(Path(path)) if Path(path).is_file() else None
+        if part is None:
+            raise SystemExit(f"{path}: not a collection of this version (collect it again with calibrate-bound)")
+        parts.append(part)
+    data = bound_data.concat(parts)
     if args.deformed:
         data = bound_data.subset(data, data["deform_applied"].astype(bool))
+        if not len(data["count"]):
+            raise SystemExit("--deformed: the stage was applied on none of these poses (collections of --deformed?)")
     config = Config()
     lo, hi = TRUE_BINS[0][0], TRUE_BINS[-1][1]
     shown = bound_data.subset(data, (data["visibility"] >= lo) & (data["visibility"] < hi))  # the page's poses

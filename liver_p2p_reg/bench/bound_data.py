@@ -1,4 +1,5 @@
-"""Registers benchmark cases and keeps, per interior marker, the error-bound features and the true error."""
+"""Registers benchmark cases and keeps, per interior marker, the error-bound features and the true error, and per
+pose the features over the interior's stand-in (where the pose-level bound is taken)."""
 
 from __future__ import annotations
 

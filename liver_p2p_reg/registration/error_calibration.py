@@ -46,7 +46,7 @@ class BoundCalibration:
     visibility_edges: tuple[float, ...]  # groups: below the first edge, between edges, above the last
     coverages: tuple[float, ...]
     point_quantiles: np.ndarray  # (groups, coverages): error / scale at one point
-    pose_quantiles: np.ndarray  # (groups, coverages): interior RMS error / RMS scale over the interior
+    pose_quantiles: np.ndarray  # (groups, coverages): interior RMS error / RMS scale over the interior's stand-in
     weights_sha256: str  # of the matcher weights the calibration ran with ("" for a method without weights)
     method: str
     provenance: dict[str, Any]  # data, seed, command: what `liver-p2p calibrate-bound` recorded
@@ -224,9 +224,16 @@ def calibration_note(calibration: BoundCalibration, method: str, config: Any) ->
     if calibration.pose_interior != INTERIOR_STAND_IN:
         return (
             "interior error bound calibrated at the fiducials, not where it is taken: its coverage is not known "
-            "(recalibrate: liver-p2p calibrate-bound)"
+            f"(recalibrate: {_recalibration_command(calibration)})"
         )
     return ""
+
+
+def _recalibration_command(calibration: BoundCalibration) -> str:
+    """The command that remakes a calibration of this kind."""
+    if calibration.view == SURVEY:
+        return "scripts/calibrate_survey_bound.py" + ("" if calibration.positions == DEFORMED else " --positions rigid")
+    return "liver-p2p calibrate-bound" + (" --deformed" if calibration.positions == DEFORMED else "")
 
 
 # The settings that move the pose: preprocessing, features, matching and P2P, ICP, free space. A calibration holds for

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from liver_p2p_reg.bench.bound_data import concat, subset
 from liver_p2p_reg.bench.bound_fit import calibrate, conformal_quantile, coverage_at, split_livers
 from liver_p2p_reg.bench.bound_report import bin_rows, judge
 from liver_p2p_reg.errors import InputError
@@ -101,3 +102,19 @@ def test_the_conformal_quantile_has_the_finite_sample_correction():
     values = np.arange(1.0, 11.0)  # 10 scores: level 0.9 x (1 + 1/10) = 0.99 -> the largest
     assert conformal_quantile(values, np.ones(10), 0.9, 10) == 10.0
     assert conformal_quantile(values, np.ones(10), 0.5, 10) == 6.0  # 0.55 -> the 6th
+
+
+def test_a_subset_keeps_each_poses_interior_points_with_it():
+    # poses hold different numbers of interior stand-in points (a failed pose none): a subset and a concat keep
+    # each pose's own rows (their first feature tells the pose here)
+    data = synthetic_collection(0, poses=5, markers=4)
+    counts = np.array([3, 0, 2, 5, 1])
+    data["interior_count"] = counts
+    data["interior_features"] = np.repeat(np.arange(5.0), counts)[:, None] * np.ones((1, len(FEATURES)))
+    keep = np.array([True, True, False, True, False])
+    part = subset(data, keep)
+    assert part["interior_count"].tolist() == [3, 0, 5]
+    assert part["interior_features"][:, 0].tolist() == [0, 0, 0, 3, 3, 3, 3, 3]
+    both = concat([part, subset(data, ~keep)])
+    assert both["interior_features"][:, 0].tolist() == [0, 0, 0, 3, 3, 3, 3, 3, 2, 2, 4]
+    assert both["interior_count"].tolist() == [3, 0, 5, 2, 1]

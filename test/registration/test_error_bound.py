@@ -9,6 +9,8 @@ import pytest
 from synthetic_cases import blob_mm, partial_case, rigid
 
 from liver_p2p_reg import Config, Registrar
+from liver_p2p_reg.bench.bound_data import interior_features, stack_rows
+from liver_p2p_reg.bench.bound_fit import coverage_at
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.confidence import result_warnings
@@ -91,6 +93,32 @@ def test_the_interior_bound_is_the_products_whether_or_not_the_ground_truth_is_g
     assert without.error_bound_mm == with_truth.error_bound_mm
     sample = source[:: max(1, len(source) // MAX_SOURCE)]  # the stride sample the pose's evidence is built on
     assert np.array_equal(without.error_model.evidence.interior_mm, interior_stand_in(sample))
+    assert np.array_equal(with_truth.error_model.evidence.interior_mm, interior_stand_in(sample))
+
+
+def test_the_bound_calibrate_bound_judges_is_the_one_the_registration_reports(registered):
+    # a collected pose's interior bound (bench/bound_fit.coverage_at) is the registration's error_bound_mm, bit for bit
+    # in the formula: the same stand-in's features, the same quantile (a fit or judge at the markers would differ)
+    _, _, _, fid_s, result = registered
+    evidence = result.error_model.evidence
+    row = {
+        "case_id": "c0",
+        "liver_id": 1,
+        "visibility": 0.3,
+        "method_visibility": float(result.visibility),
+        "ok": True,
+        "reasons": "",
+        "bound_ms": 1.0,
+        "deform_applied": False,
+        "errors": np.ones(len(fid_s)),
+        "features": evidence.features(fid_s),
+        "interior_features": interior_features(evidence),
+        "rms_mm": 1.0,
+    }
+    _, pose_bound = coverage_at(stack_rows([row], "real-test-v2", 2.0), read_calibration(), 0.9)
+    assert pose_bound[0] == pytest.approx(result.error_bound_mm, rel=1e-12)
+    at_markers = np.sqrt(np.mean(read_calibration().scale_mm(evidence.features(fid_s)) ** 2))
+    assert abs(at_markers / pose_bound[0] - 1) > 0.01  # the test would tell a bound at the markers apart
 
 
 def test_a_calibration_whose_interior_was_the_fiducials_is_told(tmp_path, registered):
@@ -101,6 +129,7 @@ def test_a_calibration_whose_interior_was_the_fiducials_is_told(tmp_path, regist
     path.write_text(json.dumps(raw))
     result = Registrar(error_calibration_path=str(path)).register(source, target)
     assert result.error_calibration_note.startswith("interior error bound calibrated at the fiducials")
+    assert result.error_calibration_note.endswith("(recalibrate: liver-p2p calibrate-bound)")
     assert "error_bound" not in result_warnings(result, Config(structure_error_warn_mm=1e6))  # told, not warned
 
 
