@@ -69,7 +69,7 @@ def main() -> int:
     for path in args.calibration:
         calibration = _calibration(path)
         _, block = results_page(
-            data, calibration, config.error_coverage, config.structure_error_warn_mm, 0, "", deformed=args.deformed
+            shown, calibration, config.error_coverage, config.structure_error_warn_mm, 0, "", deformed=args.deformed
         )
         header, rule, row = block.splitlines()[2:5]
         judged = judge(shown, calibration, config.error_coverage, config.structure_error_warn_mm)

@@ -57,9 +57,7 @@ def scores(data: dict[str, np.ndarray], coef: np.ndarray) -> tuple[np.ndarray, n
     (where the product takes the pose-level bound; 0 where a scale is inf)."""
     scale = error_scale_mm(data["features"], coef)
     point = np.where(np.isfinite(scale), data["errors"] / scale, 0.0)
-    interior = rms_interior_scale(data, coef)
-    pose = np.where(np.isfinite(interior), data["rms_mm"] / np.where(np.isfinite(interior), interior, 1.0), 0.0)
-    return point, pose
+    return point, data["rms_mm"] / rms_interior_scale(data, coef)  # an inf scale (no stand-in, unbounded) gives 0
 
 
 def rms_interior_scale(data: dict[str, np.ndarray], coef: np.ndarray) -> np.ndarray:
