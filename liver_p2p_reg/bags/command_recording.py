@@ -16,6 +16,7 @@ from liver_p2p_reg.stream.record_hooks import RegistrationRecord
 
 if TYPE_CHECKING:
     from liver_p2p_reg.stream.deformation import PreopMesh
+    from liver_p2p_reg.stream.outputs import CoreOutput
     from liver_p2p_reg.structures_io import Structure
 
 
@@ -69,6 +70,31 @@ def record_command_registration(
     """One registration of `liver-p2p register` (reason `register`; `result` a RegistrationResult or the
     LiverP2PError it raised); rotates beyond record_max_mb like the node's recordings. `structures`: the
     command's --structures, placed as the command places them (`place_structures(result, structures)`)."""
+    output = command_output(result, index, target, config, source_mm, recorder.command_mesh, structures)
+    fid_s, fid_t = fiducials
+    pair = None if fid_s is None or fid_t is None else (np.asarray(fid_s), np.asarray(fid_t))
+    points = np.asarray(target_mm, dtype=np.float64).reshape(-1, 3)
+    moved = None if isinstance(result, Exception) else list(structures or [])
+    record = RegistrationRecord("register", target, index, points, len(points), "", pair, output, extras, moved)
+    recorder.registration(record)
+    if recorder.rotate_due():
+        recorder.rotate()
+        _command_head(recorder, config, source_mm)
+
+
+def command_output(
+    result: Any,
+    index: int,
+    target: str,
+    config: Config,
+    source_mm: np.ndarray,
+    mesh: PreopMesh | None,
+    structures: list[Structure] | None,
+) -> CoreOutput:
+    """One registration of `liver-p2p register` as the node hands out its outputs: the verdict (the diagnostic), the
+    pose, the placed structures and, with the stage applied, the deformed surface. `result`: a RegistrationResult
+    (with `deform`, its stage already run) or the LiverP2PError it raised (ERROR, no pose). What the command's
+    recording keeps and what its re-run compares with it."""
     from liver_p2p_reg.stream.outputs import (
         DIAG_NAME,
         ERROR,
@@ -81,26 +107,14 @@ def record_command_registration(
     from liver_p2p_reg.structures_io import place_structures
 
     if isinstance(result, Exception):
-        output = CoreOutput([Diagnostic(ERROR, DIAG_NAME, f"registration failed: {result}")], reason="register")
-    else:
-        values, deformed = result_values(result), None
-        if result.deformation is not None:  # deform on: its values, and the deformed surface the re-run must match
-            values, deformed = command_deformation(result, recorder.command_mesh, source_mm, values)
-        placed = place_structures(result, structures or [])
-        diag = registered_diagnostic(result, values, [], config, placed)  # the verdict follows their bounds
-        pose = PoseOutput(index, target, "ct", np.asarray(result.T_target_source, dtype=np.float64))
-        output = CoreOutput(
-            [diag], pose, result=result, reason="register", structures=placed, deformed_preop_mm=deformed
-        )
-    fid_s, fid_t = fiducials
-    pair = None if fid_s is None or fid_t is None else (np.asarray(fid_s), np.asarray(fid_t))
-    points = np.asarray(target_mm, dtype=np.float64).reshape(-1, 3)
-    moved = None if isinstance(result, Exception) else list(structures or [])
-    record = RegistrationRecord("register", target, index, points, len(points), "", pair, output, extras, moved)
-    recorder.registration(record)
-    if recorder.rotate_due():
-        recorder.rotate()
-        _command_head(recorder, config, source_mm)
+        return CoreOutput([Diagnostic(ERROR, DIAG_NAME, f"registration failed: {result}")], reason="register")
+    values, deformed = result_values(result), None
+    if result.deformation is not None:  # deform on: its values, and the deformed surface the re-run must match
+        values, deformed = command_deformation(result, mesh, source_mm, values)
+    placed = place_structures(result, structures or [])
+    diag = registered_diagnostic(result, values, [], config, placed)  # the verdict follows their bounds
+    pose = PoseOutput(index, target, "ct", np.asarray(result.T_target_source, dtype=np.float64))
+    return CoreOutput([diag], pose, result=result, reason="register", structures=placed, deformed_preop_mm=deformed)
 
 
 def command_deformation(

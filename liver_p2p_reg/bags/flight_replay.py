@@ -7,7 +7,8 @@ no rate limit, no drop), with the fiducial pair each one used; `liver-p2p regist
 bit with the recorded one, and where the non-rigid stage was applied the deformed preop surface (by its
 recorded digest); a recorded /preop/mesh is given to the core as register_node gets it. The subsurface
 structures each registration moved are given back before it, and where it placed some, their positions and
-bounds are compared with the recorded ones (digest, then the published cloud for round-off).
+bounds are compared with the recorded ones (digest, then the published cloud for round-off). Each verdict (OK, WARN,
+ERROR) is compared too: the same pose can come with another verdict (a recalibrated error bound, a threshold).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from liver_p2p_reg.bags.command_recording import command_deformation
+from liver_p2p_reg.bags.command_recording import command_output
 from liver_p2p_reg.bags.flight_read import ReadState, is_recording, read_recording
 from liver_p2p_reg.bags.flight_records import Damaged, RecordedMessage, checked_values
 from liver_p2p_reg.bags.io import bag_error_reason
@@ -50,6 +51,7 @@ from liver_p2p_reg.ros.topics import (
 )
 from liver_p2p_reg.stream.core import NodeCore
 from liver_p2p_reg.stream.deformation import PreopMesh
+from liver_p2p_reg.stream.outputs import LEVEL_NAMES
 from liver_p2p_reg.stream.record_hooks import restore_tracker
 from liver_p2p_reg.structures_io import PlacedStructure, Structure, place_structures
 
@@ -150,12 +152,13 @@ class _Rerunner:
             raise InputError(f"flight recording: registration {values['seq']} lacks its fiducials")
         if values["decoded"] and points is None:
             raise InputError(f"flight recording: registration {values['seq']} lacks its {TOPIC_INTRAOP} cloud")
-        T, deformed, placed = self._run(values, points, fiducials)
+        T, deformed, placed, level = self._run(values, points, fiducials)
         report, recorded = self.report, values["pose"]
         report.registrations += 1
         where = f"registration {values['seq']} (stamp {values['stamp_ns']}, {values['reason']})"
         self._compare_deformed(values, deformed, where)
         self._compare_structures(values, placed, where)
+        self._compare_verdict(values, level, where)
         if recorded is None:
             if T is None:
                 report.no_pose += 1
@@ -197,6 +200,23 @@ class _Rerunner:
         )  # fmt: skip
         self._count("structures", counts)
 
+    def _compare_verdict(self, values: dict[str, Any], level: int | None, where: str) -> None:
+        """The re-run's verdict (OK / WARN / ERROR) against the recorded one: a pose can be bitwise the same while
+        its verdict changed (another error-bound calibration behind the same path, another threshold)."""
+        want = values.get("level")
+        if level is None or not isinstance(want, int) or isinstance(want, bool):
+            return
+        if "structures_sha256" not in values:  # recorded before structures were kept: re-run without them, a WARN
+            return  # that followed a structure's bound would not come again
+        self.report.verdicts += 1
+        if level == want:
+            self.report.verdicts_same += 1
+            return
+        names = {k: LEVEL_NAMES.get(k, str(k)) for k in (want, level)}
+        self.report.differences.append(
+            f"{where}: verdict differs (recorded {names[want]}, re-run {names[level]}; recorded: {values.get('message')})"
+        )
+
     def _count(self, kind: str, counts: tuple[int, int, int]) -> None:
         """Add (recorded, identical, within round-off) to the report's `kind`, `kind`_identical, `kind`_roundoff."""
         for name, n in zip((kind, f"{kind}_identical", f"{kind}_roundoff"), counts, strict=True):
@@ -221,10 +241,11 @@ class _Rerunner:
 
     def _run_command(
         self, values: dict[str, Any], points: np.ndarray | None, fid_s: Any, fid_t: Any
-    ) -> tuple[np.ndarray | None, np.ndarray | None, list[PlacedStructure]]:
+    ) -> tuple[np.ndarray | None, np.ndarray | None, list[PlacedStructure], int | None]:
         """`liver-p2p register`'s Registrar call again, on the recorded mesh with `deform`: its pose (mm) or None,
-        the deformed surface as the command's recording computed it (None when the stage was not applied) and
-        the recorded structures placed as the command placed them."""
+        the deformed surface as the command's recording computed it (None when the stage was not applied), the
+        recorded structures placed as the command placed them and the verdict as the command gave it (None: not
+        comparable)."""
         core, extras = self._core(), values["extras"]
         mesh = {} if self.mesh is None else self.mesh.stage_kwargs
         try:
@@ -238,24 +259,29 @@ class _Rerunner:
                 sensor_origin_mm=extras.get("sensor_origin_mm"),
                 **mesh,  # the recorded mesh: the contenders' judge's surface, as the command's (read only by a judge)
             )
-        except LiverP2PError:
-            return None, None, []
+        except LiverP2PError as exc:
+            return None, None, [], command_output(exc, 0, "", core.config, self.source, None, None).level
         ok = result.ok and np.isfinite(result.T_target_source).all()
         T = result.T_target_source if ok else None
-        if not core.config.deform or T is None:
-            return T, None, place_structures(result, self.structures)
-        if not values.get("deformation"):  # written before `register` recordings kept the stage
-            self.note("recorded without the non-rigid stage's values: its deformed surface is not checked")
-            return T, None, place_structures(result, self.structures)
-        # the core's registrar is rigid only (the node runs the stage itself): the stage as the command ran it
-        core.registrar.deform(result, self.source, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, **mesh)
-        return T, command_deformation(result, self.mesh, self.source, {})[1], place_structures(result, self.structures)
+        staged = core.config.deform and T is not None
+        if staged and not values.get("deformation"):  # written before `register` recordings kept the stage
+            self.note("recorded without the non-rigid stage's values: its deformed surface and verdict are not checked")
+            return T, None, place_structures(result, self.structures), None
+        if (
+            staged
+        ):  # the core's registrar is rigid only (the node runs the stage itself): the stage as the command ran it
+            core.registrar.deform(
+                result, self.source, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, **mesh
+            )
+        out = command_output(result, values["seq"], values["frame_id"], core.config, self.source, self.mesh,
+                             self.structures)  # fmt: skip
+        return T, out.deformed_preop_mm, out.structures, out.level
 
     def _run(
         self, values: dict[str, Any], points: np.ndarray | None, fiducials: tuple | None
-    ) -> tuple[np.ndarray | None, np.ndarray | None, list[PlacedStructure]]:
-        """The re-run registration's pose, T_sensor_ct (mm), or None, its deformed preop surface (mm) or None, and
-        the structures it placed."""
+    ) -> tuple[np.ndarray | None, np.ndarray | None, list[PlacedStructure], int | None]:
+        """The re-run registration's pose, T_sensor_ct (mm), or None, its deformed preop surface (mm) or None, the
+        structures it placed and its verdict (the diagnostic level)."""
         core = self._core()
         fid_s, fid_t = fiducials or (None, None)
         if values["reason"] == "register":  # `liver-p2p register`: the Registrar call the command made
@@ -272,8 +298,8 @@ class _Rerunner:
 
         output = core.register_now(values["frame_id"], values["stamp_ns"], decode, values["reason"])
         if output.pose is None:
-            return None, None, []
-        return output.pose.T_sensor_ct_mm, output.deformed_preop_mm, output.structures
+            return None, None, [], output.level
+        return output.pose.T_sensor_ct_mm, output.deformed_preop_mm, output.structures, output.level
 
 
 def _decoded(item: RecordedMessage, decode: Callable[[Any], Any]) -> Any:

@@ -67,6 +67,8 @@ class Rerun:
     structures: int = 0  # registrations that placed subsurface structures ...
     structures_identical: int = 0  # ... re-run to bitwise the same positions and bounds
     structures_roundoff: int = 0  # ... and those within round-off of the recorded ones (ROUNDOFF_DEFORMED_MM)
+    verdicts: int = 0  # registrations whose verdict (the diagnostic's level) was recorded and re-computed ...
+    verdicts_same: int = 0  # ... and those whose verdict the re-run gave again
     differences: list[str] = field(default_factory=list)  # one line per registration that differs
     truncated: bool = False  # the last file ends without its footer (its writer was killed)
     notes: list[str] = field(default_factory=list)  # how this run's environment differs from the recording's
@@ -93,6 +95,8 @@ class Rerun:
             line += f"; {self.structures_identical} of {self.structures} placements of structures bitwise identical"
             if self.structures_roundoff:
                 line += f", {self.structures_roundoff} more within round-off ({ROUNDOFF_DEFORMED_MM:g} mm)"
+        if self.verdicts:
+            line += f"; {self.verdicts_same} of {self.verdicts} verdicts (OK/WARN/ERROR) as recorded"
         if self.truncated:
             line += "; the recording ends without its footer (writer killed): read up to its last complete registration"
         return line
