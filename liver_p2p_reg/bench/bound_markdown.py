@@ -7,7 +7,16 @@ from typing import Any
 import numpy as np
 
 from liver_p2p_reg.bench.bound_data import subset
-from liver_p2p_reg.bench.bound_report import BAD_MM, TRUE_BINS, bin_rows, bootstrap_coverage, judge, reason_rows
+from liver_p2p_reg.bench.bound_report import (
+    BAD_MM,
+    TRUE_BINS,
+    bin_rows,
+    bootstrap_coverage,
+    judge,
+    passed_bad,
+    reason_rows,
+    worst_ok_mm,
+)
 
 TARGET_COVERAGE = (0.85, 0.95)
 TARGET_GOOD_WARNED = 0.20
@@ -42,6 +51,8 @@ def results_page(
     cov_lo, cov_hi = min(r["coverage"] for r in per_bin), max(r["coverage"] for r in per_bin)
     ms = float(np.nanmedian(data["bound_ms"]))
     few = min(r["poses"] for r in per_bin)
+    worst = worst_ok_mm(data, judged, np.ones(len(data["count"]), dtype=bool))
+    passed = passed_bad(data, judged)
     sets = ", ".join(sorted(set(str(s) for s in data["set"])))
     what = "the deformed positions" if deformed else "the pose's positions"
     page = "error_bound_deformed.md" if deformed else "error_bound.md"
@@ -85,24 +96,29 @@ def results_page(
         _target("bound cost <= 10 ms per registration (median)", f"{ms:.1f} ms", ms <= TARGET_MS),
         _target("at least 128 poses per bin", f"fewest {few}", few >= 128),
         "",
+        _passed_line(passed, worst),
+        "",
         "## Per family and bin",
         "",
         "| family | bin | poses | coverage | interior coverage | median bound | median error | ratio | bad | bad OK "
-        "| good warned | bad caught by the bound alone | by other reasons alone |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| worst OK | good warned | bad caught by the bound alone | by other reasons alone |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['family']} | {r['bin']} | {r['poses']} | {r['coverage']:.1%} | {r['pose_coverage']:.1%} | "
             f"{r['median_bound_mm']:.1f} mm | {r['median_error_mm']:.1f} mm | {r['width_ratio']:.2f} | {r['bad']} | "
-            f"{r['bad_ok']} | {r['good_warned']:.1%} | {r['bad_by_bound_only']} | {r['bad_by_others_only']} |"
+            f"{r['bad_ok']} | {_mm(r['worst_ok_mm'])} | {r['good_warned']:.1%} | {r['bad_by_bound_only']} | "
+            f"{r['bad_by_others_only']} |"
         )
     lines += [
         "",
         "Coverage: the share of interior markers whose true position lies within their bound (each pose weighs the "
         "same); interior coverage: the share of poses whose interior RMS error lies below the pose-level "
-        "`error_bound_mm`. Ratio: median bound / median actual marker error.",
+        "`error_bound_mm`. Ratio: median bound / median actual marker error. Worst OK: the largest interior RMS "
+        "error of a pose with an OK verdict.",
         "",
+        *_passed_table(data, judged),
         "## What each warning adds (all judged poses)",
         "",
         "| reason | bad poses it warns | ... that nothing else warns | good poses it warns |",
@@ -115,13 +131,48 @@ def results_page(
             f"Error bound of {what} ({coverage:.0%}, split-conformal, calibrated on validation sets; judged on "
             f"{sets}, {len(data['count'])} poses; [details]({link or 'docs/results/' + page})):",
             "",
-            "| coverage per bin | pooled [95 % CI] | bad poses with OK | good warned | bound / error | cost |",
-            "|---|---|---|---|---|---|",
-            f"| {cov_lo:.1%} - {cov_hi:.1%} | {pooled:.1%} [{lo:.1%}, {hi:.1%}] | {bad_ok} | {good_warned:.1%} | "
-            f"up to {ratio:.2f}x | {ms:.1f} ms |",
+            "| coverage per bin | pooled [95 % CI] | bad poses with OK | worst OK | good warned | bound / error | cost |",
+            "|---|---|---|---|---|---|---|",
+            f"| {cov_lo:.1%} - {cov_hi:.1%} | {pooled:.1%} [{lo:.1%}, {hi:.1%}] | {bad_ok} | {_mm(worst)} | "
+            f"{good_warned:.1%} | up to {ratio:.2f}x | {ms:.1f} ms |",
         ]
     )
     return "\n".join(lines) + "\n", block
+
+
+def _passed_line(passed: dict[str, float], worst: float) -> str:
+    """How far off the poses the verdict passed are: a near miss of the 10 mm line is not a flip to another basin."""
+    if not passed["count"]:
+        return f"No pose >= {BAD_MM:g} mm got an OK verdict; the worst OK pose is {_mm(worst)} off."
+    return (
+        f"The {passed['count']} poses >= {BAD_MM:g} mm with an OK verdict are {passed['error_min_mm']:.1f}-"
+        f"{passed['error_max_mm']:.1f} mm off (interior RMS; {passed['far']} of them >= {1.5 * BAD_MM:g} mm) under "
+        f"bounds of {passed['bound_min_mm']:.1f}-{passed['bound_max_mm']:.1f} mm: no pose with an OK verdict is more "
+        f"than {_mm(worst)} off."
+    )
+
+
+def _passed_table(data: dict[str, np.ndarray], judged: dict[str, np.ndarray]) -> list[str]:
+    """One row per bad pose with an OK verdict, worst first: which case, how far off, under which bound."""
+    hit = np.flatnonzero((data["rms_mm"] >= BAD_MM) & ~judged["warned"])
+    if not len(hit):
+        return []
+    lines = [
+        "## The bad poses with an OK verdict",
+        "",
+        "| set | case | true visibility | interior RMS error | interior bound (`error_bound_mm`) |",
+        "|---|---|---|---|---|",
+    ]
+    for i in hit[np.argsort(-data["rms_mm"][hit], kind="stable")]:
+        lines.append(
+            f"| {data['set'][i]} | {data['case_id'][i]} | {data['visibility'][i]:.3f} | {data['rms_mm'][i]:.1f} mm "
+            f"| {judged['pose_bound'][i]:.1f} mm |"
+        )
+    return [*lines, ""]
+
+
+def _mm(value: float) -> str:
+    return "-" if not np.isfinite(value) else f"{value:.1f} mm"
 
 
 def _target(name: str, measured: str, met: bool) -> str:

@@ -72,9 +72,33 @@ def _row(data: dict, judged: dict, per: np.ndarray, sel: np.ndarray, fam: str, l
         "width_ratio": float(np.median(bounds) / max(np.median(err), 1e-9)),
         "bad": int((sel & bad).sum()),
         "bad_ok": int((sel & bad & ~warned).sum()),
+        "worst_ok_mm": worst_ok_mm(data, judged, sel),
         "good_warned": float((good & warned).sum() / max(good.sum(), 1)),
         "bad_by_bound_only": int((sel & bad & judged["bound_warns"] & ~judged["other_warns"]).sum()),
         "bad_by_others_only": int((sel & bad & ~judged["bound_warns"] & judged["other_warns"]).sum()),
+    }
+
+
+def worst_ok_mm(data: dict[str, np.ndarray], judged: dict[str, np.ndarray], sel: np.ndarray) -> float:
+    """The largest interior RMS error (mm) of a selected pose with an OK verdict: how far off an OK can be
+    (NaN when every selected pose warned)."""
+    passed = sel & ~judged["warned"]
+    return float(np.max(data["rms_mm"][passed])) if passed.any() else float("nan")
+
+
+def passed_bad(data: dict[str, np.ndarray], judged: dict[str, np.ndarray]) -> dict[str, float]:
+    """The bad poses with an OK verdict: how many, their interior RMS errors' range and their interior bounds'
+    range (mm), and how many of them lie 1.5x the bad threshold or more off (NaN ranges when there are none)."""
+    hit = (data["rms_mm"] >= BAD_MM) & ~judged["warned"]
+    err, bound = data["rms_mm"][hit], judged["pose_bound"][hit]
+    nan = float("nan")
+    return {
+        "count": int(hit.sum()),
+        "error_min_mm": float(err.min()) if hit.any() else nan,
+        "error_max_mm": float(err.max()) if hit.any() else nan,
+        "bound_min_mm": float(bound.min()) if hit.any() else nan,
+        "bound_max_mm": float(bound.max()) if hit.any() else nan,
+        "far": int((err >= 1.5 * BAD_MM).sum()),
     }
 
 

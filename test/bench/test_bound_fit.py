@@ -9,7 +9,8 @@ import pytest
 
 from liver_p2p_reg.bench.bound_data import concat, subset
 from liver_p2p_reg.bench.bound_fit import calibrate, conformal_quantile, coverage_at, split_livers
-from liver_p2p_reg.bench.bound_report import bin_rows, judge
+from liver_p2p_reg.bench.bound_markdown import results_page
+from liver_p2p_reg.bench.bound_report import BAD_MM, bin_rows, judge, passed_bad, worst_ok_mm
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_bound import FEATURES
 from liver_p2p_reg.registration.error_calibration import FORMAT, read_calibration
@@ -118,3 +119,28 @@ def test_a_subset_keeps_each_poses_interior_points_with_it():
     both = concat([part, subset(data, ~keep)])
     assert both["interior_features"][:, 0].tolist() == [0, 0, 0, 3, 3, 3, 3, 3, 2, 2, 4]
     assert both["interior_count"].tolist() == [3, 0, 5, 2, 1]
+
+
+def test_the_page_says_how_far_off_the_poses_it_passed_are(tmp_path):
+    cal = _as_calibration(tmp_path, calibrate(synthetic_collection(0), seed=0))
+    fresh = synthetic_collection(2, poses=600)
+    fresh = subset(fresh, fresh["visibility"] < 0.3)  # the page's range (0.05-0.3)
+    warn_mm = 30.0  # lax: some poses >= 10 mm pass
+    _, pose_bound = coverage_at(fresh, cal, 0.9)
+    ok = pose_bound <= warn_mm
+    bad_ok = ok & (fresh["rms_mm"] >= BAD_MM)
+    assert 0 < bad_ok.sum() < ok.sum()
+    judged = judge(fresh, cal, 0.9, warn_mm)
+    passed = passed_bad(fresh, judged)
+    assert passed["count"] == bad_ok.sum() and passed["error_max_mm"] == fresh["rms_mm"][ok].max()
+    assert passed["bound_max_mm"] == pose_bound[bad_ok].max() and passed["far"] == (fresh["rms_mm"][ok] >= 15).sum()
+    assert worst_ok_mm(fresh, judged, np.ones(len(ok), bool)) == fresh["rms_mm"][ok].max()
+    page, block = results_page(fresh, cal, 0.9, warn_mm, 0, "cmd")
+    assert f"no pose with an OK verdict is more than {fresh['rms_mm'][ok].max():.1f} mm off" in page
+    assert f"| {bad_ok.sum()} | {fresh['rms_mm'][ok].max():.1f} mm |" in block
+    listed = page.split("## The bad poses with an OK verdict")[1].split("##")[0]
+    assert listed.count("| real-val-v2 | c") == bad_ok.sum()  # one row each, the worst first
+    assert f"| {fresh['rms_mm'][ok].max():.1f} mm |" in listed.splitlines()[4]
+    fresh["reasons"][:] = "residual"  # every pose warned: no OK pose, said so
+    page, _ = results_page(fresh, cal, 0.9, warn_mm, 0, "cmd")
+    assert "No pose >= 10 mm got an OK verdict; the worst OK pose is - off." in page
