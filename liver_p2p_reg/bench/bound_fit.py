@@ -9,7 +9,7 @@ import numpy as np
 
 from liver_p2p_reg.bench.bound_data import pose_index
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN
+from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN, RIVAL_RATIO_CAP
 from liver_p2p_reg.registration.error_calibration import FORMAT, error_scale_mm
 
 COVERAGES = (0.8, 0.9, 0.95)
@@ -81,17 +81,53 @@ def group_of(visibility: np.ndarray, edges: tuple[float, ...] = VISIBILITY_EDGES
     return np.searchsorted(np.asarray(edges), v, side="right")
 
 
-def calibrate(data: dict[str, np.ndarray], seed: int, coverages: tuple[float, ...] = COVERAGES) -> dict[str, Any]:
-    """The calibration (JSON-ready) from collected validation poses; failed poses are left out (they warn)."""
+def pose_rival_ratio(data: dict[str, np.ndarray]) -> np.ndarray:
+    """Per pose its rival ratio as the features hold it (log_rival_ratio, capped to [1, RIVAL_RATIO_CAP]): the same
+    for every point of a pose, read from its first marker (else its first stand-in point); the cap where none."""
+    j = FEATURES.index("log_rival_ratio")
+    out = np.full(len(data["count"]), np.log(RIVAL_RATIO_CAP))
+    for count, key in (("interior_count", "interior_features"), ("count", "features")):  # markers win
+        first = np.cumsum(data[count]) - data[count]
+        has = data[count] > 0
+        out[has] = data[key][first[has], j]
+    return np.where(np.isfinite(out), np.exp(out), RIVAL_RATIO_CAP)
+
+
+def groups_of(
+    data: dict[str, np.ndarray], visibility_edges: tuple[float, ...], rival_edges: tuple[float, ...] = ()
+) -> np.ndarray:
+    """Group of each pose, as BoundCalibration.group computes it: visibility group, and with rival edges its rival
+    class (below an edge: contested) times the number of visibility groups."""
+    by_visibility = group_of(data["method_visibility"], visibility_edges)
+    if not rival_edges:
+        return by_visibility
+    rival_class = np.searchsorted(np.asarray(rival_edges), pose_rival_ratio(data), side="right")
+    return by_visibility + (len(visibility_edges) + 1) * rival_class
+
+
+def calibrate(
+    data: dict[str, np.ndarray],
+    seed: int,
+    coverages: tuple[float, ...] = COVERAGES,
+    rival_edges: tuple[float, ...] = (),
+    swap: bool = False,
+) -> dict[str, Any]:
+    """The calibration (JSON-ready) from collected validation poses; failed poses are left out (they warn).
+
+    `rival_edges`: quantiles per visibility group and rival class (a class's cell with fewer than MIN_GROUP
+    calibration poses takes its visibility group's); `swap`: the liver halves swapped (cross-fitting)."""
     ok = data["ok"].astype(bool)
     fit_livers, cal_livers = split_livers(data["liver_id"][ok], seed, liver_source(data["set"][ok]))
+    if swap:
+        fit_livers, cal_livers = cal_livers, fit_livers
     poses = np.arange(len(ok))
     coef = fit_scale(data, poses[ok & np.isin(data["liver_id"], fit_livers)])
     point, pose = scores(data, coef)
     per = pose_index(data)
     cal = ok & np.isin(data["liver_id"], cal_livers)
-    groups = group_of(data["method_visibility"])
-    n_groups = len(VISIBILITY_EDGES) + 1
+    by_visibility = group_of(data["method_visibility"])
+    groups = groups_of(data, VISIBILITY_EDGES, rival_edges)
+    n_visibility = len(VISIBILITY_EDGES) + 1
 
     def quantiles(members: np.ndarray) -> tuple[list[float], list[float]]:
         n, marker = int(members.sum()), members[per]
@@ -100,13 +136,19 @@ def calibrate(data: dict[str, np.ndarray], seed: int, coverages: tuple[float, ..
         return qp, [conformal_quantile(pose[members], np.ones(n), c, n) for c in coverages]
 
     pooled = quantiles(cal)
+    by_group = []  # per visibility group: its own quantiles, or the pooled ones when it has too few poses
+    for g in range(n_visibility):
+        members = cal & (by_visibility == g)
+        by_group.append(quantiles(members) if members.sum() >= MIN_GROUP else pooled)
     point_q, pose_q, counts = [], [], []
-    for g in range(n_groups):
+    for g in range(n_visibility * (len(rival_edges) + 1)):
         members = cal & (groups == g)
         counts.append(int(members.sum()))
-        qp, qs = quantiles(members) if counts[-1] >= MIN_GROUP else pooled
+        fallback = by_group[g % n_visibility] if rival_edges else pooled
+        qp, qs = quantiles(members) if counts[-1] >= MIN_GROUP else fallback
         point_q.append(qp)
         pose_q.append(qs)
+    rival = {"rival_ratio_edges": [float(e) for e in rival_edges]} if rival_edges else {}
     return {
         "format": FORMAT,
         "version": 1,
@@ -114,6 +156,7 @@ def calibrate(data: dict[str, np.ndarray], seed: int, coverages: tuple[float, ..
         "coefficients": [float(c) for c in coef],
         "visibility_edges": list(VISIBILITY_EDGES),
         "coverages": list(coverages),
+        **rival,
         "point_quantiles": point_q,
         "pose_quantiles": pose_q,
         "pose_interior": INTERIOR_STAND_IN,
@@ -126,7 +169,7 @@ def calibrate(data: dict[str, np.ndarray], seed: int, coverages: tuple[float, ..
 
 def coverage_at(data: dict[str, np.ndarray], calibration: Any, coverage: float) -> tuple[np.ndarray, np.ndarray]:
     """Per marker its bound (mm) and per pose its interior bound (mm) under a BoundCalibration."""
-    groups = group_of(data["method_visibility"], calibration.visibility_edges)
+    groups = groups_of(data, calibration.visibility_edges, calibration.rival_ratio_edges)
     j = calibration.column(coverage)
     per = pose_index(data)
     point_bound = calibration.point_quantiles[groups[per], j] * calibration.scale_mm(data["features"])

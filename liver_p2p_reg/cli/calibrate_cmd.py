@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     config = config.replace(deform=bool(args.deformed)).validate()
     out = Path(args.out) if args.out else (BUNDLED_DEFORMED_CALIBRATION if args.deformed else BUNDLED_CALIBRATION)
     weights = weights_sha256(config)  # "" for a method without weights
-    collected = bound_data.concat([_collected(Path(d), args, config, weights) for d in args.val])
+    collected = bound_data.concat([collected_set(Path(d), args, config, weights) for d in args.val])
     val = _applied(collected, args)
     cal = calibrate(val, args.seed)
     if args.deformed:
@@ -207,7 +207,7 @@ def _applied(data: dict, args: argparse.Namespace) -> dict:
     return bound_data.subset(data, applied)
 
 
-def _collected(folder: Path, args: argparse.Namespace, config: Config, weights: str) -> dict:
+def collected_set(folder: Path, args: argparse.Namespace, config: Config, weights: str) -> dict:
     """The collected poses of a set: from the cache when made with the same cases, settings and weights."""
     from liver_p2p_reg.bench import bound_data
     from liver_p2p_reg.bench.cases import list_case_paths
@@ -245,7 +245,7 @@ def _judge(args: argparse.Namespace, config: Config, weights: str, calibration) 
     from liver_p2p_reg.bench.bound_markdown import results_page
     from liver_p2p_reg.bench.readme import replace_readme_block
 
-    data = _applied(bound_data.concat([_collected(Path(d), args, config, weights) for d in args.judge]), args)
+    data = _applied(bound_data.concat([collected_set(Path(d), args, config, weights) for d in args.judge]), args)
     flag = ["--deformed"] if args.deformed else []
     command = "liver-p2p calibrate-bound " + " ".join([*flag, "--judge", *args.judge])
     report = Path(args.report or (DEFORMED_RESULTS_PAGE if args.deformed else RESULTS_PAGE))

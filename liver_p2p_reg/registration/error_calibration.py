@@ -12,7 +12,7 @@ import numpy as np
 
 from liver_p2p_reg.config import FeatureSection, FreeSpaceSection, IcpSection, P2PSection, PreprocessSection
 from liver_p2p_reg.errors import InputError
-from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN, PoseEvidence
+from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN, RIVAL_RATIO_CAP, PoseEvidence
 from liver_p2p_reg.registration.methods import canonical_method
 from liver_p2p_reg.registration.weights_id import weights_sha256
 
@@ -40,7 +40,8 @@ def error_scale_mm(features: np.ndarray, coefficients: np.ndarray) -> np.ndarray
 
 @dataclass(frozen=True)
 class BoundCalibration:
-    """Scale model exp(features . coefficients) and, per visibility group and coverage, conformal quantiles."""
+    """Scale model exp(features . coefficients) and, per group (visibility, and rival class where the calibration
+    has rival edges) and coverage, conformal quantiles."""
 
     coefficients: np.ndarray  # (len(FEATURES),)
     visibility_edges: tuple[float, ...]  # groups: below the first edge, between edges, above the last
@@ -56,15 +57,23 @@ class BoundCalibration:
     pose: dict[str, Any] | None = None  # the pose's settings it ran with (pose_settings); None: not recorded
     # where its pose quantiles' scale was taken: INTERIOR_STAND_IN, as the product does; older files: the fiducials
     pose_interior: str = "fiducials"
+    # rival classes (Mondrian quantiles): a pose whose best rival hypothesis fits within this ratio of the best
+    # residual is contested, else clear; its group is visibility group + (number of visibility groups) x class.
+    # Empty (older files, survey calibrations): one class, the visibility group alone.
+    rival_ratio_edges: tuple[float, ...] = ()
 
     def scale_mm(self, features: np.ndarray) -> np.ndarray:
         """Predicted error scale (mm) of each row of features; inf where a feature is not finite."""
         return error_scale_mm(features, self.coefficients)
 
-    def group(self, visibility: float) -> int:
-        """Index of the visibility group a pose belongs to (its voxelized M/N, known at run time)."""
+    def group(self, visibility: float, rival_ratio: float = RIVAL_RATIO_CAP) -> int:
+        """Index of the group a pose belongs to: its visibility group (its voxelized M/N, known at run time) and,
+        with rival edges, its rival class (its best rival's residual over the best, `PoseEvidence.rival_ratio`)."""
         v = float(visibility) if np.isfinite(visibility) else 0.0
-        return int(np.searchsorted(np.asarray(self.visibility_edges), v, side="right"))
+        by_visibility = int(np.searchsorted(np.asarray(self.visibility_edges), v, side="right"))
+        r = float(rival_ratio) if np.isfinite(rival_ratio) else RIVAL_RATIO_CAP  # no usable rival: clear
+        rival_class = int(np.searchsorted(np.asarray(self.rival_ratio_edges), r, side="right"))
+        return by_visibility + (len(self.visibility_edges) + 1) * rival_class
 
     def column(self, coverage: float) -> int:
         """The quantiles' column of this coverage; a coverage it was not calibrated for is refused."""
@@ -86,7 +95,7 @@ class ErrorModel:
     def bounds_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """Per point: the distance (mm) within which its true position lies with `coverage`."""
         cal = self.calibration
-        q = cal.point_quantiles[cal.group(self.evidence.visibility), cal.column(self.coverage)]
+        q = cal.point_quantiles[self._group(), cal.column(self.coverage)]
         return q * cal.scale_mm(self.evidence.features(points_mm))
 
     def pose_bound_mm(self) -> float:
@@ -94,8 +103,11 @@ class ErrorModel:
         surface: error_bound.interior_stand_in), calibrated against the true interior's RMS error."""
         cal = self.calibration
         scale = cal.scale_mm(self.evidence.features(self.evidence.interior_mm))
-        q = cal.pose_quantiles[cal.group(self.evidence.visibility), cal.column(self.coverage)]
+        q = cal.pose_quantiles[self._group(), cal.column(self.coverage)]
         return float(q * np.sqrt(np.mean(scale**2)))
+
+    def _group(self) -> int:
+        return self.calibration.group(self.evidence.visibility, self.evidence.rival_ratio)
 
 
 def read_calibration(path: str | Path = "", bundled: Path = BUNDLED_CALIBRATION) -> BoundCalibration:
@@ -118,9 +130,13 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
         if raw["features"] != list(FEATURES) or coefficients.shape != (len(FEATURES),):
             raise ValueError(f"features must be {list(FEATURES)}")
         edges = tuple(float(e) for e in raw["visibility_edges"])
+        rival_edges = tuple(float(e) for e in raw.get("rival_ratio_edges", ()))
+        # below the cap: the collections hold the ratio capped (log_rival_ratio), so the bench groups a pose as this does
+        if not all(1.0 <= e < RIVAL_RATIO_CAP for e in rival_edges) or list(rival_edges) != sorted(set(rival_edges)):
+            raise ValueError(f"rival_ratio_edges must be increasing ratios in [1, {RIVAL_RATIO_CAP:g})")
         coverages = tuple(float(c) for c in raw["coverages"])
         point_q, pose_q = np.asarray(raw["point_quantiles"], float), np.asarray(raw["pose_quantiles"], float)
-        shape = (len(edges) + 1, len(coverages))
+        shape = ((len(edges) + 1) * (len(rival_edges) + 1), len(coverages))
         if point_q.shape != shape or pose_q.shape != shape:
             raise ValueError(f"quantiles must be {shape[0]} groups x {shape[1]} coverages")
         if not (np.all(np.isfinite(point_q)) and np.all(np.isfinite(pose_q)) and np.all(np.isfinite(coefficients))):
@@ -139,6 +155,7 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
             view=str(raw.get("view", FRAME)),
             pose_interior=str(raw.get("pose_interior", "fiducials")),
             pose=dict(raw["pose"]) if raw.get("pose") is not None else None,
+            rival_ratio_edges=rival_edges,
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None

@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 
 from liver_p2p_reg.bench.bound_data import concat, subset
-from liver_p2p_reg.bench.bound_fit import calibrate, conformal_quantile, coverage_at, split_livers
+from liver_p2p_reg.bench.bound_fit import (
+    MIN_GROUP,
+    VISIBILITY_EDGES,
+    calibrate,
+    conformal_quantile,
+    coverage_at,
+    groups_of,
+    pose_rival_ratio,
+    split_livers,
+)
 from liver_p2p_reg.bench.bound_markdown import results_page
 from liver_p2p_reg.bench.bound_report import BAD_MM, bin_rows, judge, passed_bad, worst_ok_mm
 from liver_p2p_reg.errors import InputError
@@ -144,3 +153,36 @@ def test_the_page_says_how_far_off_the_poses_it_passed_are(tmp_path):
     fresh["reasons"][:] = "residual"  # every pose warned: no OK pose, said so
     page, _ = results_page(fresh, cal, 0.9, warn_mm, 0, "cmd")
     assert "No pose >= 10 mm got an OK verdict; the worst OK pose is - off." in page
+
+
+def test_rival_classes_split_the_quantiles_as_the_product_groups_a_pose(tmp_path):
+    data = synthetic_collection(0, poses=800)
+    raw = calibrate(data, seed=0, rival_edges=(1.5,))
+    assert raw["rival_ratio_edges"] == [1.5] and len(raw["pose_quantiles"]) == 2 * (len(VISIBILITY_EDGES) + 1)
+    cal = _as_calibration(tmp_path, raw)
+    ratio = pose_rival_ratio(data)
+    assert np.allclose(ratio, np.exp(data["features"][::40, 6]))  # the pose's own feature, read back
+    groups = groups_of(data, cal.visibility_edges, cal.rival_ratio_edges)
+    want = [cal.group(v, r) for v, r in zip(data["method_visibility"], ratio, strict=True)]
+    assert groups.tolist() == want and set(groups.tolist()) >= {0, len(VISIBILITY_EDGES) + 1}
+    # a cell with too few calibration poses takes its visibility group's quantiles (both classes together)
+    counts = raw["calibration_poses_per_group"]
+    plain = calibrate(data, seed=0)
+    n_vis = len(VISIBILITY_EDGES) + 1
+    for g, n in enumerate(counts):
+        if n < MIN_GROUP:
+            assert raw["pose_quantiles"][g] == plain["pose_quantiles"][g % n_vis]
+    assert any(n >= MIN_GROUP for n in counts[n_vis:])  # some clear cell has its own
+    # without rival edges nothing changes: the calibration of before, key for key
+    assert "rival_ratio_edges" not in plain and calibrate(data, seed=0, rival_edges=()) == plain
+    swapped = calibrate(data, seed=0, swap=True)
+    assert (swapped["fit_livers"], swapped["calibration_livers"]) == (plain["calibration_livers"], plain["fit_livers"])
+
+
+def test_a_calibration_with_unusable_rival_edges_is_one_line(tmp_path):
+    raw = calibrate(synthetic_collection(0), seed=0, rival_edges=(1.5,))
+    for edges in ([0.5], [2.0, 1.5], [float("nan")], [4.0]):
+        with pytest.raises(InputError, match=r"rival_ratio_edges must be increasing ratios in \[1, 4\)"):
+            _as_calibration(tmp_path, {**raw, "rival_ratio_edges": edges})
+    with pytest.raises(InputError, match="quantiles must be 10 groups"):
+        _as_calibration(tmp_path, {**raw, "rival_ratio_edges": [1.5], "pose_quantiles": raw["pose_quantiles"][:5]})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -237,3 +238,26 @@ def test_the_verdict_follows_the_bound(registered):
     assert "'tumour'" in reasons["structures"] and "vessel" not in reasons["structures"]
     assert "error_bound" not in reasons  # with structures the verdict is theirs
     assert "structures" not in result_warnings(result, tight, bounds)
+
+
+def test_a_calibration_with_rival_classes_bounds_a_contested_pose_by_its_own_quantiles(tmp_path, registered):
+    _, _, _, fid_s, result = registered
+    # a rival fitting 1.3x the best residual (this one-hypothesis method has none of its own)
+    evidence = dataclasses.replace(result.error_model.evidence, rival_ratio=1.3)
+    raw = json.loads(BUNDLED_CALIBRATION.read_text())
+    plain = ErrorModel(evidence, read_calibration(), 0.9).pose_bound_mm()
+    row = {"case_id": "c0", "liver_id": 1, "visibility": 0.3, "method_visibility": float(result.visibility),
+           "ok": True, "reasons": "", "bound_ms": 1.0, "deform_applied": False, "errors": np.ones(len(fid_s)),
+           "features": evidence.features(fid_s), "interior_features": interior_features(evidence), "rms_mm": 1.0}  # fmt: skip
+    data = stack_rows([row], "real-test-v2", 2.0)
+    # contested (its rival ratio below the edge): the first rows, 10x wider; clear (at or above it): the bundled ones
+    for edge, factor in ((1.5, 10.0), (1.2, 1.0)):
+        wide = {**raw, "rival_ratio_edges": [edge]}
+        for key in ("point_quantiles", "pose_quantiles"):
+            wide[key] = [[q * 10.0 for q in row_q] for row_q in raw[key]] + raw[key]
+        path = tmp_path / f"rival_{factor:g}.json"
+        path.write_text(json.dumps(wide))
+        calibration = read_calibration(path)
+        bound = ErrorModel(evidence, calibration, 0.9).pose_bound_mm()
+        assert bound == pytest.approx(factor * plain, rel=1e-12)
+        assert coverage_at(data, calibration, 0.9)[1][0] == pytest.approx(bound, rel=1e-9)  # the bench groups alike
