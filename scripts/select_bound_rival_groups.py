@@ -105,7 +105,8 @@ def main() -> int:
         "scripts/select_bound_rival_groups.py`; rule: [RULE_bound_rival_groups.md](RULE_bound_rival_groups.md). "
         f"{len(data['count'])} rigid validation poses ({', '.join(Path(d).name for d in DEFAULT_VAL)}, 2 mm noise), "
         "2-fold cross-fitting over the calibration's liver split (seed 0), judged at true visibility [0.05, 0.3) on "
-        "the half that did not make the quantiles; WARN above 10 mm or for any other reason.",
+        "the half that did not make the quantiles (its livers fitted the scale model, the same in every candidate); "
+        "WARN above 10 mm or for any other reason.",
         "",
         "| r (contested below) | bad poses with OK | good poses warned | "
         + " | ".join(f"coverage [{lo:.2f}, {hi:.2f})" for lo, hi in bins)

@@ -91,10 +91,11 @@ def command_output(
     mesh: PreopMesh | None,
     structures: list[Structure] | None,
 ) -> CoreOutput:
-    """One registration of `liver-p2p register` as the node hands out its outputs: the verdict (the diagnostic), the
+    """One registration of `liver-p2p register` in the node's output form: the verdict (the diagnostic), the
     pose, the placed structures and, with the stage applied, the deformed surface. `result`: a RegistrationResult
     (with `deform`, its stage already run) or the LiverP2PError it raised (ERROR, no pose). What the command's
     recording keeps and what its re-run compares with it."""
+    from liver_p2p_reg.registration.confidence import origin_warnings
     from liver_p2p_reg.stream.outputs import (
         DIAG_NAME,
         ERROR,
@@ -112,7 +113,8 @@ def command_output(
     if result.deformation is not None:  # deform on: its values, and the deformed surface the re-run must match
         values, deformed = command_deformation(result, mesh, source_mm, values)
     placed = place_structures(result, structures or [])
-    diag = registered_diagnostic(result, values, [], config, placed)  # the verdict follows their bounds
+    # the verdict follows their bounds, and the command's own warning, as its JSON's status
+    diag = registered_diagnostic(result, values, origin_warnings(result), config, placed)
     pose = PoseOutput(index, target, "ct", np.asarray(result.T_target_source, dtype=np.float64))
     return CoreOutput([diag], pose, result=result, reason="register", structures=placed, deformed_preop_mm=deformed)
 

@@ -153,12 +153,19 @@ class _Rerunner:
         if values["decoded"] and points is None:
             raise InputError(f"flight recording: registration {values['seq']} lacks its {TOPIC_INTRAOP} cloud")
         T, deformed, placed, level = self._run(values, points, fiducials)
-        report, recorded = self.report, values["pose"]
+        report = self.report
         report.registrations += 1
         where = f"registration {values['seq']} (stamp {values['stamp_ns']}, {values['reason']})"
+        before = len(report.differences)
+        self._compare_pose(values["pose"], T, where)  # first: a registration's first line is its most telling
         self._compare_deformed(values, deformed, where)
         self._compare_structures(values, placed, where)
         self._compare_verdict(values, level, where)
+        report.registrations_differing += len(report.differences) > before
+
+    def _compare_pose(self, recorded: dict[str, Any] | None, T: np.ndarray | None, where: str) -> None:
+        """The re-run's pose against the recorded one: bitwise, within round-off, or a difference."""
+        report = self.report
         if recorded is None:
             if T is None:
                 report.no_pose += 1
@@ -202,7 +209,8 @@ class _Rerunner:
 
     def _compare_verdict(self, values: dict[str, Any], level: int | None, where: str) -> None:
         """The re-run's verdict (OK / WARN / ERROR) against the recorded one: a pose can be bitwise the same while
-        its verdict changed (another error-bound calibration behind the same path, another threshold)."""
+        its verdict changed (another error-bound calibration file behind the recorded path, or the bundled one: the
+        path is recorded, not the file's contents; or another version of the code)."""
         want = values.get("level")
         if level is None or not isinstance(want, int) or isinstance(want, bool):
             return
@@ -267,9 +275,8 @@ class _Rerunner:
         if staged and not values.get("deformation"):  # written before `register` recordings kept the stage
             self.note("recorded without the non-rigid stage's values: its deformed surface and verdict are not checked")
             return T, None, place_structures(result, self.structures), None
-        if (
-            staged
-        ):  # the core's registrar is rigid only (the node runs the stage itself): the stage as the command ran it
+        # the core's registrar is rigid only (the node runs the stage itself): the stage as the command ran it
+        if staged:
             core.registrar.deform(
                 result, self.source, points, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t, **mesh
             )

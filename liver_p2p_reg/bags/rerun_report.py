@@ -69,7 +69,8 @@ class Rerun:
     structures_roundoff: int = 0  # ... and those within round-off of the recorded ones (ROUNDOFF_DEFORMED_MM)
     verdicts: int = 0  # registrations whose verdict (the diagnostic's level) was recorded and re-computed ...
     verdicts_same: int = 0  # ... and those whose verdict the re-run gave again
-    differences: list[str] = field(default_factory=list)  # one line per registration that differs
+    registrations_differing: int = 0  # registrations with at least one line in `differences`
+    differences: list[str] = field(default_factory=list)  # one line per thing that differs (a pose's first)
     truncated: bool = False  # the last file ends without its footer (its writer was killed)
     notes: list[str] = field(default_factory=list)  # how this run's environment differs from the recording's
 

@@ -378,10 +378,8 @@ def _record(recorder, i, target_path, target, fiducials, initial_T, args, result
 
 
 def _warnings(result, config, placed) -> list[str]:
-    from liver_p2p_reg.registration.confidence import result_warnings
+    from liver_p2p_reg.registration.confidence import origin_warnings, result_warnings
     from liver_p2p_reg.structures_io import structure_bounds
 
-    warnings = list(result_warnings(result, config, structure_bounds(placed) or None).values())
-    if result.free_space.startswith("off"):  # an origin was given but cannot be the target's sensor
-        warnings.append(f"--sensor-origin ignored: {result.free_space.removeprefix('off: ')}")
-    return warnings
+    # an origin given that cannot be the target's sensor warns too (the recording's verdict says the same)
+    return [*result_warnings(result, config, structure_bounds(placed) or None).values(), *origin_warnings(result)]

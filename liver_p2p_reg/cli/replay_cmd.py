@@ -245,7 +245,7 @@ def _rerun(args: argparse.Namespace) -> int:
     if not report.ok:
         first = report.differences[0]
         print(
-            f"liver-p2p: error: {len(report.differences)} of {report.registrations} registrations differ from the "
+            f"liver-p2p: error: {report.registrations_differing} of {report.registrations} registrations differ from the "
             f"recording (first: {first})",
             file=sys.stderr,
         )

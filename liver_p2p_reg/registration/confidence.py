@@ -182,3 +182,11 @@ def result_warnings(
         )
     out.update({f"method{i}": message for i, message in enumerate(getattr(result, "warnings", []))})
     return out
+
+
+def origin_warnings(result: Any) -> list[str]:
+    """`liver-p2p register`'s warning when its --sensor-origin cannot be the target's sensor (free space off): the
+    command's JSON status and its flight recording's verdict both WARN for it."""
+    if not result.free_space.startswith("off"):
+        return []
+    return [f"--sensor-origin ignored: {result.free_space.removeprefix('off: ')}"]

@@ -132,8 +132,8 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
         edges = tuple(float(e) for e in raw["visibility_edges"])
         rival_edges = tuple(float(e) for e in raw.get("rival_ratio_edges", ()))
         # below the cap: the collections hold the ratio capped (log_rival_ratio), so the bench groups a pose as this does
-        if not all(1.0 <= e < RIVAL_RATIO_CAP for e in rival_edges) or list(rival_edges) != sorted(set(rival_edges)):
-            raise ValueError(f"rival_ratio_edges must be increasing ratios in [1, {RIVAL_RATIO_CAP:g})")
+        if not all(1.0 < e < RIVAL_RATIO_CAP for e in rival_edges) or list(rival_edges) != sorted(set(rival_edges)):
+            raise ValueError(f"rival_ratio_edges must be increasing ratios in (1, {RIVAL_RATIO_CAP:g})")
         coverages = tuple(float(c) for c in raw["coverages"])
         point_q, pose_q = np.asarray(raw["point_quantiles"], float), np.asarray(raw["pose_quantiles"], float)
         shape = ((len(edges) + 1) * (len(rival_edges) + 1), len(coverages))

@@ -181,8 +181,8 @@ def test_rival_classes_split_the_quantiles_as_the_product_groups_a_pose(tmp_path
 
 def test_a_calibration_with_unusable_rival_edges_is_one_line(tmp_path):
     raw = calibrate(synthetic_collection(0), seed=0, rival_edges=(1.5,))
-    for edges in ([0.5], [2.0, 1.5], [float("nan")], [4.0]):
-        with pytest.raises(InputError, match=r"rival_ratio_edges must be increasing ratios in \[1, 4\)"):
+    for edges in ([0.5], [1.0], [2.0, 1.5], [float("nan")], [4.0]):
+        with pytest.raises(InputError, match=r"rival_ratio_edges must be increasing ratios in \(1, 4\)"):
             _as_calibration(tmp_path, {**raw, "rival_ratio_edges": edges})
     with pytest.raises(InputError, match="quantiles must be 10 groups"):
         _as_calibration(tmp_path, {**raw, "rival_ratio_edges": [1.5], "pose_quantiles": raw["pose_quantiles"][:5]})
