@@ -131,6 +131,7 @@ RCLPY_ADAPTERS = {
     "bags/player.py",
     "livegraph/graph.py",
     "livegraph/demo.py",
+    "livegraph/cloud_delivery.py",  # the two-process probe of large clouds over Fast DDS (bench_dds_clouds.py)
 }
 ROS_PYTHON = r"(rclpy|lifecycle_msgs|rosgraph_msgs|sensor_msgs|geometry_msgs|diagnostic_msgs|std_msgs|std_srvs|rcl_interfaces|builtin_interfaces|tf2_ros)"
 
