@@ -6,7 +6,8 @@
 A publisher process sends `--count` /intraop/points clouds (float32 x y z, a 640 x 480 depth frame's 307 200 points
 and 1 M points) at `--rate-hz` with the topic's QoS (best effort, keep last 5) to a subscriber process on an isolated
 localhost-only graph, as a camera driver and register_node would; the subscriber counts the complete clouds. Each
-size runs with Fast DDS's defaults and with the bundled profile, `--repeats` times, alternating. Run it on an idle
+size runs with Fast DDS's defaults and with the bundled profile (in FASTRTPS_DEFAULT_PROFILES_FILE, which Fast
+DDS 2.x reads), `--repeats` times, alternating. Run it on an idle
 machine: a busy one loses more without the profile.
 """
 
@@ -41,7 +42,7 @@ def main() -> int:
         results.setdefault((points, profile is not None), []).append(run)
     lines = [
         "| points per cloud | MB per cloud | Fast DDS profile | complete clouds received, per run | "
-        "shared-memory segment (MB) |",
+        "the publisher's own shared-memory segment (MiB) |",
         "|---|---|---|---|---|",
     ]
     for (points, profiled), got in results.items():
@@ -53,7 +54,8 @@ def main() -> int:
     caption = (
         f"Generated {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC on {os.cpu_count()} CPUs ({cpu_model()}), load "
         f"average at the end {load:.2f}; {args.count} clouds at {args.rate_hz:g} Hz per run, best effort, keep last 5, "
-        "localhost-only discovery.\n\nCommand: `.venv/bin/python scripts/bench_dds_clouds.py"
+        "localhost-only discovery; the profile given to both processes in FASTRTPS_DEFAULT_PROFILES_FILE (the name Fast "
+        "DDS 2.x, ROS 2 Jazzy's, reads).\n\nCommand: `.venv/bin/python scripts/bench_dds_clouds.py"
         + (f" --readme {args.readme}`" if args.readme else "`")
     )
     write_headline(caption, lines, args.readme, MARK)

@@ -83,6 +83,7 @@ def test_colcon_install_layout(tmp_path: Path) -> None:
     assert (share / "ament_index" / "resource_index" / "packages" / PACKAGE).is_file()
     assert (share / PACKAGE / "package.xml").is_file()
     assert (share / PACKAGE / "config" / "registration.yaml").is_file()
+    assert (share / PACKAGE / "config" / "fastdds_large_clouds.xml").is_file()  # docs/ros2.md names this path
     for launch_file in (ROOT / "launch").glob("*.py"):
         assert (share / PACKAGE / "launch" / launch_file.name).is_file()
     for bag_file in (ROOT / "bags").rglob("*"):
