@@ -10,7 +10,7 @@ import numpy as np
 from liver_p2p_reg.bench.bound_data import pose_index
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN, RIVAL_RATIO_CAP
-from liver_p2p_reg.registration.error_calibration import FORMAT, error_scale_mm
+from liver_p2p_reg.registration.error_calibration import FORMAT, error_scale_mm, group_index
 
 COVERAGES = (0.8, 0.9, 0.95)
 VISIBILITY_EDGES = (0.1, 0.15, 0.2, 0.3)  # the protocol's bins, on the voxelized M/N known at run time
@@ -75,12 +75,6 @@ def conformal_quantile(values: np.ndarray, weights: np.ndarray, coverage: float,
     return float(values[order][min(np.searchsorted(cum, level - 1e-12), len(values) - 1)])
 
 
-def group_of(visibility: np.ndarray, edges: tuple[float, ...] = VISIBILITY_EDGES) -> np.ndarray:
-    """Visibility group of each pose (its run-time M/N), as BoundCalibration.group computes it."""
-    v = np.where(np.isfinite(visibility), visibility, 0.0)
-    return np.searchsorted(np.asarray(edges), v, side="right")
-
-
 def pose_rival_ratio(data: dict[str, np.ndarray]) -> np.ndarray:
     """Per pose its rival ratio as the features hold it (log_rival_ratio, capped to [1, RIVAL_RATIO_CAP]): the same
     for every point of a pose, read from its first marker (else its first stand-in point); the cap where none."""
@@ -96,13 +90,10 @@ def pose_rival_ratio(data: dict[str, np.ndarray]) -> np.ndarray:
 def groups_of(
     data: dict[str, np.ndarray], visibility_edges: tuple[float, ...], rival_edges: tuple[float, ...] = ()
 ) -> np.ndarray:
-    """Group of each pose, as BoundCalibration.group computes it: visibility group, and with rival edges its rival
-    class (below an edge: contested) times the number of visibility groups."""
-    by_visibility = group_of(data["method_visibility"], visibility_edges)
-    if not rival_edges:
-        return by_visibility
-    rival_class = np.searchsorted(np.asarray(rival_edges), pose_rival_ratio(data), side="right")
-    return by_visibility + (len(visibility_edges) + 1) * rival_class
+    """Group of each pose (`error_calibration.group_index`, as the product groups it), its rival ratio read from its
+    features where there are rival edges."""
+    ratio = pose_rival_ratio(data) if rival_edges else RIVAL_RATIO_CAP
+    return group_index(data["method_visibility"], ratio, visibility_edges, rival_edges)
 
 
 def calibrate(
@@ -125,7 +116,7 @@ def calibrate(
     point, pose = scores(data, coef)
     per = pose_index(data)
     cal = ok & np.isin(data["liver_id"], cal_livers)
-    by_visibility = group_of(data["method_visibility"])
+    by_visibility = groups_of(data, VISIBILITY_EDGES)
     groups = groups_of(data, VISIBILITY_EDGES, rival_edges)
     n_visibility = len(VISIBILITY_EDGES) + 1
 

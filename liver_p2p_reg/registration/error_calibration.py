@@ -38,6 +38,20 @@ def error_scale_mm(features: np.ndarray, coefficients: np.ndarray) -> np.ndarray
     return np.where(np.isfinite(scale), scale, np.inf)
 
 
+def group_index(
+    visibility: Any, rival_ratio: Any, visibility_edges: tuple[float, ...], rival_edges: tuple[float, ...] = ()
+) -> np.ndarray:
+    """The quantiles' group of each pose: its visibility group (its voxelized M/N, known at run time; 0 where not
+    finite) plus, with rival edges, its rival class (its best rival's residual over the best; at or above an edge:
+    clear; not finite: clear) times the number of visibility groups. The product and the calibration's bench both
+    group poses here, so a judged bound is the bound the product computes."""
+    v = np.where(np.isfinite(visibility), visibility, 0.0)
+    r = np.where(np.isfinite(rival_ratio), rival_ratio, RIVAL_RATIO_CAP)
+    by_visibility = np.searchsorted(np.asarray(visibility_edges, float), v, side="right")
+    rival_class = np.searchsorted(np.asarray(rival_edges, float), r, side="right")  # no edges: 0
+    return by_visibility + (len(visibility_edges) + 1) * rival_class
+
+
 @dataclass(frozen=True)
 class BoundCalibration:
     """Scale model exp(features . coefficients) and, per group (visibility, and rival class where the calibration
@@ -67,13 +81,8 @@ class BoundCalibration:
         return error_scale_mm(features, self.coefficients)
 
     def group(self, visibility: float, rival_ratio: float = RIVAL_RATIO_CAP) -> int:
-        """Index of the group a pose belongs to: its visibility group (its voxelized M/N, known at run time) and,
-        with rival edges, its rival class (its best rival's residual over the best, `PoseEvidence.rival_ratio`)."""
-        v = float(visibility) if np.isfinite(visibility) else 0.0
-        by_visibility = int(np.searchsorted(np.asarray(self.visibility_edges), v, side="right"))
-        r = float(rival_ratio) if np.isfinite(rival_ratio) else RIVAL_RATIO_CAP  # no usable rival: clear
-        rival_class = int(np.searchsorted(np.asarray(self.rival_ratio_edges), r, side="right"))
-        return by_visibility + (len(self.visibility_edges) + 1) * rival_class
+        """Index of the group a pose belongs to (`group_index`, with this calibration's edges)."""
+        return int(group_index(visibility, rival_ratio, self.visibility_edges, self.rival_ratio_edges))
 
     def column(self, coverage: float) -> int:
         """The quantiles' column of this coverage; a coverage it was not calibrated for is refused."""
