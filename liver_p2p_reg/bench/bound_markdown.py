@@ -10,6 +10,7 @@ from liver_p2p_reg.bench.bound_data import subset
 from liver_p2p_reg.bench.bound_report import (
     BAD_MM,
     TRUE_BINS,
+    bad_ok_mask,
     bin_rows,
     bootstrap_coverage,
     judge,
@@ -44,7 +45,6 @@ def results_page(
     per_bin = [r for r in rows if r["bin"] != "[0.05, 0.30)"]
     pooled = float(np.mean(judged["covered"]))
     lo, hi = bootstrap_coverage(data, judged, seed)
-    bad_ok = int(sum(r["bad_ok"] for r in per_bin))
     good = data["rms_mm"] < BAD_MM
     good_warned = float(np.mean(judged["warned"][good])) if good.any() else float("nan")
     ratio = max(r["width_ratio"] for r in per_bin)
@@ -53,6 +53,7 @@ def results_page(
     few = min(r["poses"] for r in per_bin)
     worst = worst_ok_mm(data, judged, np.ones(len(data["count"]), dtype=bool))
     passed = passed_bad(data, judged)
+    bad_ok = passed["count"]  # the page's poses are its bins' (cut to their visibility range above)
     sets = ", ".join(sorted(set(str(s) for s in data["set"])))
     what = "the deformed positions" if deformed else "the pose's positions"
     page = "error_bound_deformed.md" if deformed else "error_bound.md"
@@ -154,7 +155,7 @@ def _passed_line(passed: dict[str, float], worst: float) -> str:
 
 def _passed_table(data: dict[str, np.ndarray], judged: dict[str, np.ndarray]) -> list[str]:
     """One row per bad pose with an OK verdict, worst first: which case, how far off, under which bound."""
-    hit = np.flatnonzero((data["rms_mm"] >= BAD_MM) & ~judged["warned"])
+    hit = np.flatnonzero(bad_ok_mask(data, judged))
     if not len(hit):
         return []
     lines = [

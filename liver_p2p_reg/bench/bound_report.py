@@ -71,12 +71,17 @@ def _row(data: dict, judged: dict, per: np.ndarray, sel: np.ndarray, fam: str, l
         "median_error_mm": float(np.median(err)),
         "width_ratio": float(np.median(bounds) / max(np.median(err), 1e-9)),
         "bad": int((sel & bad).sum()),
-        "bad_ok": int((sel & bad & ~warned).sum()),
+        "bad_ok": int((sel & bad_ok_mask(data, judged)).sum()),
         "worst_ok_mm": worst_ok_mm(data, judged, sel),
         "good_warned": float((good & warned).sum() / max(good.sum(), 1)),
         "bad_by_bound_only": int((sel & bad & judged["bound_warns"] & ~judged["other_warns"]).sum()),
         "bad_by_others_only": int((sel & bad & ~judged["bound_warns"] & judged["other_warns"]).sum()),
     }
+
+
+def bad_ok_mask(data: dict[str, np.ndarray], judged: dict[str, np.ndarray]) -> np.ndarray:
+    """Per pose: bad (interior RMS error >= BAD_MM) and given an OK verdict."""
+    return (data["rms_mm"] >= BAD_MM) & ~judged["warned"]
 
 
 def worst_ok_mm(data: dict[str, np.ndarray], judged: dict[str, np.ndarray], sel: np.ndarray) -> float:
@@ -89,7 +94,7 @@ def worst_ok_mm(data: dict[str, np.ndarray], judged: dict[str, np.ndarray], sel:
 def passed_bad(data: dict[str, np.ndarray], judged: dict[str, np.ndarray]) -> dict[str, float]:
     """The bad poses with an OK verdict: how many, their interior RMS errors' range and their interior bounds'
     range (mm), and how many of them lie 1.5x the bad threshold or more off (NaN ranges when there are none)."""
-    hit = (data["rms_mm"] >= BAD_MM) & ~judged["warned"]
+    hit = bad_ok_mask(data, judged)
     err, bound = data["rms_mm"][hit], judged["pose_bound"][hit]
     nan = float("nan")
     return {
