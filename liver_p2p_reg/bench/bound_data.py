@@ -211,4 +211,7 @@ def load_cached(path: Path) -> dict[str, np.ndarray] | None:
     if missing:
         log.warning("%s: cache lacks %s; collecting the set again", path, ", ".join(missing))
         return None
+    if data["features"].ndim != 2 or data["features"].shape[1] != len(FEATURES):  # made before a feature was added
+        log.warning("%s: cache holds other features; collecting the set again", path)
+        return None
     return data

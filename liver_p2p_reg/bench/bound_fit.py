@@ -16,6 +16,9 @@ COVERAGES = (0.8, 0.9, 0.95)
 VISIBILITY_EDGES = (0.1, 0.15, 0.2, 0.3)  # the protocol's bins, on the voxelized M/N known at run time
 ERROR_FLOOR_MM = 0.5  # log(error + floor): sub-millimetre errors do not dominate the scale fit
 MIN_GROUP = 30  # fewer calibration poses in a visibility group: it takes the pooled quantiles
+# The features calibrate-bound fits the scale on: the first this many of FEATURES (the seven before log_halves;
+# docs/benchmark_real/RULE_bound_halves.md decides whether the eighth joins).
+SCALE_FEATURES = 7
 
 
 def split_livers(liver_ids: np.ndarray, seed: int, sources: np.ndarray | None = None) -> tuple[list[int], list[int]]:
@@ -40,13 +43,15 @@ def liver_source(set_names: np.ndarray) -> np.ndarray:
     return np.array([str(name).split("-")[0] for name in set_names])
 
 
-def fit_scale(data: dict[str, np.ndarray], poses: np.ndarray) -> np.ndarray:
-    """Least-squares coefficients of log(error + floor) on the features, each pose weighted equally."""
+def fit_scale(data: dict[str, np.ndarray], poses: np.ndarray, n_features: int = len(FEATURES)) -> np.ndarray:
+    """Least-squares coefficients of log(error + floor) on the first `n_features` features, each pose weighted
+    equally."""
     per = pose_index(data)
-    mask = np.isin(per, poses) & np.all(np.isfinite(data["features"]), axis=1)
-    if mask.sum() < len(FEATURES) * 10:
+    X = data["features"][:, :n_features]
+    mask = np.isin(per, poses) & np.all(np.isfinite(X), axis=1)
+    if mask.sum() < n_features * 10:
         raise InputError(f"too few usable markers to fit the error scale ({int(mask.sum())})")
-    X, y = data["features"][mask], np.log(data["errors"][mask] + ERROR_FLOOR_MM)
+    X, y = X[mask], np.log(data["errors"][mask] + ERROR_FLOOR_MM)
     w = np.sqrt(1.0 / data["count"][per[mask]])
     coef, *_ = np.linalg.lstsq(X * w[:, None], y * w, rcond=None)
     return coef
@@ -102,17 +107,19 @@ def calibrate(
     coverages: tuple[float, ...] = COVERAGES,
     rival_edges: tuple[float, ...] = (),
     swap: bool = False,
+    n_features: int = SCALE_FEATURES,
 ) -> dict[str, Any]:
     """The calibration (JSON-ready) from collected validation poses; failed poses are left out (they warn).
 
     `rival_edges`: quantiles per visibility group and rival class (a class's cell with fewer than MIN_GROUP
-    calibration poses takes its visibility group's); `swap`: the liver halves swapped (cross-fitting)."""
+    calibration poses takes its visibility group's); `swap`: the liver halves swapped (cross-fitting);
+    `n_features`: the scale model's features, the first this many of FEATURES."""
     ok = data["ok"].astype(bool)
     fit_livers, cal_livers = split_livers(data["liver_id"][ok], seed, liver_source(data["set"][ok]))
     if swap:
         fit_livers, cal_livers = cal_livers, fit_livers
     poses = np.arange(len(ok))
-    coef = fit_scale(data, poses[ok & np.isin(data["liver_id"], fit_livers)])
+    coef = fit_scale(data, poses[ok & np.isin(data["liver_id"], fit_livers)], n_features)
     point, pose = scores(data, coef)
     per = pose_index(data)
     cal = ok & np.isin(data["liver_id"], cal_livers)
@@ -143,7 +150,7 @@ def calibrate(
     return {
         "format": FORMAT,
         "version": 1,
-        "features": list(FEATURES),
+        "features": list(FEATURES[:n_features]),
         "coefficients": [float(c) for c in coef],
         "visibility_edges": list(VISIBILITY_EDGES),
         "coverages": list(coverages),

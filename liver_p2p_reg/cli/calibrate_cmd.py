@@ -210,22 +210,33 @@ def _applied(data: dict, args: argparse.Namespace) -> dict:
 def collected_set(folder: Path, args: argparse.Namespace, config: Config, weights: str) -> dict:
     """The collected poses of a set: from the cache when made with the same cases, settings and weights."""
     from liver_p2p_reg.bench import bound_data
-    from liver_p2p_reg.bench.cases import list_case_paths
-    from liver_p2p_reg.registration.error_bound import FEATURES
 
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder of cases (make it with liver-p2p dataset)")
-    # keyed by the cases' content, not their names: a set regenerated under the same names is registered again
-    cases = [[p.name, _file_sha256(p)] for p in list_case_paths(folder)]
-    key = json.dumps([config.to_dict(), weights, FEATURES, args.noise_mm, cases])
-    stamp = hashlib.sha256(key.encode()).hexdigest()[:16]
-    cache = Path(args.cache) / f"{folder.name}-noise{args.noise_mm:g}mm-{stamp}.npz"
+    cache = collection_cache(folder, args, config, weights)
     cached = bound_data.load_cached(cache) if cache.exists() else None
     if cached is not None:
         return cached
     data = bound_data.collect_set(folder, args.noise_mm, config, args.workers, progress=sys.stderr.isatty())
     bound_data.save(cache, data)
     return data
+
+
+def collection_cache(
+    folder: Path, args: argparse.Namespace, config: Config, weights: str, evidence: dict | None = None
+) -> Path:
+    """Where a set's collection is cached: keyed by the cases' content (not their names: a set regenerated under
+    the same names is registered again), the settings, the weights, the features and what they are computed with
+    (`evidence`, default error_bound.EVIDENCE_SETTINGS: a change of the interior's stand-in or of a feature's
+    sampling is a new collection, never a stale one reused silently) and the noise."""
+    from liver_p2p_reg.bench.cases import list_case_paths
+    from liver_p2p_reg.registration.error_bound import EVIDENCE_SETTINGS, FEATURES
+
+    cases = [[p.name, _file_sha256(p)] for p in list_case_paths(folder)]
+    settings = EVIDENCE_SETTINGS if evidence is None else evidence
+    key = json.dumps([config.to_dict(), weights, FEATURES, settings, args.noise_mm, cases])
+    stamp = hashlib.sha256(key.encode()).hexdigest()[:16]
+    return Path(args.cache) / f"{folder.name}-noise{args.noise_mm:g}mm-{stamp}.npz"
 
 
 def _file_sha256(path: Path) -> str:

@@ -10,6 +10,7 @@ import numpy as np
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.confidence import motion_jacobian, pca_normals
 from liver_p2p_reg.registration.nearest import NearestIndex
+from liver_p2p_reg.registration.refine import trimmed_icp
 
 MAX_SOURCE = 3000  # preop points the fit's Hessian is built on (a stride sample: ~1 ms tree)
 MAX_VIEW = 2000  # intraop points kept to measure each point's distance from the visible patch
@@ -22,10 +23,37 @@ INTERIOR_SHRINK = 0.5
 INTERIOR_POINTS = 300  # stride sample of the preop surface the interior stand-in is made of
 # What a calibration records as the interior its pose quantiles were made over (files without it: the fiducials).
 INTERIOR_STAND_IN = f"preop surface sample shrunk {INTERIOR_SHRINK:g} to its centroid"
-# The features every bound is computed from, in this order (the calibration's coefficients follow it).
-FEATURES = ("const", "log_rigid", "log_lever", "log_residual", "log_visibility", "log_rival_gap", "log_rival_ratio")
+# The features every bound is computed from, in this order. A calibration's coefficients follow a prefix of it: files
+# made before log_halves hold the first seven (docs/benchmark_real/RULE_bound_halves.md).
+FEATURES = (
+    "const",
+    "log_rigid",
+    "log_lever",
+    "log_residual",
+    "log_visibility",
+    "log_rival_gap",
+    "log_rival_ratio",
+    "log_halves",
+)
 RIVAL_GAP_MM = 5.0  # a hypothesis whose pose differs by more than this on the organ is a rival, not the same pose
 RIVAL_RATIO_CAP = 4.0  # no rival, or one fitting this much worse: as good as none
+HALF_POINTS = 300  # view points each half-view refit uses (a stride sample)
+HALF_MIN_POINTS = 12  # a half with fewer is left out
+HALF_ITERATIONS = 5  # ICP iterations of each half-view refit
+# What the features are computed with: a collection of them made with other values is not reused (calibrate-bound).
+EVIDENCE_SETTINGS = {
+    "max_source": MAX_SOURCE,
+    "max_view": MAX_VIEW,
+    "min_pairs": MIN_PAIRS,
+    "max_pairs": MAX_PAIRS,
+    "interior_shrink": INTERIOR_SHRINK,
+    "interior_points": INTERIOR_POINTS,
+    "rival_gap_mm": RIVAL_GAP_MM,
+    "rival_ratio_cap": RIVAL_RATIO_CAP,
+    "half_points": HALF_POINTS,
+    "half_min_points": HALF_MIN_POINTS,
+    "half_iterations": HALF_ITERATIONS,
+}
 
 
 @dataclass(frozen=True)
@@ -44,6 +72,8 @@ class PoseEvidence:
     # the best-fitting rival hypothesis (another basin): its pose and residual / the best residual
     rival_T: np.ndarray | None = None
     rival_ratio: float = RIVAL_RATIO_CAP
+    # the poses (preop frame, relative to the pose) of the view's halves refitted alone: a bent view disagrees
+    half_T: tuple[np.ndarray, ...] = ()
 
     def rigid_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """RMS displacement of each point under the pose's misfit-driven covariance (mm); inf if unconstrained."""
@@ -73,7 +103,16 @@ class PoseEvidence:
             out[:, 4] = np.log(max(self.visibility, 1e-3)) if np.isfinite(self.visibility) else np.nan
             out[:, 5] = 0.0 if self.rival_T is None else np.log1p(self.rival_gap_mm(points_mm))
             out[:, 6] = np.log(min(max(self.rival_ratio, 1.0), RIVAL_RATIO_CAP))
+            out[:, 7] = np.log1p(self.halves_mm(points_mm))
         return out
+
+    def halves_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """RMS over the half-view refits of how far each point moves from the pose (mm); 0 without halves."""
+        points_mm = np.asarray(points_mm, float).reshape(-1, 3)
+        if not self.half_T:
+            return np.zeros(len(points_mm))
+        moved2 = [np.sum((transform_points(T, points_mm) - points_mm) ** 2, axis=1) for T in self.half_T]
+        return np.sqrt(np.mean(moved2, axis=0))
 
     def rival_gap_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """How far each point lies between the chosen pose and the rival's (mm): where a flip would move it."""
@@ -109,7 +148,7 @@ def pose_evidence(
     tree = NearestIndex(source)
     dist, idx = tree.query(view)
     centre = view.mean(axis=0)
-    cov, sigma = np.full((6, 6), np.inf), float("nan")
+    cov, sigma, halves = np.full((6, 6), np.inf), float("nan"), ()
     # finite only: a view moved beyond float range pairs nothing (its index would be the tree's size)
     keep = np.flatnonzero(np.isfinite(dist) & (dist <= 3.0 * max(float(np.median(dist)), 1e-6)))
     if len(keep) >= MIN_PAIRS:
@@ -118,7 +157,9 @@ def pose_evidence(
     if len(keep) >= MIN_PAIRS:
         p, s = view[keep], source[idx[keep]]
         at, back = np.unique(idx[keep], return_inverse=True)  # one normal per preop point paired
-        n = pca_normals(source, tree, at)[back]
+        normals = pca_normals(source, tree, at)
+        n = normals[back]
+        halves = half_view_refits(view, p, source[at], normals, trim_ratio)
         J = np.hstack([np.cross(p - centre, n), n])  # d(misfit)/d(omega, v) per pair
         sigma = float(np.sqrt(np.mean(np.einsum("ij,ij->i", p - s, n) ** 2)))
         try:
@@ -137,8 +178,42 @@ def pose_evidence(
         visibility=float(visibility),
         interior_mm=interior_mm,
         view_tree=NearestIndex(view),
+        half_T=halves,
         **_rival(T, hypotheses, interior_mm, residual_mm),
     )
+
+
+def half_view_refits(
+    view: np.ndarray, paired: np.ndarray, surface: np.ndarray, normals: np.ndarray, trim_ratio: float
+) -> tuple[np.ndarray, ...]:
+    """Each half of the view refitted alone onto the paired preop surface (mm, preop frame), from the pose: the
+    view cut through its paired points' centroid across their two longest principal axes, four halves; each half's
+    motion (4x4) from the pose. A rigid view's halves agree; a bent one's pull the pose their own ways, and the
+    tilt they disagree by is what reaches the interior (docs/benchmark_real/RULE_bound_halves.md)."""
+    centre = paired.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((paired - centre).T))
+    index = (NearestIndex(surface), normals)  # the paired points and their normals: ~600, built once
+    out = []
+    for axis in (axes[:, 2], axes[:, 1]):
+        side = (view - centre) @ axis
+        for half in (view[side <= 0], view[side > 0]):
+            half = half[:: max(1, len(half) // HALF_POINTS)]
+            if len(half) < HALF_MIN_POINTS:
+                continue
+            # trimmed_icp moves the "target" (the half) onto the "source" (the surface); its T maps the surface onto
+            # the half, so the half moves by the inverse. tol 0: always HALF_ITERATIONS (a fixed cost)
+            T = trimmed_icp(
+                np.eye(4),
+                surface,
+                half,
+                max_iterations=HALF_ITERATIONS,
+                max_corr=np.inf,
+                trim_ratio=trim_ratio,
+                tol=0.0,
+                source_index=index,
+            )
+            out.append(np.linalg.inv(T))
+    return tuple(out)
 
 
 def interior_stand_in(source_mm: np.ndarray) -> np.ndarray:

@@ -32,9 +32,12 @@ FORMAT = "liver_p2p_reg error-bound calibration"
 
 
 def error_scale_mm(features: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
-    """The scale model exp(features . coefficients) (mm) of each row; inf where it is not finite."""
+    """The scale model exp(features . coefficients) (mm) of each row; inf where it is not finite. The coefficients
+    follow a prefix of FEATURES (a calibration of fewer features): the columns beyond it are not used at all, so
+    such a calibration's bound is bitwise what it was before the later features existed."""
+    coefficients = np.asarray(coefficients, float)
     with np.errstate(over="ignore", invalid="ignore"):
-        scale = np.exp(np.asarray(features, float) @ coefficients)
+        scale = np.exp(np.asarray(features, float)[:, : len(coefficients)] @ coefficients)
     return np.where(np.isfinite(scale), scale, np.inf)
 
 
@@ -57,7 +60,7 @@ class BoundCalibration:
     """Scale model exp(features . coefficients) and, per group (visibility, and rival class where the calibration
     has rival edges) and coverage, conformal quantiles."""
 
-    coefficients: np.ndarray  # (len(FEATURES),)
+    coefficients: np.ndarray  # (k,): of the first k FEATURES (files made before log_halves: the first seven)
     visibility_edges: tuple[float, ...]  # groups: below the first edge, between edges, above the last
     coverages: tuple[float, ...]
     point_quantiles: np.ndarray  # (groups, coverages): error / scale at one point
@@ -136,8 +139,9 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
         if raw.get("format") != FORMAT:
             raise ValueError(f"format is not '{FORMAT}'")
         coefficients = np.asarray(raw["coefficients"], float)
-        if raw["features"] != list(FEATURES) or coefficients.shape != (len(FEATURES),):
-            raise ValueError(f"features must be {list(FEATURES)}")
+        names = list(raw["features"])
+        if not names or names != list(FEATURES[: len(names)]) or coefficients.shape != (len(names),):
+            raise ValueError(f"features must be the first of {list(FEATURES)}, one coefficient each")
         edges = tuple(float(e) for e in raw["visibility_edges"])
         rival_edges = tuple(float(e) for e in raw.get("rival_ratio_edges", ()))
         # below the cap: the collections hold the ratio capped (log_rival_ratio), so the bench groups a pose as this does

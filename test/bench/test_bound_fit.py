@@ -25,11 +25,14 @@ from liver_p2p_reg.registration.error_bound import FEATURES
 from liver_p2p_reg.registration.error_calibration import FORMAT, read_calibration
 
 
-def synthetic_collection(seed: int, poses: int = 400, markers: int = 40, interior: int = 10) -> dict[str, np.ndarray]:
+def synthetic_collection(
+    seed: int, poses: int = 400, markers: int = 40, interior: int = 10, halves_weight: float = 0.0
+) -> dict[str, np.ndarray]:
     """Poses whose marker errors are |N(0, s^2 I)| with s = exp(features . w): a law the fit can find; the first
-    `interior` markers of each pose stand in for its interior (where the pose-level bound is taken)."""
+    `interior` markers of each pose stand in for its interior (where the pose-level bound is taken). The eighth
+    feature (log_halves) is drawn from a stream of its own and weighs `halves_weight` in the law."""
     rng = np.random.default_rng(seed)
-    w = np.array([0.3, 0.8, 0.4, 0.2, -0.3, 0.3, -0.5])
+    w = np.array([0.3, 0.8, 0.4, 0.2, -0.3, 0.3, -0.5, halves_weight])
     vis = rng.uniform(0.05, 0.4, poses)
     feats = np.empty((poses * markers, len(FEATURES)))
     feats[:, 0] = 1.0
@@ -39,6 +42,7 @@ def synthetic_collection(seed: int, poses: int = 400, markers: int = 40, interio
     feats[:, 4] = np.repeat(np.log(vis), markers)
     feats[:, 5] = rng.uniform(0, 3, len(feats))
     feats[:, 6] = np.repeat(rng.uniform(0, np.log(4), poses), markers)
+    feats[:, 7] = np.random.default_rng(seed + 1000).uniform(0, 2, len(feats))
     scale = np.exp(feats @ w)
     errors = scale * np.linalg.norm(rng.normal(size=(len(feats), 3)), axis=1) / np.sqrt(3)
     per = np.repeat(np.arange(poses), markers)
@@ -186,3 +190,20 @@ def test_a_calibration_with_unusable_rival_edges_is_one_line(tmp_path):
             _as_calibration(tmp_path, {**raw, "rival_ratio_edges": edges})
     with pytest.raises(InputError, match="quantiles must be 10 groups"):
         _as_calibration(tmp_path, {**raw, "rival_ratio_edges": [1.5], "pose_quantiles": raw["pose_quantiles"][:5]})
+
+
+def test_the_scale_model_takes_the_half_view_feature_when_asked_and_only_then(tmp_path):
+    data = synthetic_collection(0, halves_weight=0.6)
+    seven, eight = calibrate(data, seed=0, n_features=7), calibrate(data, seed=0, n_features=8)
+    assert seven["features"] == list(FEATURES[:7]) and len(seven["coefficients"]) == 7
+    assert eight["features"] == list(FEATURES) and abs(eight["coefficients"][7] - 0.6) < 0.05
+    assert len(_as_calibration(tmp_path, eight).coefficients) == 8
+    # the law's eighth term is what the seven-feature scale cannot follow: markers where it is large are covered
+    # less than their share and those where it is small more; the eight-feature bound covers both alike
+    high = data["features"][:, 7] > 1.5
+    gaps = []
+    for raw in (seven, eight):
+        point_bound, _ = coverage_at(data, _as_calibration(tmp_path, raw), 0.9)
+        covered = data["errors"] <= point_bound
+        gaps.append(np.mean(covered[~high]) - np.mean(covered[high]))
+    assert gaps[0] > 0.15 and abs(gaps[1]) < 0.03  # measured: 0.24 and 0.01

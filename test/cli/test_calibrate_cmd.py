@@ -145,6 +145,36 @@ def test_a_damaged_cache_entry_is_collected_again(small_set, tmp_path, capsys, c
         caplog.clear()
 
 
+def test_a_collection_made_before_a_feature_was_added_is_collected_again(small_set, tmp_path, capsys, caplog):
+    from liver_p2p_reg.bench import bound_data
+
+    out, cache = tmp_path / "cal.json", tmp_path / "cache"
+    assert _quick(small_set, out) == 0
+    (entry,) = cache.iterdir()
+    first, data = out.read_bytes(), bound_data.load(entry)
+    for key in ("features", "interior_features"):  # as a collection of the seven features before log_halves
+        data[key] = data[key][:, :7]
+    bound_data.save(entry, data)
+    assert _quick(small_set, out) == 0
+    assert "holds other features" in caplog.text and "unchanged" in capsys.readouterr().out
+    assert out.read_bytes() == first and bound_data.load(entry)["features"].shape[1] == 8
+
+
+def test_another_interior_stand_in_keys_another_collection(small_set, tmp_path):
+    import argparse
+
+    from liver_p2p_reg.cli.calibrate_cmd import collection_cache
+    from liver_p2p_reg.config import Config
+    from liver_p2p_reg.registration.error_bound import EVIDENCE_SETTINGS
+
+    args, config = argparse.Namespace(cache=str(tmp_path), noise_mm=2.0), Config(method="icp")
+    ours = collection_cache(small_set[0], args, config, "")
+    assert ours == collection_cache(small_set[0], args, config, "", dict(EVIDENCE_SETTINGS))
+    for name in ("interior_shrink", "interior_points", "half_points"):
+        other = {**EVIDENCE_SETTINGS, name: EVIDENCE_SETTINGS[name] * 2}
+        assert collection_cache(small_set[0], args, config, "", other) != ours, name
+
+
 def test_outputs_are_checked_before_any_registration(small_set, tmp_path, capsys):
     folder = small_set[0]
     report, readme = tmp_path / "mine.md", tmp_path / "README.md"
