@@ -14,9 +14,9 @@ page's `--block`.
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +27,7 @@ from liver_p2p_reg.bench.bound_markdown import results_page
 from liver_p2p_reg.bench.bound_report import TRUE_BINS, judge
 from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.registration.error_calibration import read_calibration
+from liver_p2p_reg.registration.error_calibration import calibration_from_dict, read_calibration
 
 
 def _calibration(path: str) -> Any:
@@ -37,10 +37,11 @@ def _calibration(path: str) -> Any:
     text = subprocess.run(["git", "show", path], capture_output=True, text=True)
     if text.returncode != 0:
         raise SystemExit(f"{path}: neither a file nor a git revision's file ({text.stderr.strip()})")
-    with tempfile.TemporaryDirectory() as folder:
-        copy = Path(folder) / "calibration.json"
-        copy.write_text(text.stdout)
-        return read_calibration(copy)
+    try:
+        raw = json.loads(text.stdout)
+    except ValueError as exc:
+        raise SystemExit(f"{path}: not JSON ({exc})") from None
+    return calibration_from_dict(raw, path)
 
 
 def main() -> int:

@@ -11,55 +11,20 @@ did not calibrate its quantiles on; the table, the rule's verdict and the chosen
 from __future__ import annotations
 
 import argparse
-import json
-import math
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
-import numpy as np
-
 from liver_p2p_reg.bench import bound_data
-from liver_p2p_reg.bench.bound_fit import calibrate
-from liver_p2p_reg.bench.bound_report import BAD_MM, TRUE_BINS, judge
+from liver_p2p_reg.bench.bound_report import TRUE_BINS
+from liver_p2p_reg.bench.bound_select import cross_fitted
 from liver_p2p_reg.cli.calibrate_cmd import DEFAULT_VAL, collected_set
 from liver_p2p_reg.config import Config
-from liver_p2p_reg.registration.error_calibration import read_calibration
 from liver_p2p_reg.registration.weights_id import weights_sha256
 
 CANDIDATES = (None, 1.25, 1.5, 2.0)  # the rule's r; None: today's calibration (visibility groups only)
-SEED = 0
 MIN_GAIN = 0.02  # (b) at least 2 points below none's
 TIE = 0.005  # within 0.5 points: the larger r
 COVERAGE_FLOOR = 0.85
-
-
-def evaluate(data: dict, rival_edges: tuple[float, ...], config: Config) -> dict:
-    """Both folds' verdicts summed: bad poses with OK, good poses warned, marker coverage per true-visibility bin."""
-    bad_ok = good = good_warned = 0
-    covered = {b: [] for b in TRUE_BINS}
-    for swap in (False, True):
-        raw = calibrate(data, SEED, rival_edges=rival_edges, swap=swap)
-        held_out = np.isin(data["liver_id"], raw["fit_livers"])  # the half whose quantiles it did not make
-        in_range = (data["visibility"] >= TRUE_BINS[0][0]) & (data["visibility"] < TRUE_BINS[-1][1])
-        part = bound_data.subset(data, held_out & in_range)
-        with tempfile.TemporaryDirectory() as folder:
-            path = Path(folder) / "calibration.json"
-            path.write_text(json.dumps({**raw, "method": config.method, "weights_sha256": ""}))
-            cal = read_calibration(path)
-        judged = judge(part, cal, config.error_coverage, config.structure_error_warn_mm)
-        bad = part["rms_mm"] >= BAD_MM
-        bad_ok += int((bad & ~judged["warned"]).sum())
-        good += int((~bad).sum())
-        good_warned += int((~bad & judged["warned"]).sum())
-        for lo, hi in TRUE_BINS:
-            sel = (part["visibility"] >= lo) & (part["visibility"] < hi)
-            covered[(lo, hi)] += judged["covered"][sel].tolist()
-    return {
-        "bad_ok": bad_ok,
-        "good_warned": good_warned / max(good, 1),
-        "coverage": {b: float(np.mean(v)) if v else math.nan for b, v in covered.items()},
-    }
 
 
 def choose(rows: dict) -> tuple[float | None, list[str]]:
@@ -95,7 +60,8 @@ def main() -> int:
     config = Config().validate().replace(deform=False).validate()
     ns = argparse.Namespace(cache=args.cache, noise_mm=2.0, workers=2)
     data = bound_data.concat([collected_set(Path(d), ns, config, weights_sha256(config)) for d in DEFAULT_VAL])
-    rows = {r: evaluate(data, () if r is None else (r,), config) for r in CANDIDATES}
+    # the scale's features as calibrate-bound fits them (the rule compared the seven, before log_halves existed)
+    rows = {r: cross_fitted(data, config, rival_edges=() if r is None else (r,), n_features=7) for r in CANDIDATES}
     chosen, why = choose(rows)
     bins = list(TRUE_BINS)
     lines = [

@@ -10,15 +10,15 @@ import numpy as np
 from liver_p2p_reg.bench.bound_data import pose_index
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.registration.error_bound import FEATURES, INTERIOR_STAND_IN, RIVAL_RATIO_CAP
-from liver_p2p_reg.registration.error_calibration import FORMAT, error_scale_mm, group_index
+from liver_p2p_reg.registration.error_calibration import DEFORMED, FORMAT, RIGID, error_scale_mm, group_index
 
 COVERAGES = (0.8, 0.9, 0.95)
 VISIBILITY_EDGES = (0.1, 0.15, 0.2, 0.3)  # the protocol's bins, on the voxelized M/N known at run time
 ERROR_FLOOR_MM = 0.5  # log(error + floor): sub-millimetre errors do not dominate the scale fit
 MIN_GROUP = 30  # fewer calibration poses in a visibility group: it takes the pooled quantiles
-# The features calibrate-bound fits the scale on: the first this many of FEATURES (the seven before log_halves;
-# docs/benchmark_real/RULE_bound_halves.md decides whether the eighth joins).
-SCALE_FEATURES = 7
+# The features calibrate-bound fits each bound's scale on: the first this many of FEATURES (the seven before
+# log_halves; docs/benchmark_real/RULE_bound_halves.md decides whether the eighth joins), per positions bounded.
+SCALE_FEATURES = {RIGID: 7, DEFORMED: 7}
 
 
 def split_livers(liver_ids: np.ndarray, seed: int, sources: np.ndarray | None = None) -> tuple[list[int], list[int]]:
@@ -107,7 +107,7 @@ def calibrate(
     coverages: tuple[float, ...] = COVERAGES,
     rival_edges: tuple[float, ...] = (),
     swap: bool = False,
-    n_features: int = SCALE_FEATURES,
+    n_features: int = SCALE_FEATURES[RIGID],
 ) -> dict[str, Any]:
     """The calibration (JSON-ready) from collected validation poses; failed poses are left out (they warn).
 

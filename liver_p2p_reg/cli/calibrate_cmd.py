@@ -65,11 +65,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from liver_p2p_reg.bench import bound_data
-    from liver_p2p_reg.bench.bound_fit import calibrate
+    from liver_p2p_reg.bench.bound_fit import SCALE_FEATURES, calibrate
     from liver_p2p_reg.registration.error_calibration import (
         BUNDLED_CALIBRATION,
         BUNDLED_DEFORMED_CALIBRATION,
         DEFORMED,
+        RIGID,
         deform_settings,
         pose_settings,
         read_calibration,
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     weights = weights_sha256(config)  # "" for a method without weights
     collected = bound_data.concat([collected_set(Path(d), args, config, weights) for d in args.val])
     val = _applied(collected, args)
-    cal = calibrate(val, args.seed)
+    cal = calibrate(val, args.seed, n_features=SCALE_FEATURES[DEFORMED if args.deformed else RIGID])
     if args.deformed:
         cal.update(positions=DEFORMED, deform=deform_settings(config))
     sets = [{"set": Path(d).name, "cases": int((collected["set"] == Path(d).name).sum())} for d in args.val]

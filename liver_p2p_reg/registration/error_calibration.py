@@ -136,7 +136,16 @@ def read_calibration(path: str | Path = "", bundled: Path = BUNDLED_CALIBRATION)
 def _read(path: str, _mtime_ns: int) -> BoundCalibration:
     try:
         raw = json.loads(Path(path).read_text())
-        if raw.get("format") != FORMAT:
+    except (OSError, ValueError) as exc:
+        raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
+    return calibration_from_dict(raw, f"error-bound calibration {path}")
+
+
+def calibration_from_dict(raw: Any, where: str = "error-bound calibration") -> BoundCalibration:
+    """A calibration from its JSON's content (a file's, or `bound_fit.calibrate`'s before it is written); one-line
+    InputError naming `where` when it is malformed."""
+    try:
+        if not isinstance(raw, dict) or raw.get("format") != FORMAT:
             raise ValueError(f"format is not '{FORMAT}'")
         coefficients = np.asarray(raw["coefficients"], float)
         names = list(raw["features"])
@@ -171,7 +180,7 @@ def _read(path: str, _mtime_ns: int) -> BoundCalibration:
             rival_ratio_edges=rival_edges,
         )
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"error-bound calibration {path} is not usable: {exc}") from None
+        raise InputError(f"{where} is not usable: {exc}") from None
 
 
 def attach_error_model(result: Any, source_mm: np.ndarray, target_mm: np.ndarray, config: Any) -> None:

@@ -207,3 +207,19 @@ def test_the_scale_model_takes_the_half_view_feature_when_asked_and_only_then(tm
         covered = data["errors"] <= point_bound
         gaps.append(np.mean(covered[~high]) - np.mean(covered[high]))
     assert gaps[0] > 0.15 and abs(gaps[1]) < 0.03  # measured: 0.24 and 0.01
+
+
+def test_the_selection_rules_cross_fitting_judges_every_pose_once_on_the_half_that_did_not_calibrate_it():
+    from liver_p2p_reg.bench.bound_select import cross_fitted
+    from liver_p2p_reg.config import Config
+
+    data = synthetic_collection(0, halves_weight=1.0, poses=600)
+    k = 4.0 / np.median(data["rms_mm"])  # a few poses bad (>= 10 mm), most good
+    data["errors"], data["rms_mm"] = data["errors"] * k, data["rms_mm"] * k
+    config = Config(method="icp")
+    first = cross_fitted(data, config, n_features=8)
+    assert first == cross_fitted(data, config, n_features=8)
+    assert 0 <= first["bad_ok"] <= int((data["rms_mm"] >= BAD_MM).sum()) and 0 < first["good_warned"] < 1
+    # each fold's quantiles come from the other half: every bin's coverage near the 90 % asked, not above it by design
+    assert all(0.8 < c < 0.97 for c in first["coverage"].values())
+    assert cross_fitted(data, config, n_features=7) != first

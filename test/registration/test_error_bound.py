@@ -152,6 +152,7 @@ def test_a_higher_coverage_gives_a_wider_bound(registered):
         (None, "not found"),
         ("{not json", "not usable"),
         (json.dumps({"format": "something else"}), "not usable"),
+        ("[1, 2]", "not usable: format is not"),  # JSON, but no object: was an AttributeError's traceback
     ],
 )
 def test_a_bad_calibration_file_is_a_one_line_error(tmp_path, registered, content, says):
