@@ -16,9 +16,10 @@ COVERAGES = (0.8, 0.9, 0.95)
 VISIBILITY_EDGES = (0.1, 0.15, 0.2, 0.3)  # the protocol's bins, on the voxelized M/N known at run time
 ERROR_FLOOR_MM = 0.5  # log(error + floor): sub-millimetre errors do not dominate the scale fit
 MIN_GROUP = 30  # fewer calibration poses in a visibility group: it takes the pooled quantiles
-# The features calibrate-bound fits each bound's scale on: the first this many of FEATURES (the seven before
-# log_halves; docs/benchmark_real/RULE_bound_halves.md decides whether the eighth joins), per positions bounded.
-SCALE_FEATURES = {RIGID: 7, DEFORMED: 7}
+# The features calibrate-bound fits each bound's scale on, per positions bounded: the first this many of FEATURES.
+# All eight, log_halves included, chosen for both by docs/benchmark_real/RULE_bound_halves.md on the validation
+# collections (docs/benchmark_real/selection_bound_halves.md).
+SCALE_FEATURES = {RIGID: 8, DEFORMED: 8}
 
 
 def split_livers(liver_ids: np.ndarray, seed: int, sources: np.ndarray | None = None) -> tuple[list[int], list[int]]:
