@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -72,8 +73,22 @@ class PoseEvidence:
     # the best-fitting rival hypothesis (another basin): its pose and residual / the best residual
     rival_T: np.ndarray | None = None
     rival_ratio: float = RIVAL_RATIO_CAP
-    # the poses (preop frame, relative to the pose) of the view's halves refitted alone: a bent view disagrees
-    half_T: tuple[np.ndarray, ...] = ()
+    # what the half-view refits are made from (half_T): the paired view points, the preop points they paired with and
+    # those points' normals (mm, preop frame), and the fit's trim ratio; empty: too few pairs, no halves
+    paired_mm: np.ndarray | None = None
+    paired_surface_mm: np.ndarray | None = None
+    paired_normals: np.ndarray | None = None
+    trim_ratio: float = 1.0
+
+    @functools.cached_property
+    def half_T(self) -> tuple[np.ndarray, ...]:
+        """The poses (preop frame, relative to the pose) of the view's halves refitted alone (half_view_refits).
+        Made on first use (~4 ms): only a calibration that uses log_halves (or a collection for one) pays for them."""
+        if self.paired_mm is None or self.paired_surface_mm is None or self.paired_normals is None:
+            return ()
+        return half_view_refits(
+            self.view_mm, self.paired_mm, self.paired_surface_mm, self.paired_normals, self.trim_ratio
+        )
 
     def rigid_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """RMS displacement of each point under the pose's misfit-driven covariance (mm); inf if unconstrained."""
@@ -90,8 +105,9 @@ class PoseEvidence:
         dist, _ = tree.query(np.asarray(points_mm, float))
         return dist
 
-    def features(self, points_mm: np.ndarray) -> np.ndarray:
-        """(N, len(FEATURES)) features of each point (FEATURES); non-finite where the pose is unconstrained."""
+    def features(self, points_mm: np.ndarray, count: int = len(FEATURES)) -> np.ndarray:
+        """(N, count) features of each point, the first `count` of FEATURES (a calibration's: a later feature is not
+        computed for one that does not use it); non-finite where the pose is unconstrained."""
         points_mm = np.asarray(points_mm, float).reshape(-1, 3)
         n = len(points_mm)
         out = np.empty((n, len(FEATURES)))
@@ -103,8 +119,8 @@ class PoseEvidence:
             out[:, 4] = np.log(max(self.visibility, 1e-3)) if np.isfinite(self.visibility) else np.nan
             out[:, 5] = 0.0 if self.rival_T is None else np.log1p(self.rival_gap_mm(points_mm))
             out[:, 6] = np.log(min(max(self.rival_ratio, 1.0), RIVAL_RATIO_CAP))
-            out[:, 7] = np.log1p(self.halves_mm(points_mm))
-        return out
+            out[:, 7] = np.log1p(self.halves_mm(points_mm)) if count > 7 else np.nan
+        return out[:, :count]
 
     def halves_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """RMS over the half-view refits of how far each point moves from the pose (mm); 0 without halves."""
@@ -148,7 +164,7 @@ def pose_evidence(
     tree = NearestIndex(source)
     dist, idx = tree.query(view)
     centre = view.mean(axis=0)
-    cov, sigma, halves = np.full((6, 6), np.inf), float("nan"), ()
+    cov, sigma, halves = np.full((6, 6), np.inf), float("nan"), {}
     # finite only: a view moved beyond float range pairs nothing (its index would be the tree's size)
     keep = np.flatnonzero(np.isfinite(dist) & (dist <= 3.0 * max(float(np.median(dist)), 1e-6)))
     if len(keep) >= MIN_PAIRS:
@@ -159,7 +175,7 @@ def pose_evidence(
         at, back = np.unique(idx[keep], return_inverse=True)  # one normal per preop point paired
         normals = pca_normals(source, tree, at)
         n = normals[back]
-        halves = half_view_refits(view, p, source[at], normals, trim_ratio)
+        halves = {"paired_mm": p, "paired_surface_mm": source[at], "paired_normals": normals, "trim_ratio": trim_ratio}
         J = np.hstack([np.cross(p - centre, n), n])  # d(misfit)/d(omega, v) per pair
         sigma = float(np.sqrt(np.mean(np.einsum("ij,ij->i", p - s, n) ** 2)))
         try:
@@ -178,7 +194,7 @@ def pose_evidence(
         visibility=float(visibility),
         interior_mm=interior_mm,
         view_tree=NearestIndex(view),
-        half_T=halves,
+        **halves,
         **_rival(T, hypotheses, interior_mm, residual_mm),
     )
 

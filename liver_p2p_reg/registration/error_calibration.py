@@ -108,13 +108,13 @@ class ErrorModel:
         """Per point: the distance (mm) within which its true position lies with `coverage`."""
         cal = self.calibration
         q = cal.point_quantiles[self._group(), cal.column(self.coverage)]
-        return q * cal.scale_mm(self.evidence.features(points_mm))
+        return q * cal.scale_mm(self.evidence.features(points_mm, len(cal.coefficients)))
 
     def pose_bound_mm(self) -> float:
         """The bound of the interior's RMS error, from the scale over the interior's stand-in (the shrunk preop
         surface: error_bound.interior_stand_in), calibrated against the true interior's RMS error."""
         cal = self.calibration
-        scale = cal.scale_mm(self.evidence.features(self.evidence.interior_mm))
+        scale = cal.scale_mm(self.evidence.features(self.evidence.interior_mm, len(cal.coefficients)))
         q = cal.pose_quantiles[self._group(), cal.column(self.coverage)]
         return float(q * np.sqrt(np.mean(scale**2)))
 

@@ -6,8 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from synthetic_cases import blob_mm, rigid
+from synthetic_cases import blob_mm, partial_case, rigid
 
+from liver_p2p_reg import Registrar
 from liver_p2p_reg.errors import InputError
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.error_bound import FEATURES, interior_stand_in, pose_evidence
@@ -87,3 +88,14 @@ def test_a_calibration_whose_features_are_not_a_prefix_of_ours_is_refused(tmp_pa
     path.write_text(json.dumps(raw))
     with pytest.raises(InputError, match="features must be the first of"):
         read_calibration(path)
+
+
+def test_a_registration_bounded_by_a_seven_feature_calibration_never_pays_for_the_halves(rng):
+    source, target, _, _, _ = partial_case(rng, share=0.3)
+    result = Registrar(method="fpfh-ransac-icp").register(source, target)
+    evidence = result.error_model.evidence
+    assert np.isfinite(result.error_bound_mm) and "half_T" not in evidence.__dict__  # not made
+    assert evidence.features(evidence.interior_mm, 7).shape[1] == 7 and "half_T" not in evidence.__dict__
+    full = evidence.features(evidence.interior_mm)  # a collection asks for all eight: made now, once
+    assert full.shape[1] == len(FEATURES) and len(evidence.half_T) == 4 and "half_T" in evidence.__dict__
+    assert np.array_equal(full[:, :7], evidence.features(evidence.interior_mm, 7))
