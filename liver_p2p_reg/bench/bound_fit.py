@@ -45,7 +45,7 @@ def liver_source(set_names: np.ndarray) -> np.ndarray:
     return np.array([str(name).split("-")[0] for name in set_names])
 
 
-def fit_scale(data: dict[str, np.ndarray], poses: np.ndarray, n_features: int = len(FEATURES)) -> np.ndarray:
+def fit_scale(data: dict[str, np.ndarray], poses: np.ndarray, n_features: int = SCALE_FEATURES[RIGID]) -> np.ndarray:
     """Least-squares coefficients of log(error + floor) on the first `n_features` features, each pose weighted
     equally."""
     per = pose_index(data)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from liver_p2p_reg.metrics import transform_points
-from liver_p2p_reg.registration.confidence import motion_jacobian, pca_normals
+from liver_p2p_reg.registration.confidence import NORMAL_NEIGHBORS, motion_jacobian, pca_normals
 from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.registration.refine import trimmed_icp
 
@@ -41,8 +41,13 @@ RIVAL_RATIO_CAP = 4.0  # no rival, or one fitting this much worse: as good as no
 HALF_POINTS = 300  # view points each half-view refit uses (a stride sample)
 HALF_MIN_POINTS = 12  # a half with fewer is left out
 HALF_ITERATIONS = 5  # ICP iterations of each half-view refit
+# Bumped on any change to how a feature is computed that the constants below do not name (a formula, a gate, the
+# cut into halves): a collection made by another version is not reused.
+EVIDENCE_VERSION = 1
 # What the features are computed with: a collection of them made with other values is not reused (calibrate-bound).
 EVIDENCE_SETTINGS = {
+    "version": EVIDENCE_VERSION,
+    "normal_neighbors": NORMAL_NEIGHBORS,
     "max_source": MAX_SOURCE,
     "max_view": MAX_VIEW,
     "min_pairs": MIN_PAIRS,

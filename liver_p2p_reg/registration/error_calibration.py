@@ -37,7 +37,7 @@ def error_scale_mm(features: np.ndarray, coefficients: np.ndarray) -> np.ndarray
     such a calibration's bound is bitwise what it was before the later features existed."""
     coefficients = np.asarray(coefficients, float)
     with np.errstate(over="ignore", invalid="ignore"):
-        scale = np.exp(np.asarray(features, float)[:, : len(coefficients)] @ coefficients)
+        scale = np.exp(np.asarray(features, float)[..., : len(coefficients)] @ coefficients)
     return np.where(np.isfinite(scale), scale, np.inf)
 
 

@@ -160,6 +160,17 @@ def test_a_collection_made_before_a_feature_was_added_is_collected_again(small_s
     assert out.read_bytes() == first and bound_data.load(entry)["features"].shape[1] == 8
 
 
+def test_the_evidence_settings_are_the_values_the_features_are_computed_with():
+    from liver_p2p_reg.registration import confidence, error_bound
+
+    settings = error_bound.EVIDENCE_SETTINGS
+    assert settings["normal_neighbors"] == confidence.NORMAL_NEIGHBORS and settings["version"] >= 1
+    for name in ("max_source", "max_view", "min_pairs", "max_pairs", "interior_shrink", "interior_points"):
+        assert settings[name] == getattr(error_bound, name.upper()), name
+    for name in ("rival_gap_mm", "rival_ratio_cap", "half_points", "half_min_points", "half_iterations"):
+        assert settings[name] == getattr(error_bound, name.upper()), name
+
+
 def test_another_interior_stand_in_keys_another_collection(small_set, tmp_path):
     import argparse
 
@@ -170,7 +181,7 @@ def test_another_interior_stand_in_keys_another_collection(small_set, tmp_path):
     args, config = argparse.Namespace(cache=str(tmp_path), noise_mm=2.0), Config(method="icp")
     ours = collection_cache(small_set[0], args, config, "")
     assert ours == collection_cache(small_set[0], args, config, "", dict(EVIDENCE_SETTINGS))
-    for name in ("interior_shrink", "interior_points", "half_points"):
+    for name in ("interior_shrink", "interior_points", "half_points", "normal_neighbors", "version"):
         other = {**EVIDENCE_SETTINGS, name: EVIDENCE_SETTINGS[name] * 2}
         assert collection_cache(small_set[0], args, config, "", other) != ours, name
 

@@ -50,7 +50,7 @@ def test_a_bent_view_moves_its_halves_and_the_interior_far_more_than_a_rigid_one
 def test_the_half_view_feature_is_the_same_twice(rng):
     source, T = blob_mm(rng), rigid(rng)
     view = _bent(_patch(source), 5.0)
-    first, a = _halves_at_interior(source, view, T, np.random.default_rng(3))
+    _, a = _halves_at_interior(source, view, T, np.random.default_rng(3))
     _, b = _halves_at_interior(source, view, T, np.random.default_rng(3))
     assert np.array_equal(a, b) and np.all(np.isfinite(a))
 
@@ -99,3 +99,20 @@ def test_a_registration_bounded_by_a_seven_feature_calibration_never_pays_for_th
     full = evidence.features(evidence.interior_mm)  # a collection asks for all eight: made now, once
     assert full.shape[1] == len(FEATURES) and len(evidence.half_T) == 4 and "half_T" in evidence.__dict__
     assert np.array_equal(full[:, :7], evidence.features(evidence.interior_mm, 7))
+
+
+def test_a_calibration_of_all_eight_features_makes_the_refits_and_bounds_with_them(tmp_path, rng):
+    source, target, _, _, _ = partial_case(rng, share=0.3)
+    raw = json.loads(BUNDLED_CALIBRATION.read_text())
+    raw["features"], raw["coefficients"] = list(FEATURES), [*raw["coefficients"], 0.5]
+    path = tmp_path / "eight.json"
+    path.write_text(json.dumps(raw))
+    seven = Registrar(method="fpfh-ransac-icp").register(source, target)
+    eight = Registrar(method="fpfh-ransac-icp", error_calibration_path=str(path)).register(source, target)
+    evidence = eight.error_model.evidence
+    assert "half_T" in evidence.__dict__ and len(evidence.half_T) == 4  # made for the bound
+    h = np.sqrt(np.mean(evidence.halves_mm(evidence.interior_mm) ** 2))
+    assert np.isfinite(eight.error_bound_mm) and h > 0
+    # the same pose and quantiles: the eighth term widens the scale by exp(0.5 log1p(halves)) at every point
+    assert np.array_equal(seven.T_target_source, eight.T_target_source)
+    assert eight.error_bound_mm > seven.error_bound_mm
