@@ -19,7 +19,7 @@ import numpy as np
 
 from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_report import TRUE_BINS
-from liver_p2p_reg.bench.bound_select import cross_fitted
+from liver_p2p_reg.bench.bound_select import cross_fitted, rule_failures
 from liver_p2p_reg.cli.calibrate_cmd import DEFAULT_VAL, collected_set
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.error_bound import FEATURES
@@ -40,15 +40,7 @@ def collections(cache: str, deformed: bool) -> dict:
 
 def choose(seven: dict, eight: dict) -> tuple[int, list[str]]:
     """The rule's choice (7 or 8 features) and why the eight qualify or not."""
-    floor = min(COVERAGE_FLOOR, min(seven["coverage"].values()))
-    fails = []
-    if eight["bad_ok"] > seven["bad_ok"]:
-        fails.append(f"(a) {eight['bad_ok']} bad poses OK > {seven['bad_ok']}")
-    low = min(eight["coverage"].values())
-    if low < floor:
-        fails.append(f"(c) lowest bin coverage {low:.1%} < {floor:.1%}")
-    if eight["good_warned"] > seven["good_warned"] - MIN_GAIN:
-        fails.append(f"(b) good warned {eight['good_warned']:.1%}, not 2 points below {seven['good_warned']:.1%}")
+    fails = rule_failures(eight, seven, MIN_GAIN, COVERAGE_FLOOR)
     if not eight["bound_ms"] <= MAX_BOUND_MS:
         fails.append(f"(d) bound {eight['bound_ms']:.1f} ms > {MAX_BOUND_MS:g} ms")
     return (7, fails) if fails else (len(FEATURES), ["qualifies"])

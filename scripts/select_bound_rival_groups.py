@@ -16,7 +16,7 @@ from pathlib import Path
 
 from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_report import TRUE_BINS
-from liver_p2p_reg.bench.bound_select import cross_fitted
+from liver_p2p_reg.bench.bound_select import cross_fitted, rule_failures
 from liver_p2p_reg.cli.calibrate_cmd import DEFAULT_VAL, collected_set
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.weights_id import weights_sha256
@@ -30,19 +30,11 @@ COVERAGE_FLOOR = 0.85
 def choose(rows: dict) -> tuple[float | None, list[str]]:
     """The rule's choice and, per candidate, why it qualifies or not."""
     none = rows[None]
-    floor = min(COVERAGE_FLOOR, min(none["coverage"].values()))
     why, qualified = [], []
     for r, row in rows.items():
         if r is None:
             continue
-        fails = []
-        if row["bad_ok"] > none["bad_ok"]:
-            fails.append(f"(a) {row['bad_ok']} bad poses OK > {none['bad_ok']}")
-        low = min(row["coverage"].values())
-        if low < floor:
-            fails.append(f"(c) lowest bin coverage {low:.1%} < {floor:.1%}")
-        if row["good_warned"] > none["good_warned"] - MIN_GAIN:
-            fails.append(f"(b) good warned {row['good_warned']:.1%}, not 2 points below {none['good_warned']:.1%}")
+        fails = rule_failures(row, none, MIN_GAIN, COVERAGE_FLOOR)
         why.append(f"- r = {r:g}: " + ("qualifies" if not fails else "; ".join(fails)))
         if not fails:
             qualified.append(r)

@@ -42,3 +42,22 @@ def cross_fitted(data: dict[str, np.ndarray], config: Any, **calibrate_options: 
         "good_warned": good_warned / max(good, 1),
         "coverage": {b: float(np.mean(v)) if v else math.nan for b, v in covered.items()},
     }
+
+
+def rule_failures(candidate: dict[str, Any], baseline: dict[str, Any], min_gain: float, coverage_floor: float) -> list:
+    """Why a candidate's `cross_fitted` verdicts fail the selection rules' shared criteria against the baseline's
+    (empty: it passes them): (a) no more bad poses with OK, (c) every bin's coverage at least min(floor, the
+    baseline's lowest bin), (b) good poses warned at least `min_gain` (absolute) below the baseline's."""
+    floor = min(coverage_floor, min(baseline["coverage"].values()))
+    fails = []
+    if candidate["bad_ok"] > baseline["bad_ok"]:
+        fails.append(f"(a) {candidate['bad_ok']} bad poses OK > {baseline['bad_ok']}")
+    low = min(candidate["coverage"].values())
+    if low < floor:
+        fails.append(f"(c) lowest bin coverage {low:.1%} < {floor:.1%}")
+    if candidate["good_warned"] > baseline["good_warned"] - min_gain:
+        fails.append(
+            f"(b) good warned {candidate['good_warned']:.1%}, not {min_gain * 100:g} points below "
+            f"{baseline['good_warned']:.1%}"
+        )
+    return fails
