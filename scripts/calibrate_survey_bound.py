@@ -21,12 +21,14 @@ the scale model (its coefficients) is the single-view calibration's, unchanged; 
 frame's own visibility does not tell how much of the organ the survey holds), each sweep weighing the same.
 Judged: the 8 real test livers, one deformation per family (FEM and ARAP, which the stage does not model), the
 same sweeps as `survey_real_sweeps.py`; the single-view bound beside the survey bound.
-Collections are cached under --out (delete them to collect anew).
+Collections are cached under --out, in a subfolder named by a hash of the survey settings, the weights and the
+features with what they are computed with: a change of any is collected anew (or delete a folder to collect it anew).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -41,7 +43,7 @@ from liver_p2p_reg.bench.readme import write_headline
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.phantom.real import load_real_liver, real_split
-from liver_p2p_reg.registration.error_bound import INTERIOR_STAND_IN
+from liver_p2p_reg.registration.error_bound import EVIDENCE_SETTINGS, FEATURES, INTERIOR_STAND_IN
 from liver_p2p_reg.registration.error_calibration import (
     BUNDLED_CALIBRATION,
     BUNDLED_DEFORMED_CALIBRATION,
@@ -99,6 +101,14 @@ def survey_poses(sweep: dict, sweep_id: int, positions: str = DEFORMED) -> list[
             }
         )
     return rows
+
+
+def evidence_stamp(deformed: bool) -> str:
+    """The cache's subfolder: a hash of what the collected poses depend on besides the sweeps (the survey settings,
+    the weights, the features and what they are computed with), so a change of any is collected again."""
+    config = Config(mode="survey", deform=deformed)
+    key = json.dumps([config.to_dict(), weights_sha256(config), FEATURES, EVIDENCE_SETTINGS])
+    return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
 def collect(path: Path, livers: list[int], family: str, n_deformations: int, n_frames: int, positions: str) -> dict:
@@ -184,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     single_path, bundled, mark, prefix = POSITIONS[args.positions]
     deformed = args.positions == DEFORMED
     single = json.loads(Path(single_path).read_text())
-    out = Path(args.out)
+    out = Path(args.out) / evidence_stamp(deformed)
     cal = collect(
         out / f"{prefix}val_fem_{args.frames}.npz",
         [int(v) for v in single["calibration_livers"]],
