@@ -17,25 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_report import TRUE_BINS
 from liver_p2p_reg.bench.bound_select import cross_fitted, rule_failures
-from liver_p2p_reg.cli.calibrate_cmd import DEFAULT_VAL, collected_set
+from liver_p2p_reg.cli.calibrate_cmd import DEFAULT_VAL, validation_collections
 from liver_p2p_reg.config import Config
 from liver_p2p_reg.registration.error_bound import FEATURES
-from liver_p2p_reg.registration.weights_id import weights_sha256
 
 MIN_GAIN = 0.02  # (b) at least 2 points below the seven's
 COVERAGE_FLOOR = 0.85
 MAX_BOUND_MS = 10.0  # (d) the bound's cost target, median per registration
-
-
-def collections(cache: str, deformed: bool) -> dict:
-    """The validation poses calibrate-bound (--deformed) calibrates on: with the stage, those where it was applied."""
-    config = Config().validate().replace(deform=deformed).validate()
-    ns = argparse.Namespace(cache=cache, noise_mm=2.0, workers=2)
-    data = bound_data.concat([collected_set(Path(d), ns, config, weights_sha256(config)) for d in DEFAULT_VAL])
-    return bound_data.subset(data, data["deform_applied"].astype(bool)) if deformed else data
 
 
 def choose(seven: dict, eight: dict) -> tuple[int, list[str]]:
@@ -92,8 +82,7 @@ def main() -> int:
         "",
     ]
     for name, deformed in (("Rigid bound", False), ("Deformed positions' bound (poses where the stage applied)", True)):
-        config = Config().validate().replace(deform=deformed).validate()
-        part, _ = section(name, collections(args.cache, deformed), config)
+        part, _ = section(name, *validation_collections(args.cache, deformed))
         lines += part
     Path(args.out).write_text("\n".join(lines))
     print("\n".join(lines))

@@ -14,12 +14,9 @@ import argparse
 from datetime import datetime, timezone
 from pathlib import Path
 
-from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_report import TRUE_BINS
 from liver_p2p_reg.bench.bound_select import cross_fitted, rule_failures
-from liver_p2p_reg.cli.calibrate_cmd import DEFAULT_VAL, collected_set
-from liver_p2p_reg.config import Config
-from liver_p2p_reg.registration.weights_id import weights_sha256
+from liver_p2p_reg.cli.calibrate_cmd import DEFAULT_VAL, validation_collections
 
 CANDIDATES = (None, 1.25, 1.5, 2.0)  # the rule's r; None: today's calibration (visibility groups only)
 MIN_GAIN = 0.02  # (b) at least 2 points below none's
@@ -49,9 +46,7 @@ def main() -> int:
     ap.add_argument("--cache", default="out/bound", help="calibrate-bound's --cache (default: out/bound)")
     ap.add_argument("--out", default="docs/benchmark_real/selection_bound_rival_groups.md")
     args = ap.parse_args()
-    config = Config().validate().replace(deform=False).validate()
-    ns = argparse.Namespace(cache=args.cache, noise_mm=2.0, workers=2)
-    data = bound_data.concat([collected_set(Path(d), ns, config, weights_sha256(config)) for d in DEFAULT_VAL])
+    data, config = validation_collections(args.cache, deformed=False)
     # the scale's features as calibrate-bound fits them (the rule compared the seven, before log_halves existed)
     rows = {r: cross_fitted(data, config, rival_edges=() if r is None else (r,), n_features=7) for r in CANDIDATES}
     chosen, why = choose(rows)

@@ -25,11 +25,16 @@ def rigid(rng: np.random.Generator) -> np.ndarray:
     return T
 
 
+def crop(source: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
+    """(indices, centre): the `share` of the source's points nearest one end of the blob, a view's patch."""
+    centre = source[np.argmax(source[:, 0] + 0.5 * source[:, 2])]
+    return np.argsort(np.linalg.norm(source - centre, axis=1))[: int(share * len(source))], centre
+
+
 def partial_case(rng: np.random.Generator, share: float = 0.35):
     """(source, target, T_true, source fiducials, target fiducials): a moved crop of the blob."""
     source = blob_mm(rng)
-    centre = source[np.argmax(source[:, 0] + 0.5 * source[:, 2])]
-    keep = np.argsort(np.linalg.norm(source - centre, axis=1))[: int(share * len(source))]
+    keep, _ = crop(source, share)
     T = rigid(rng)
     target = transform_points(T, source[keep])
     fid_s = source[::300] * 0.8 + 0.2 * source.mean(axis=0)  # points inside the surface

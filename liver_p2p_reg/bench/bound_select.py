@@ -10,7 +10,7 @@ import numpy as np
 
 from liver_p2p_reg.bench import bound_data
 from liver_p2p_reg.bench.bound_fit import calibrate
-from liver_p2p_reg.bench.bound_report import BAD_MM, TRUE_BINS, judge
+from liver_p2p_reg.bench.bound_report import BAD_MM, TRUE_BINS, bad_ok_mask, judge
 from liver_p2p_reg.registration.error_calibration import calibration_from_dict
 
 SEED = 0  # the calibration's own liver split
@@ -23,15 +23,15 @@ def cross_fitted(data: dict[str, np.ndarray], config: Any, **calibrate_options: 
     `bound_fit.calibrate` (rival edges, the scale's features)."""
     bad_ok = good = good_warned = 0
     covered: dict[tuple[float, float], list[float]] = {b: [] for b in TRUE_BINS}
+    in_range = (data["visibility"] >= TRUE_BINS[0][0]) & (data["visibility"] < TRUE_BINS[-1][1])
     for swap in (False, True):
         raw = calibrate(data, SEED, swap=swap, **calibrate_options)
         held_out = np.isin(data["liver_id"], raw["fit_livers"])  # the half whose quantiles it did not make
-        in_range = (data["visibility"] >= TRUE_BINS[0][0]) & (data["visibility"] < TRUE_BINS[-1][1])
         part = bound_data.subset(data, held_out & in_range)
         cal = calibration_from_dict({**raw, "method": config.method, "weights_sha256": ""})
         judged = judge(part, cal, config.error_coverage, config.structure_error_warn_mm)
         bad = part["rms_mm"] >= BAD_MM
-        bad_ok += int((bad & ~judged["warned"]).sum())
+        bad_ok += int(bad_ok_mask(part, judged).sum())
         good += int((~bad).sum())
         good_warned += int((~bad & judged["warned"]).sum())
         for lo, hi in TRUE_BINS:

@@ -208,6 +208,19 @@ def _applied(data: dict, args: argparse.Namespace) -> dict:
     return bound_data.subset(data, applied)
 
 
+def validation_collections(cache: str, deformed: bool) -> tuple[dict, Config]:
+    """The validation poses `calibrate-bound` (`--deformed`) calibrates on with its defaults (DEFAULT_VAL, 2 mm noise,
+    the default settings), from `cache` (collected there when missing), and those settings; with `deformed`, the
+    poses where the stage was applied. What the bound's selection rules compare candidates on."""
+    from liver_p2p_reg.bench import bound_data
+    from liver_p2p_reg.registration.weights_id import weights_sha256
+
+    config = Config().validate().replace(deform=deformed).validate()
+    args = argparse.Namespace(cache=cache, noise_mm=2.0, workers=2, deformed=deformed)
+    collected = [collected_set(Path(d), args, config, weights_sha256(config)) for d in DEFAULT_VAL]
+    return _applied(bound_data.concat(collected), args), config
+
+
 def collected_set(folder: Path, args: argparse.Namespace, config: Config, weights: str) -> dict:
     """The collected poses of a set: from the cache when made with the same cases, settings and weights."""
     from liver_p2p_reg.bench import bound_data

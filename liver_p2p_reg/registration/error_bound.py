@@ -36,6 +36,7 @@ FEATURES = (
     "log_rival_ratio",
     "log_halves",
 )
+HALVES = FEATURES.index("log_halves")  # made only for a calibration that uses it (PoseEvidence.half_T)
 RIVAL_GAP_MM = 5.0  # a hypothesis whose pose differs by more than this on the organ is a rival, not the same pose
 RIVAL_RATIO_CAP = 4.0  # no rival, or one fitting this much worse: as good as none
 HALF_POINTS = 300  # view points each half-view refit uses (a stride sample)
@@ -124,7 +125,7 @@ class PoseEvidence:
             out[:, 4] = np.log(max(self.visibility, 1e-3)) if np.isfinite(self.visibility) else np.nan
             out[:, 5] = 0.0 if self.rival_T is None else np.log1p(self.rival_gap_mm(points_mm))
             out[:, 6] = np.log(min(max(self.rival_ratio, 1.0), RIVAL_RATIO_CAP))
-            out[:, 7] = np.log1p(self.halves_mm(points_mm)) if count > 7 else np.nan
+            out[:, HALVES] = np.log1p(self.halves_mm(points_mm)) if count > HALVES else np.nan
         return out[:, :count]
 
     def halves_mm(self, points_mm: np.ndarray) -> np.ndarray:

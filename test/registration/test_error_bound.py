@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from synthetic_cases import blob_mm, partial_case, rigid
+from synthetic_cases import blob_mm, crop, partial_case, rigid
 
 from liver_p2p_reg import Config, Registrar
 from liver_p2p_reg.bench.bound_data import interior_features, stack_rows
@@ -31,14 +31,9 @@ def _model(source, target, T, visibility, noise_rng=None):
     return ErrorModel(evidence, read_calibration(), 0.9)
 
 
-def _crop(source, share):
-    centre = source[np.argmax(source[:, 0] + 0.5 * source[:, 2])]
-    return np.argsort(np.linalg.norm(source - centre, axis=1))[: int(share * len(source))], centre
-
-
 def test_a_point_far_from_the_visible_patch_gets_a_wider_bound_than_one_under_it(rng):
     source, T = blob_mm(rng), rigid(rng)
-    keep, centre = _crop(source, 0.15)
+    keep, centre = crop(source, 0.15)
     model = _model(source, transform_points(T, source[keep]), T, 0.15, rng)
     inside = source.mean(axis=0)
     under = inside + 0.8 * (centre - inside)  # beneath the patch
@@ -50,7 +45,7 @@ def test_a_point_far_from_the_visible_patch_gets_a_wider_bound_than_one_under_it
 
 def test_a_full_view_gets_a_narrower_bound_than_a_10_percent_view_of_the_same_liver(rng):
     source, T = blob_mm(rng), rigid(rng)
-    keep, _ = _crop(source, 0.10)
+    keep, _ = crop(source, 0.10)
     interior = source.mean(axis=0) + 0.5 * (source[::50] - source.mean(axis=0))
     small = _model(source, transform_points(T, source[keep]), T, 0.10, np.random.default_rng(1))
     full = _model(source, transform_points(T, source[::3]), T, 1.0, np.random.default_rng(1))

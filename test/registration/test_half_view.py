@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from synthetic_cases import blob_mm, partial_case, rigid
+from synthetic_cases import blob_mm, crop, partial_case, rigid
 
 from liver_p2p_reg import Registrar
 from liver_p2p_reg.errors import InputError
@@ -16,8 +16,7 @@ from liver_p2p_reg.registration.error_calibration import BUNDLED_CALIBRATION, er
 
 
 def _patch(source, share=0.2):
-    centre = source[np.argmax(source[:, 0] + 0.5 * source[:, 2])]
-    return source[np.argsort(np.linalg.norm(source - centre, axis=1))[: int(share * len(source))]]
+    return source[crop(source, share)[0]]
 
 
 def _bent(patch, amplitude_mm):
