@@ -125,6 +125,10 @@ class IcpSection:
     # visibility (intraop / preop voxels) is below this (0: never, the default before the switch bit for bit;
     # 0.2 was chosen by docs/benchmark_real/RULE_ransac_candidate_threshold.md; 1: always)
     ransac_candidate_visibility: float = 0.2
+    # learned-p2p-icp: the poses of a search of the whole preop surface (registration/surface_search.py) are
+    # screened beside those when the view's estimated visibility is below this (0: never, the default until
+    # docs/benchmark_real/RULE_surface_search.md chooses; 1: always)
+    surface_search_visibility: float = 0.0
     # learned-p2p-icp on those small views: the screened candidates whose short residual is within this factor
     # of the lowest are each refined by the full ICP and the one the elastic stage fits best wins (0: off; 1.5 chosen
     # on validation sets, docs/benchmark_real/RULE_deformed_screening.md; needs the preop model's elastic model)
@@ -328,6 +332,8 @@ class Config(
             )
         if not 0 <= self.ransac_candidate_visibility <= 1:
             raise InputError(f"ransac_candidate_visibility must be in [0, 1], got {self.ransac_candidate_visibility}")
+        if not 0 <= self.surface_search_visibility <= 1:
+            raise InputError(f"surface_search_visibility must be in [0, 1], got {self.surface_search_visibility}")
         if not 0 <= self.expected_extent_min_mm < self.expected_extent_max_mm:
             raise InputError(
                 "need 0 <= expected_extent_min_mm < expected_extent_max_mm, got "

@@ -15,6 +15,7 @@ from liver_p2p_reg.registration.context import MethodContext
 from liver_p2p_reg.registration.freespace import Scorer, penalized
 from liver_p2p_reg.registration.preprocess import PreprocessedPair, denormalize_transform, residual_norm
 from liver_p2p_reg.registration.refine import refine_poses
+from liver_p2p_reg.registration.surface_search import SEARCH_MARGIN, search_model, search_poses
 from liver_p2p_reg.result import Candidate, RegistrationResult
 
 
@@ -44,6 +45,7 @@ def screen_candidates(
     cache: dict[str, Any],
     scorer: Scorer | None = None,
     extra: int | None = None,
+    searched: frozenset[int] = frozenset(),
 ) -> tuple[int, list[tuple[int, np.ndarray, float, float]]]:
     """Short ICP from each distinct candidate (best-ranked first); the lowest residual after it wins
     (with a known sensor origin: the lowest residual made worse by its free-space violation).
@@ -51,14 +53,17 @@ def screen_candidates(
     Returns the winner's index and every screened (index, pose, residual, violation), normalized
     units; the full refinement then starts from the winner's own pose (not from the screened one),
     so that a winner P2P also chose gets exactly the unscreened result. At most `config.refine_candidates`
-    distinct candidates are screened, besides `extra` (RANSAC's pose), which is screened whenever it is distinct.
+    distinct candidates are screened, besides `extra` (RANSAC's pose) and `searched` (the surface search's poses),
+    which are screened whenever they are distinct. A searched pose wins only where its key is below
+    `surface_search.SEARCH_MARGIN` times every other's: it comes without any match's evidence.
     """
     tried: list[np.ndarray] = []
     picked: list[int] = []
     counted = 0  # screened candidates other than `extra`
     for i in order:
-        if i != extra and counted >= config.refine_candidates:
-            continue  # full; `extra` may still come
+        always = i == extra or i in searched
+        if not always and counted >= config.refine_candidates:
+            continue  # full; `extra` and `searched` may still come
         T = poses_norm[i]
         # near-duplicates (< ~5 deg and 0.05 normalized apart) would converge to the same pose
         if any(
@@ -67,7 +72,7 @@ def screen_candidates(
             continue
         tried.append(T)
         picked.append(i)
-        counted += i != extra
+        counted += not always
     # The picks depend on the starting poses only, so their short ICPs run together (refine_poses).
     moved = refine_poses(
         tried, prep, config, cache, max_points=config.screen_icp_points, max_iterations=config.screen_icp_iterations
@@ -75,7 +80,10 @@ def screen_candidates(
     screened = [(i, T_s, residual_norm(T_s, prep)) for i, T_s in zip(picked, moved, strict=True)]
     assert screened  # order holds at least the chosen candidate
     violation = scorer([T_s for _, T_s, _ in screened]) if scorer is not None else np.full(len(screened), np.nan)
-    keys = [penalized(res, v, config.free_space_weight) for (_, _, res), v in zip(screened, violation, strict=True)]
+    keys = [
+        penalized(res, v, config.free_space_weight) / (SEARCH_MARGIN if i in searched else 1.0)
+        for (i, _, res), v in zip(screened, violation, strict=True)
+    ]
     best = int(np.argmin(keys))  # the first of equals, as P2P's own choice
     return screened[best][0], [(i, T_s, res, float(v)) for (i, T_s, res), v in zip(screened, violation, strict=True)]
 
@@ -114,6 +122,30 @@ def ransac_hypothesis(
         n_matches=0,
     )
     return T_norm, candidate
+
+
+def search_hypotheses(
+    prep: PreprocessedPair, config: Config, ctx: MethodContext, times: dict[str, float]
+) -> list[tuple[np.ndarray, Candidate]]:
+    """The surface search's poses (normalized) and their candidate records, on a view whose estimated visibility is
+    below `surface_search_visibility`; none on a larger view. Its time is recorded as the "search" stage."""
+    if not prep.visibility < config.surface_search_visibility:
+        return []
+    t = time.perf_counter()
+    poses = search_poses(prep, search_model(prep, ctx.cache))
+    times["search"] = lap_ms(t)
+    return [
+        (
+            T_norm,
+            Candidate(
+                name=f"surface-search-{k}",
+                T_target_source=denormalize_transform(T_norm, prep.source_norm, prep.target_norm),
+                residual_mm=residual_norm(T_norm, prep) * prep.source_norm.scale_mm,
+                n_matches=0,
+            ),
+        )
+        for k, T_norm in enumerate(poses)
+    ]
 
 
 class RansacBeside:

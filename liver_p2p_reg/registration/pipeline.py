@@ -29,6 +29,7 @@ from liver_p2p_reg.registration.hypotheses import (
     ransac_candidate_wanted,
     ransac_hypothesis,
     screen_candidates,
+    search_hypotheses,
     single_result,
     uncertainty_mm,
 )
@@ -181,6 +182,11 @@ def _matched_and_screened(
     if extra is not None:
         poses_norm.append(extra[0])
         candidates.append(extra[1])
+    searched = search_hypotheses(prep, config, ctx, times) if ransac_candidate and refine else []
+    first_searched = len(candidates)
+    for T_norm, candidate in searched:
+        poses_norm.append(T_norm)
+        candidates.append(candidate)
     scorer = free_space_scorer(prep, config, ctx)
     if scorer is not None and scorer.view is not None:
         violation = scorer(poses_norm)
@@ -189,14 +195,16 @@ def _matched_and_screened(
         chosen = free_space_choice(out, violation[:n_p2p], config)
     if not candidates[chosen].ok and extra is not None:
         chosen = n_p2p  # P2P found nothing: RANSAC's pose alone
+    elif not candidates[chosen].ok and searched:
+        chosen = first_searched  # P2P and RANSAC found nothing: the search's best pose (the screening may move it)
     elif not candidates[chosen].ok:
         raise RegistrationError(
             f"{provider.name}: no candidate had >= 3 non-degenerate matches (visibility {prep.visibility:.2f})"
         )
     T_norm = poses_norm[chosen]
-    residual = residual_norm(T_norm, prep) if chosen == n_p2p else float(out.residual[chosen])
+    residual = residual_norm(T_norm, prep) if chosen >= n_p2p else float(out.residual[chosen])
     screened: list[Candidate] = []
-    if refine and (config.refine_candidates > 1 or extra is not None):
+    if refine and (config.refine_candidates > 1 or extra is not None or searched):
         t = time.perf_counter()
         p2p_others = (i for i, c in enumerate(candidates[:n_p2p]) if c.ok and i != chosen)
         if scorer is None or scorer.view is None:
@@ -211,7 +219,18 @@ def _matched_and_screened(
         # RANSAC's pose is screened second, beside (not instead of) P2P's own candidates
         first = [chosen] if extra is None or chosen == n_p2p else [chosen, n_p2p]
         ransac_index = None if extra is None else n_p2p
-        chosen, tried = screen_candidates(poses_norm, [*first, *others], prep, config, ctx.cache, scorer, ransac_index)
+        # the search's poses after RANSAC's, each screened too (their own margin: screen_candidates)
+        search_indices = [i for i in range(first_searched, len(candidates)) if i != chosen]
+        chosen, tried = screen_candidates(
+            poses_norm,
+            [*first, *search_indices, *others],
+            prep,
+            config,
+            ctx.cache,
+            scorer,
+            ransac_index,
+            frozenset(range(first_searched, len(candidates))),
+        )
         screened = [
             Candidate(
                 name=candidates[i].name,

@@ -195,11 +195,14 @@ class Registrar:
             source = clean_points(source_mm, "source", min_points=self.config.min_points)
             centre = source[np.argmax(source[:, 0])]  # a deterministic cap of the surface
             count = len(source) // 3
-            threshold = self.config.ransac_candidate_visibility
-            if check_method_name(method or self.config.method).ransac_candidate and threshold > 0:
-                # a cap small enough for RANSAC's pose too: Open3D's first use and the source's FPFH are paid here,
-                # not by the first small view (M/N, a voxel share, follows the point share of a cap)
-                count = min(count, int(len(source) * threshold / 2))
+            small = [
+                t for t in (self.config.ransac_candidate_visibility, self.config.surface_search_visibility) if t > 0
+            ]
+            if check_method_name(method or self.config.method).ransac_candidate and small:
+                # a cap small enough for RANSAC's pose and the surface search too: Open3D's first use, the source's
+                # FPFH and the search's distance field are paid here, not by the first small view (M/N, a voxel
+                # share, follows the point share of a cap)
+                count = min(count, int(len(source) * min(small) / 2))
             near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(count, 3)]
             # the cap warms the rigid path; a judge there would build a model of no given surface (built below instead)
             capped = (
