@@ -284,8 +284,14 @@ POSE_SECTIONS = (PreprocessSection, FeatureSection, P2PSection, IcpSection, Free
 NOT_POSE_SETTINGS = ("weights_path", "sensor_at_frame_origin", "open3d_threads")
 
 
+# Pose settings added after calibrations began recording them, each with the value that gives the poses of before
+# (a calibration that lacks one was made with that value, not with an unknown one).
+ADDED_POSE_SETTINGS = {"surface_search_visibility": 0.0}
+
+
 def differing_settings(recorded: dict[str, Any], ours: dict[str, Any]) -> list[str]:
     """The names, sorted, whose value a calibration recorded differs from this run's (or one of them lacks)."""
+    recorded = {**{k: v for k, v in ADDED_POSE_SETTINGS.items() if k in ours}, **recorded}
     return sorted(k for k in set(recorded) | set(ours) if recorded.get(k) != ours.get(k))
 
 
