@@ -161,7 +161,8 @@ def test_verdict(out_root: str, threshold: float, name: str) -> tuple[list[str],
     if checks:
         return table + ["", *checks[:20]], f"The composition check failed on {len(checks)} case(s): no verdict.", False
     line = (
-        f"Threshold {threshold:.2f} keeps rules 1 and 3 on all four test sets: it becomes the default."
+        f"Threshold {threshold:.2f} keeps rules 1 and 3 on all four test sets (no veto; it ships only where the "
+        "validation's rules and time passed too: selection_surface_search.md)."
         if ok
         else f"Threshold {threshold:.2f} fails rule 1 or 3 on a test set: vetoed, the search stays off (0)."
     )
