@@ -31,7 +31,7 @@ from liver_p2p_reg.bench.surface_search_rule import (
     VAL_SETS,
     compose,
     method_rows,
-    test_verdict,
+    judged_on_test_sets,
     tre,
     validation_verdict,
 )
@@ -55,7 +55,7 @@ def main() -> int:
     if args.test is not None:
         name = f"test-{args.test:.2f}"
         run_candidate(name, "", TEST_SETS, [METHOD], args.out_root, settings={SETTING: args.test}, **runs)
-        table, line, _ = test_verdict(args.out_root, args.test, name)
+        table, line, _ = judged_on_test_sets(args.out_root, args.test, name)
         title = "The surface search on the real test sets, against the published default (rule: RULE_surface_search.md)"
         command = f"python scripts/select_surface_search.py --out-root {args.out_root} --test {args.test:.2f}"
         publish_report(title, table, line, command, args.test_report)

@@ -107,15 +107,25 @@ def threshold_verdict(out_root: str) -> tuple[list[str], str, float | None]:
             lo, hi = GROUPS[small]
             small_rows[t] += [r for r in options[f"{t:.2f}"] if lo <= r["visibility"] < hi]
     pooled = {t: tre_stats(small_rows[t])["mean"] for t in THRESHOLDS}
-    table += ["", "Mean RMS-TRE (mm) of the three sets' [0.05, 0.2) poses pooled, per threshold: "]
-    table[-1] += ", ".join(f"{t:.2f}: {pooled[t]:.2f}" + (" (passes 1-2)" if t in passing else "") for t in THRESHOLDS)
+    table += ["", pooled_line(pooled, passing, "1-2")]
     if checks:
         return table + ["", *checks[:20]], f"The composition check failed on {len(checks)} case(s): no verdict.", None
     if not passing:
         return table, "No threshold passes rules 1 and 2 on all three sets: the value stays 0.3.", None
-    best = min(pooled[t] for t in passing)
-    chosen = min(t for t in passing if pooled[t] <= best + TIE_MM)
+    chosen = lowest_pooled(pooled, passing, TIE_MM)
     return table, f"Threshold {chosen:.2f} passes rules 1 and 2 on all three sets and is chosen (rule 3 next).", chosen
+
+
+def pooled_line(pooled: dict[float, float], passing: set[float], rules: str) -> str:
+    """The table's last line: each threshold's pooled small-view mean, marked where it passes `rules`."""
+    marks = (f"{t:.2f}: {mean:.2f}" + (f" (passes {rules})" if t in passing else "") for t, mean in pooled.items())
+    return "Mean RMS-TRE (mm) of the three sets' [0.05, 0.2) poses pooled, per threshold: " + ", ".join(marks)
+
+
+def lowest_pooled(pooled: dict[float, float], passing: set[float], tie_mm: float) -> float:
+    """The passing threshold with the lowest pooled mean; within `tie_mm` of it, the smallest threshold."""
+    best = min(pooled[t] for t in passing)
+    return min(t for t in passing if pooled[t] <= best + tie_mm)
 
 
 def timed_method(threshold: float) -> str:

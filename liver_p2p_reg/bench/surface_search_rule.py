@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from liver_p2p_reg.bench.cases_csv import CASES_CSV, read_rows
+from liver_p2p_reg.bench.ransac_threshold_rule import lowest_pooled, pooled_line
 from liver_p2p_reg.bench.small_view_rule import NOISE, SLACK_MM, tre_stats
 
 METHOD = "learned-p2p-icp"
@@ -131,18 +132,16 @@ def validation_verdict(out_root: str) -> tuple[list[str], str, float | None]:
                 passing.discard(t)
             pooled[t] += [r for r in rows if GROUPS[POOLED][0] <= r["visibility"] < GROUPS[POOLED][1]]
     means = {t: tre_stats(rows)["mean"] for t, rows in pooled.items()}
-    table += ["", "Mean RMS-TRE (mm) of the three sets' [0.05, 0.2) poses pooled, per threshold: "]
-    table[-1] += ", ".join(f"{t:.2f}: {means[t]:.2f}" + (" (passes 1-3)" if t in passing else "") for t in THRESHOLDS)
+    table += ["", pooled_line(means, passing, "1-3")]
     if checks:
         return table + ["", *checks[:20]], f"The composition check failed on {len(checks)} case(s): no verdict.", None
     if not passing:
         return table, "No threshold passes rules 1-3 on all three sets: the search stays off (0).", None
-    best = min(means[t] for t in passing)
-    chosen = min(t for t in passing if means[t] <= best + TIE_MM)
+    chosen = lowest_pooled(means, passing, TIE_MM)
     return table, f"Threshold {chosen:.2f} passes rules 1-3 on all three sets and is chosen (time next).", chosen
 
 
-def test_verdict(out_root: str, threshold: float, name: str) -> tuple[list[str], str, bool]:
+def judged_on_test_sets(out_root: str, threshold: float, name: str) -> tuple[list[str], str, bool]:
     """The test sets' judgement of `threshold` against the published default: table, verdict line, whether it ships.
 
     The candidate's test runs are in OUT_ROOT/test-T/SET, made at T itself (so rows at M/N >= T must equal the
