@@ -80,12 +80,28 @@ def test_the_test_sets_judge_against_the_published_rows(tmp_path: Path, monkeypa
         _write(Path(published[name]), _rows(which=2))
         _write(tmp_path / "out" / "test-0.10" / name, {**_rows(which=2), **_rows(CASES[:1], which=3)})
     monkeypatch.setattr("liver_p2p_reg.bench.surface_search_rule.PUBLISHED", published)
-    table, line, ok = judged_on_test_sets(str(tmp_path / "out"), 0.10, "test-0.10")
+    table, line, ok, _ = judged_on_test_sets(str(tmp_path / "out"), 0.10, "test-0.10")
     assert ok and "keeps rules 1 and 3 on all four test sets" in line
     assert any("| real-test-v2 | 0.10 | [0.05, 0.10) | 2 | 5.50 | 100.0 % | 0 | 2 |" in row for row in table)
     # a row at M/N >= 0.10 that differs from the published one voids the judgement
     _write(tmp_path / "out" / "test-0.10b" / "real-test-v2", _rows(CASES[:3] + [(0.17, 0.18, 7.0, 9.0)], which=3))
     for name in list(PUBLISHED)[1:]:
         _write(tmp_path / "out" / "test-0.10b" / name, _rows(which=2))
-    _, line, ok = judged_on_test_sets(str(tmp_path / "out"), 0.10, "test-0.10b")
+    _, line, ok, _ = judged_on_test_sets(str(tmp_path / "out"), 0.10, "test-0.10b")
     assert not ok and "composition check failed" in line
+
+
+def test_the_test_sets_judge_against_a_reference_run_and_report_the_published_rows(tmp_path: Path, monkeypatch) -> None:
+    published = {}
+    for name in PUBLISHED:
+        published[name] = str(tmp_path / "published" / name)
+        _write(Path(published[name]), _rows(CASES[:4] + [(0.25, 0.26, 4.00001, 4.0)], which=2))  # another CPU
+        _write(tmp_path / "out" / "ref" / name, _rows(which=2))
+        _write(tmp_path / "out" / "test-0.10" / name, {**_rows(which=2), **_rows(CASES[:1], which=3)})
+    monkeypatch.setattr("liver_p2p_reg.bench.surface_search_rule.PUBLISHED", published)
+    table, line, ok, notes = judged_on_test_sets(str(tmp_path / "out"), 0.10, "test-0.10", "ref")
+    assert ok and any("| real-test-v2 | default (0), this run | [0.05, 0.10) | 2 | 23.00 |" in row for row in table)
+    assert (
+        notes[0]
+        == "real-test-v2: 5 rows beside the published ones, 1 differing, 0 by more than 0.01 mm, the largest by 1e-05 mm"
+    )
