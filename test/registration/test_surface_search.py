@@ -3,6 +3,8 @@ default's other candidates on small views."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from synthetic_cases import partial_case
@@ -138,13 +140,22 @@ def test_surface_search_visibility_out_of_range_is_refused(value: float) -> None
 
 
 def test_a_calibration_made_before_the_setting_holds_for_the_search_off_only() -> None:
-    from liver_p2p_reg.registration.error_calibration import calibration_note, read_calibration
+    import json
 
-    calibration = read_calibration()  # the bundled one
-    if "surface_search_visibility" in (calibration.pose or {}):
-        recorded = calibration.pose["surface_search_visibility"]
-        assert calibration_note(calibration, METHOD, Config(surface_search_visibility=recorded)) == ""
-        return
-    assert calibration_note(calibration, METHOD, Config(surface_search_visibility=0.0)) == ""
-    note = calibration_note(calibration, METHOD, Config(surface_search_visibility=0.1))
-    assert "surface_search_visibility" in note and "not known" in note
+    from liver_p2p_reg.registration.error_calibration import (
+        BUNDLED_CALIBRATION,
+        calibration_from_dict,
+        calibration_note,
+        read_calibration,
+    )
+
+    bundled = read_calibration()  # records the search off
+    assert bundled.pose["surface_search_visibility"] == 0.0
+    assert calibration_note(bundled, METHOD, Config()) == ""
+    raw = json.loads(Path(BUNDLED_CALIBRATION).read_text())
+    del raw["pose"]["surface_search_visibility"]  # as a file made before the setting existed
+    older = calibration_from_dict(raw)
+    assert calibration_note(older, METHOD, Config(surface_search_visibility=0.0)) == ""
+    for calibration in (bundled, older):
+        note = calibration_note(calibration, METHOD, Config(surface_search_visibility=0.1))
+        assert "surface_search_visibility" in note and "not known" in note
