@@ -107,7 +107,9 @@ def test_the_default_screens_searched_poses_on_small_views_only(small) -> None:
         result = Registrar(config).register(view[0], view[1], method=METHOD)
         names = [c.name for c in result.candidates]
         assert (result.visibility < 0.2) is below and ("search" in result.runtime_ms) is below
-        assert (f"surface-search-{KEEP - 1}" in names or "surface-search-1" in names) is below
+        searched = [n for n in names if n.startswith("surface-search-")]
+        assert searched == ([f"surface-search-{k}" for k in range(len(searched))] if below else [])
+        assert (1 < len(searched) <= KEEP) is below
     off = Registrar(Config(k=2)).register(source, target, method=METHOD)
     assert Config().surface_search_visibility == 0.0 and "search" not in off.runtime_ms
     on = Registrar(config).register(source, target, method=METHOD, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t)
@@ -118,6 +120,20 @@ def test_the_default_screens_searched_poses_on_small_views_only(small) -> None:
         == Registrar(config).register(source, target, method=METHOD).T_target_source.tobytes()
     )
     assert np.allclose(transform_points(on.T_target_source, fid_s), fid_t, atol=5.0)
+
+
+def test_the_searchs_pose_answers_where_p2p_and_ransac_have_none(small) -> None:
+    from liver_p2p_reg.errors import RegistrationError
+
+    source, target, _, fid_s, fid_t = small
+    # no dual-softmax confidence reaches 1: every P2P candidate fails; no RANSAC candidate either
+    config = Config(k=2, confidence_threshold=1.0, ransac_candidate_visibility=0.0)
+    with pytest.raises(RegistrationError, match="no candidate"):
+        Registrar(config).register(source, target, method=METHOD)
+    result = Registrar(config.replace(surface_search_visibility=1.0)).register(
+        source, target, method=METHOD, source_fiducials_mm=fid_s, target_fiducials_mm=fid_t
+    )
+    assert result.candidates[result.chosen].name.startswith("surface-search-") and result.rms_tre_mm < 3.0
 
 
 def test_other_methods_never_search(small) -> None:
