@@ -59,7 +59,7 @@ def screen_candidates(
     """
     tried: list[np.ndarray] = []
     picked: list[int] = []
-    counted = 0  # screened candidates other than `extra`
+    counted = 0  # screened candidates other than `extra` and `searched`
     for i in order:
         always = i == extra or i in searched
         if not always and counted >= config.refine_candidates:

@@ -202,7 +202,8 @@ class Registrar:
                 # a cap small enough for RANSAC's pose and the surface search too: Open3D's first use, the source's
                 # FPFH and the search's distance field are paid here, not by the first small view (M/N, a voxel
                 # share, follows the point share of a cap)
-                count = min(count, int(len(source) * min(small) / 2))
+                # (never below min_points: register refuses a smaller cap, and nothing at all would be warmed)
+                count = max(min(count, int(len(source) * min(small) / 2)), self.config.min_points)
             near = np.argsort(np.linalg.norm(source - centre, axis=1))[: max(count, 3)]
             # the cap warms the rigid path; a judge there would build a model of no given surface (built below instead)
             capped = (

@@ -11,7 +11,7 @@ a distance field, truncated so a few points off the surface do not dominate). Th
 screened candidates; the screening's short ICP and its residual decide among all, as for RANSAC's pose.
 
 Built once per preop model (`SearchModel`, cached with the Registrar's other per-source data; the node builds it
-at warm-up): the distance field (~0.3 s) and the anchors' normals at a few neighbourhood radii.
+at warm-up): the distance field and the anchors' normals at a few neighbourhood radii (0.2-0.5 s in all).
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ VIEW_POINTS = 64  # the view's points a pose is scored on (an even subsample)
 KEEP = 16  # the best-scoring distinct poses handed to the screening
 AXIS_POINTS = 8  # the view's points nearest its normal axis give the height of its centre above the surface
 DISTINCT_ROTATION = 0.5  # Frobenius distance of rotations (~20 deg) ...
-DISTINCT_OFFSET_NORM = 0.1  # ... or anchor distance beyond which two kept poses count as distinct
+DISTINCT_OFFSET_NORM = 0.1  # ... or origin distance (anchor lowered to the view's centre) beyond which two kept
+# poses count as distinct
 # The screening takes a searched pose only where its residual after the short ICP is below this share of every
 # other candidate's (a pose no match supports must fit clearly better; 0.93 from the look in RULE_surface_search.md)
 SEARCH_MARGIN = 0.93

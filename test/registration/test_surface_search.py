@@ -175,3 +175,10 @@ def test_a_calibration_made_before_the_setting_holds_for_the_search_off_only() -
     for calibration in (bundled, older):
         note = calibration_note(calibration, METHOD, Config(surface_search_visibility=0.1))
         assert "surface_search_visibility" in note and "not known" in note
+
+
+def test_a_tiny_threshold_still_warms_the_rest() -> None:
+    source = partial_case(np.random.default_rng(11), share=0.12)[0]
+    registrar = Registrar(Config(k=2, surface_search_visibility=0.001))  # a cap of 0.05 % of the points
+    registrar.warm_up(source, METHOD)
+    assert any(key.startswith("icp-source-index:") for key in registrar.cache)  # the cap was registered
