@@ -22,7 +22,8 @@ def _by_method(rows: list[dict], method: str) -> dict[tuple[str, float], dict]:
     return {_key(r): r for r in rows if r["method"] == method}
 
 
-def _tre(row: dict) -> float:
+def row_tre(row: dict) -> float:
+    """A benchmark row's RMS-TRE, infinite for a failed registration."""
     return float("inf") if row["failed"] else row["rms_tre_mm"]
 
 
@@ -43,14 +44,19 @@ def composed_rows(rows: list[dict], threshold: float) -> list[dict]:
 def shared_path_mismatches(rows: list[dict]) -> list[str]:
     """Cases where the two runs should agree bit for bit and do not: M/N differs, or M/N >= RUN_THRESHOLD (no
     RANSAC pose) and the RMS-TRE or the failure differs."""
-    ref, cand = _by_method(rows, REFERENCE), _by_method(rows, CANDIDATE)
+    return path_mismatches(_by_method(rows, REFERENCE), _by_method(rows, CANDIDATE), RUN_THRESHOLD, "no RANSAC pose")
+
+
+def path_mismatches(reference: dict, candidate: dict, threshold: float, without: str) -> list[str]:
+    """Of two runs' rows by case, the cases that must agree bit for bit and do not: M/N differs, or M/N >= `threshold`
+    (the candidate's extra work, `without`, did not run) and the RMS-TRE or the failure differs."""
     bad = []
-    for k in sorted(ref.keys() & cand.keys()):
-        a, b = ref[k], cand[k]
+    for k in sorted(reference.keys() & candidate.keys()):
+        a, b = reference[k], candidate[k]
         if a["method_visibility"] != b["method_visibility"]:
             bad.append(f"{k[0]} (+{k[1]} mm): M/N {a['method_visibility']} vs {b['method_visibility']}")
-        elif a["method_visibility"] >= RUN_THRESHOLD and _tre(a) != _tre(b):
-            bad.append(f"{k[0]} (+{k[1]} mm): RMS-TRE {_tre(a)} vs {_tre(b)} with no RANSAC pose")
+        elif a["method_visibility"] >= threshold and row_tre(a) != row_tre(b):
+            bad.append(f"{k[0]} (+{k[1]} mm): RMS-TRE {row_tre(a)} vs {row_tre(b)} with {without}")
     return bad
 
 
@@ -59,9 +65,9 @@ def real_run_mismatches(composed: list[dict], run_rows: list[dict]) -> list[str]
     real = _by_method(run_rows, CANDIDATE)
     bad = [f"{k[0]} (+{k[1]} mm): missing from the real run" for k in map(_key, composed) if k not in real]
     bad += [
-        f"{_key(r)[0]} (+{_key(r)[1]} mm): composed {_tre(r)} vs run {_tre(real[_key(r)])}"
+        f"{_key(r)[0]} (+{_key(r)[1]} mm): composed {row_tre(r)} vs run {row_tre(real[_key(r)])}"
         for r in composed
-        if _key(r) in real and _tre(r) != _tre(real[_key(r)])
+        if _key(r) in real and row_tre(r) != row_tre(real[_key(r)])
     ]
     return bad
 

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from liver_p2p_reg.bench.cases_csv import CASES_CSV, read_rows
-from liver_p2p_reg.bench.ransac_threshold_rule import lowest_pooled, pooled_line
+from liver_p2p_reg.bench.ransac_threshold_rule import lowest_pooled, path_mismatches, pooled_line
+from liver_p2p_reg.bench.ransac_threshold_rule import row_tre as tre
 from liver_p2p_reg.bench.small_view_rule import NOISE, SLACK_MM, tre_stats
 
 METHOD = "learned-p2p-icp"
@@ -42,11 +43,6 @@ def key(row: dict) -> tuple[str, float]:
     return row["case_id"], row["added_noise_mm"]
 
 
-def tre(row: dict) -> float:
-    """A row's RMS-TRE, infinite for a failed registration."""
-    return float("inf") if row["failed"] else row["rms_tre_mm"]
-
-
 def method_rows(path: Path) -> dict[tuple[str, float], dict]:
     """The default's rows of one benchmark folder's cases.csv, by case."""
     return {key(r): r for r in read_rows(path / CASES_CSV) if r["method"] == METHOD}
@@ -68,14 +64,7 @@ def compose(reference: dict, candidate: dict, threshold: float) -> list[dict]:
 def mismatches(reference: dict, candidate: dict, threshold: float = RUN_THRESHOLD) -> list[str]:
     """Cases the two runs must agree on bit for bit and do not: M/N differs, or M/N >= `threshold` (no search)
     and the RMS-TRE or the failure differs."""
-    bad = []
-    for k in sorted(candidate.keys() & reference.keys()):
-        a, b = reference[k], candidate[k]
-        if a["method_visibility"] != b["method_visibility"]:
-            bad.append(f"{k[0]} (+{k[1]} mm): M/N {a['method_visibility']} vs {b['method_visibility']}")
-        elif a["method_visibility"] >= threshold and tre(a) != tre(b):
-            bad.append(f"{k[0]} (+{k[1]} mm): RMS-TRE {tre(a)} vs {tre(b)} with no search")
-    return bad
+    return path_mismatches(reference, candidate, threshold, "no search")
 
 
 def group_stats(rows: list[dict]) -> dict[str, dict[str, float]]:
