@@ -15,8 +15,8 @@ from liver_p2p_reg.bench.surface_search_rule import (
     REFERENCE_RUN,
     VAL_SETS,
     compose,
-    mismatches,
     judged_on_test_sets,
+    mismatches,
     validation_verdict,
 )
 
