@@ -21,6 +21,7 @@ from pathlib import Path
 
 from liver_p2p_reg.bench.candidate_runs import publish_report, run_candidate
 from liver_p2p_reg.bench.ransac_candidate_rule import median_ms
+from liver_p2p_reg.bench.ransac_threshold_rule import run_differences
 from liver_p2p_reg.bench.surface_search_rule import (
     CANDIDATE_RUN,
     METHOD,
@@ -34,7 +35,6 @@ from liver_p2p_reg.bench.surface_search_rule import (
     compose,
     judged_on_test_sets,
     method_rows,
-    tre,
     validation_verdict,
 )
 
@@ -77,12 +77,7 @@ def main() -> int:
             method_rows(root / REFERENCE_RUN / CHECK_SET), method_rows(root / CANDIDATE_RUN / CHECK_SET), chosen
         )
         real = method_rows(root / name / CHECK_SET)
-        bad = [r["case_id"] for r in composed if (r["case_id"], r["added_noise_mm"]) not in real]
-        bad += [
-            r["case_id"]
-            for r in composed
-            if (r["case_id"], r["added_noise_mm"]) in real and tre(r) != tre(real[(r["case_id"], r["added_noise_mm"])])
-        ]
+        bad = run_differences(composed, real)
         table += [
             "",
             f"Real run at {chosen:.2f} on {CHECK_SET}: {len(real)} rows, {len(bad)} differing from the "

@@ -62,7 +62,11 @@ def path_mismatches(reference: dict, candidate: dict, threshold: float, without:
 
 def real_run_mismatches(composed: list[dict], run_rows: list[dict]) -> list[str]:
     """Cases where a real run of the chosen threshold (its CANDIDATE rows) differs from the composed rows."""
-    real = _by_method(run_rows, CANDIDATE)
+    return run_differences(composed, _by_method(run_rows, CANDIDATE))
+
+
+def run_differences(composed: list[dict], real: dict) -> list[str]:
+    """Cases where a real run's rows (by case) are missing or differ from the composed rows."""
     bad = [f"{k[0]} (+{k[1]} mm): missing from the real run" for k in map(_key, composed) if k not in real]
     bad += [
         f"{_key(r)[0]} (+{_key(r)[1]} mm): composed {row_tre(r)} vs run {row_tre(real[_key(r)])}"

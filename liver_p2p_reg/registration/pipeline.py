@@ -220,16 +220,16 @@ def _matched_and_screened(
         first = [chosen] if extra is None or chosen == n_p2p else [chosen, n_p2p]
         ransac_index = None if extra is None else n_p2p
         # the search's poses after RANSAC's, each screened too (their own margin: screen_candidates)
-        search_indices = [i for i in range(first_searched, len(candidates)) if i != chosen]
+        search_indices = frozenset(range(first_searched, len(candidates)))
         chosen, tried = screen_candidates(
             poses_norm,
-            [*first, *search_indices, *others],
+            [*first, *sorted(search_indices - {chosen}), *others],
             prep,
             config,
             ctx.cache,
             scorer,
             ransac_index,
-            frozenset(range(first_searched, len(candidates))),
+            search_indices,
         )
         screened = [
             Candidate(

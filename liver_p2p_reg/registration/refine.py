@@ -20,8 +20,12 @@ def axis_angle_rotation(omega: np.ndarray) -> np.ndarray:
     angle = float(np.linalg.norm(omega))
     if angle < 1e-12:
         return np.eye(3)
-    k = omega / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return rotation_about(omega / angle, angle)
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """The rotation by `angle` (radians) about the unit `axis` (Rodrigues)."""
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 

@@ -25,6 +25,7 @@ from scipy.ndimage import distance_transform_edt
 from liver_p2p_reg.registration.context import remember_latest
 from liver_p2p_reg.registration.nearest import NearestIndex
 from liver_p2p_reg.registration.preprocess import PreprocessedPair, voxel_downsample
+from liver_p2p_reg.registration.refine import rotation_about
 
 CELL_NORM = 0.025  # the distance field's cell edge (normalized units, ~3 mm on a liver)
 PAD_NORM = 0.3  # the field reaches this far beyond the source's box (a pose's points beyond it score TRUNCATE)
@@ -65,16 +66,19 @@ def build_search_model(source_full: np.ndarray, source: np.ndarray) -> SearchMod
     index = NearestIndex(source)
     anchors = source[index.query(voxel_downsample(source, ANCHOR_VOXEL_NORM))[1]]
     centroid = source.mean(axis=0)
-    normals = tuple(_patch_normals(source, anchors, centroid, radius) for radius in NORMAL_RADII_NORM)
+    from scipy.spatial import cKDTree  # ball queries (pykdtree has none)
+
+    balls = cKDTree(source)
+    normals = tuple(_patch_normals(source, balls, anchors, centroid, radius) for radius in NORMAL_RADII_NORM)
     return SearchModel(lower, shape, field.reshape(-1), anchors, normals)
 
 
-def _patch_normals(source: np.ndarray, anchors: np.ndarray, centroid: np.ndarray, radius: float) -> np.ndarray:
+def _patch_normals(
+    source: np.ndarray, balls: Any, anchors: np.ndarray, centroid: np.ndarray, radius: float
+) -> np.ndarray:
     """Each anchor's normal by PCA of the source points within `radius`, turned away from the centroid."""
-    from scipy.spatial import cKDTree  # ball queries (pykdtree has none)
-
     normals = np.empty_like(anchors)
-    for k, near in enumerate(cKDTree(source).query_ball_point(anchors, radius)):
+    for k, near in enumerate(balls.query_ball_point(anchors, radius)):
         points = source[near] if len(near) >= 3 else source
         normal = np.linalg.eigh(np.cov(points.T))[1][:, 0]
         normals[k] = normal if normal @ (anchors[k] - centroid) >= 0 else -normal
@@ -108,12 +112,6 @@ def aligning_rotations(vectors: np.ndarray, to: np.ndarray) -> np.ndarray:
     return rotations
 
 
-def turn_about(axis: np.ndarray, angle: float) -> np.ndarray:
-    """The rotation by `angle` (radians) about the unit `axis` (Rodrigues)."""
-    skew = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * skew + (1.0 - np.cos(angle)) * skew @ skew
-
-
 def search_poses(prep: PreprocessedPair, model: SearchModel) -> list[np.ndarray]:
     """Up to KEEP distinct normalized poses (source -> target), best-scoring first.
 
@@ -136,7 +134,7 @@ def search_poses(prep: PreprocessedPair, model: SearchModel) -> list[np.ndarray]
         off_axis = np.linalg.norm(points - np.outer(height, axis), axis=1)
         centre = float(np.mean(height[np.argsort(off_axis, kind="stable")[:AXIS_POINTS]]))
         onto = aligning_rotations(normals, axis)  # (A, 3, 3): each anchor's normal onto the view's
-        turns = [turn_about(axis, a) for a in angles]
+        turns = [rotation_about(axis, a) for a in angles]
         # a view point x goes to R^T x + o in the source frame, R = turn @ onto, o = anchor - centre * normal;
         # computed in field cells, float32 (a coarse score: ~1e-7 relative rounding is far below a cell)
         origin = anchors - centre * normals

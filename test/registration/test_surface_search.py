@@ -13,7 +13,7 @@ from liver_p2p_reg import Config, InputError, Registrar
 from liver_p2p_reg.metrics import transform_points
 from liver_p2p_reg.registration.hypotheses import screen_candidates
 from liver_p2p_reg.registration.preprocess import preprocess_pair, residual_norm
-from liver_p2p_reg.registration.refine import refine_poses
+from liver_p2p_reg.registration.refine import refine_poses, rotation_about
 from liver_p2p_reg.registration.surface_search import (
     KEEP,
     SEARCH_MARGIN,
@@ -21,7 +21,6 @@ from liver_p2p_reg.registration.surface_search import (
     aligning_rotations,
     build_search_model,
     search_poses,
-    turn_about,
 )
 
 METHOD = "learned-p2p-icp"
@@ -53,7 +52,7 @@ def test_aligning_rotations_are_rotations_onto_the_vector() -> None:
     assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9) and np.allclose(np.linalg.det(R), 1.0)
     assert np.allclose(R[1], np.eye(3))
     axis = np.array([0.0, 0.0, 1.0])
-    assert np.allclose(turn_about(axis, np.pi / 2) @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    assert np.allclose(rotation_about(axis, np.pi / 2) @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
 
 
 def test_distance_field_is_zero_on_the_surface_and_truncated_away_from_it(small) -> None:
@@ -87,7 +86,7 @@ def test_a_searched_pose_must_fit_clearly_better(small) -> None:
     right = _true_norm(prep, T)
     wrong = right @ np.diag([-1.0, -1.0, 1.0, 1.0])  # 180 deg about z: ICP cannot fix it
     nudge = np.eye(4)
-    nudge[:3, :3], nudge[:3, 3] = turn_about(np.array([0.0, 0.6, 0.8]), 0.1), [0.06, 0.0, 0.0]
+    nudge[:3, :3], nudge[:3, 3] = rotation_about(np.array([0.0, 0.6, 0.8]), 0.1), [0.06, 0.0, 0.0]
     near = right @ nudge  # ~6 deg and 0.06 off: not a near-duplicate, converges where `right` does
     # a P2P candidate in the true basin keeps the choice against an equally good searched pose (the margin) ...
     chosen, tried = screen_candidates([near, wrong, right], [0, 2], prep, config, {}, searched=frozenset({2}))
